@@ -1,0 +1,237 @@
+"""The noisy spiking cue-association T-maze (paper §3.1 and appendix 5.4)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import gymnasium
+import numpy as np
+from gymnasium import spaces
+
+#: Spike probabilities per ms ``(cue event, cue rest, noise population)`` of the paper's two noise levels
+#: (appendix 5.4, "Cue-Association Training Details").
+NOISE_LEVELS: dict[str, tuple[float, float, float]] = {
+    "low": (0.75, 0.05, 0.2),
+    "high": (0.65, 0.25, 0.4),
+}
+
+LEFT, RIGHT = 0, 1
+# Index of each population in the input vector; each occupies ``neurons_per_population`` consecutive neurons.
+_LEFT_POP, _RIGHT_POP, _DECISION_POP, _NOISE_POP = 0, 1, 2, 3
+_N_POPULATIONS = 4
+
+
+def _check_int(name: str, value: Any, minimum: int) -> int:
+    """Return ``value`` as an int, or raise a one-line ``ValueError`` naming it."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"{name}={value!r} must be an integer >= {minimum}")
+    return int(value)
+
+
+def _check_probability(name: str, value: Any) -> float:
+    """Return ``value`` as a float in [0, 1], or raise a one-line ``ValueError`` naming it."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise ValueError(f"{name}={value!r} must be a probability in [0, 1]")
+    if not 0.0 <= float(value) <= 1.0:  # also rejects NaN
+        raise ValueError(f"{name}={value!r} must be a probability in [0, 1]")
+    return float(value)
+
+
+class TMazeCueEnv(gymnasium.Env):
+    """Cue-association T-maze with spiking input: choose the side that showed more cues.
+
+    Four populations of ``neurons_per_population`` input neurons (default 10 each, 40 inputs in the order left cue,
+    right cue, decision cue, noise) emit independent Bernoulli spikes every millisecond. ``n_cues`` cues, each
+    randomly left or right, are shown one after another; after a rest delay ``r`` drawn from ``rest_choices_ms``
+    the decision population announces the T-junction and the agent must name the side with more cues.
+
+    Timeline of one episode (defaults; ``L``/``R`` = one cue slot of ``cue_ms``, ``.`` = gap of ``gap_ms``)::
+
+        | lead |  L  .  R  .  R  .  L  .  R  .  L  .  L  |   rest r   | decision |
+        | 0-24 | 7 cues x 25 ms, 6 gaps x 25 ms = 325 ms | 45/75/105  |  25 ms   |
+        ^ reset                                                         ^ the last frame: its action counts
+
+    * The cue phase lasts ``n_cues * cue_ms + (n_cues - 1) * gap_ms`` ms. The gaps keep consecutive cues apart as
+      in the paper's raster figure (Fig. 1B); 25 ms (one cue length) is the longest round gap for which the longest
+      episode still fits the 500 ms horizon of appendix 5.4 (with a 30 ms gap it would take 505 ms).
+    * The rest delay is exactly ``r`` ms and the decision period closes the episode. So that the episode is a whole
+      number of frames and the decision period is the end of the last frame, a *lead-in* of
+      ``(-(cue phase + r + decision_ms)) mod frame_ms`` ms of cue-rest activity precedes the first cue.
+      Defaults: ``r`` = 45, 75, 105 ms gives lead-ins of 5, 0, 20 ms and episodes of 400, 425, 475 ms = 16, 17,
+      19 frames of 25 ms.
+    * Spike probabilities per ms: the population of the presented side fires at ``p_cue_event`` during its cue slot,
+      and the decision population during the decision period; every cue population (left, right, decision) fires
+      at ``p_cue_rest`` whenever it is not active; the noise population fires at ``p_noise`` throughout.
+
+    Observation: the 0/1 spike raster of one frame, shape ``(frame_ms, 4 * neurons_per_population)``, float32
+    (``frame_ms`` = 25 by default: the policy sees every millisecond). ``reset`` returns the first frame and each
+    ``step`` the next; the observation returned by the final step is all zeros. Action: ``Discrete(2)``,
+    0 = left, 1 = right. Only the action taken on the last frame counts: it earns +1 if it names the side with
+    more cues and -1 otherwise, and ends the episode (``terminated``); every other step earns 0. The final step's
+    ``info`` holds ``"is_success"`` (read by Stable-Baselines3 for ``rollout/success_rate``) and
+    ``"correct_action"``. After ``reset`` the episode's cue sides are in :attr:`cues` and its rest delay in
+    :attr:`rest_ms`.
+
+    The whole episode raster is drawn, vectorised, at ``reset`` from the environment's ``np_random``, so
+    ``reset(seed=s)`` fixes the cues, the rest delay and every spike.
+
+    :param noise: noise level, ``"low"`` or ``"high"``; it sets the spike probabilities left as ``None``.
+    :param n_cues: number of cues; odd, so that one side always has more.
+    :param cue_ms: duration of one cue in ms.
+    :param gap_ms: silence (cue-rest activity) between consecutive cues in ms.
+    :param rest_choices_ms: rest delays between the last cue and the decision period, drawn uniformly per episode.
+    :param decision_ms: duration of the decision period in ms.
+    :param frame_ms: milliseconds per observation (one environment step).
+    :param neurons_per_population: neurons in each of the four populations.
+    :param p_cue_event: spike probability per ms of an active cue population; ``None``: from ``noise``.
+    :param p_cue_rest: spike probability per ms of an inactive cue population; ``None``: from ``noise``.
+    :param p_noise: spike probability per ms of the noise population; ``None``: from ``noise``.
+    :param horizon_ms: upper bound on the episode length in ms; the longest possible episode must fit.
+    :param cues: a fixed cue sequence (``n_cues`` values, 0 = left, 1 = right) shown in every episode instead of
+        random cues, e.g. all-left for figures. The random stream is consumed as with random cues, so for one seed
+        the rest delay and the noise population's spikes do not depend on the cues.
+    :param render_mode: only ``None`` is supported.
+    """
+
+    metadata = {"render_modes": []}
+
+    def __init__(
+        self,
+        noise: str = "low",
+        n_cues: int = 7,
+        cue_ms: int = 25,
+        gap_ms: int = 25,
+        rest_choices_ms: Sequence[int] = (45, 75, 105),
+        decision_ms: int = 25,
+        frame_ms: int = 25,
+        neurons_per_population: int = 10,
+        p_cue_event: float | None = None,
+        p_cue_rest: float | None = None,
+        p_noise: float | None = None,
+        horizon_ms: int = 500,
+        cues: Sequence[int] | None = None,
+        render_mode: str | None = None,
+    ) -> None:
+        if noise not in NOISE_LEVELS:
+            raise ValueError(f"noise={noise!r} is not one of {tuple(NOISE_LEVELS)}")
+        if render_mode is not None:
+            raise ValueError(f"render_mode={render_mode!r} is not supported; TMazeCueEnv only accepts None")
+        self.n_cues = _check_int("n_cues", n_cues, 1)
+        if self.n_cues % 2 == 0:
+            raise ValueError(f"n_cues={n_cues!r} must be odd so that one side always shows more cues")
+        self.cue_ms = _check_int("cue_ms", cue_ms, 1)
+        self.gap_ms = _check_int("gap_ms", gap_ms, 0)
+        self.decision_ms = _check_int("decision_ms", decision_ms, 1)
+        self.frame_ms = _check_int("frame_ms", frame_ms, 1)
+        self.neurons_per_population = _check_int("neurons_per_population", neurons_per_population, 1)
+        self.horizon_ms = _check_int("horizon_ms", horizon_ms, 1)
+        if isinstance(rest_choices_ms, (str, bytes)) or not isinstance(rest_choices_ms, Sequence) or not rest_choices_ms:
+            raise ValueError(f"rest_choices_ms={rest_choices_ms!r} must be a non-empty sequence of integers >= 0")
+        self.rest_choices_ms = tuple(_check_int("rest_choices_ms", r, 0) for r in rest_choices_ms)
+
+        defaults = NOISE_LEVELS[noise]
+        self.noise = noise
+        self.p_cue_event = _check_probability("p_cue_event", defaults[0] if p_cue_event is None else p_cue_event)
+        self.p_cue_rest = _check_probability("p_cue_rest", defaults[1] if p_cue_rest is None else p_cue_rest)
+        self.p_noise = _check_probability("p_noise", defaults[2] if p_noise is None else p_noise)
+
+        if cues is not None:
+            if len(cues) != self.n_cues or any(c not in (LEFT, RIGHT) for c in cues):
+                raise ValueError(f"cues={cues!r} must be {self.n_cues} values, each 0 (left) or 1 (right)")
+            cues = [int(c) for c in cues]
+        self._fixed_cues = cues
+
+        self.cue_phase_ms = self.n_cues * self.cue_ms + (self.n_cues - 1) * self.gap_ms
+        longest = max(self.episode_length_ms(r) for r in self.rest_choices_ms)
+        if longest > self.horizon_ms:
+            raise ValueError(
+                f"horizon_ms={horizon_ms!r} is shorter than the longest episode ({longest} ms with lead-in); "
+                "shorten the cues, gaps, rest or decision period, or raise horizon_ms"
+            )
+
+        self.n_inputs = _N_POPULATIONS * self.neurons_per_population
+        self.observation_space = spaces.Box(0.0, 1.0, shape=(self.frame_ms, self.n_inputs), dtype=np.float32)
+        self.action_space = spaces.Discrete(2)
+        self.render_mode = None
+
+        #: Sides of the current episode's cues (0 = left, 1 = right), in order of presentation.
+        self.cues: list[int] = []
+        #: Rest delay of the current episode in ms.
+        self.rest_ms: int | None = None
+        self._frames = np.zeros((0, self.frame_ms, self.n_inputs), dtype=np.float32)
+        self._frame = 0
+
+    def lead_in_ms(self, rest_ms: int) -> int:
+        """Cue-rest lead-in before the first cue that makes an episode with rest delay ``rest_ms`` whole frames.
+
+        :param rest_ms: the episode's rest delay in ms.
+        :return: lead-in in ms, in ``[0, frame_ms)``.
+        """
+        return -(self.cue_phase_ms + rest_ms + self.decision_ms) % self.frame_ms
+
+    def episode_length_ms(self, rest_ms: int) -> int:
+        """Length of an episode with rest delay ``rest_ms``, lead-in included: a multiple of ``frame_ms``.
+
+        :param rest_ms: the episode's rest delay in ms.
+        :return: episode length in ms.
+        """
+        return self.lead_in_ms(rest_ms) + self.cue_phase_ms + rest_ms + self.decision_ms
+
+    @property
+    def correct_action(self) -> int:
+        """The side with more cues in the current episode (0 = left, 1 = right)."""
+        return int(2 * sum(self.cues) > self.n_cues)
+
+    @property
+    def n_frames(self) -> int:
+        """Number of frames (environment steps) of the current episode."""
+        return len(self._frames)
+
+    def _spike_probabilities(self) -> np.ndarray:
+        """Per-ms, per-population spike probabilities of the current episode, shape ``(episode_ms, 4)``."""
+        total = self.episode_length_ms(self.rest_ms)
+        p = np.full((total, _N_POPULATIONS), self.p_cue_rest)
+        p[:, _NOISE_POP] = self.p_noise
+        first = self.lead_in_ms(self.rest_ms)
+        for i, side in enumerate(self.cues):
+            start = first + i * (self.cue_ms + self.gap_ms)
+            p[start : start + self.cue_ms, _LEFT_POP if side == LEFT else _RIGHT_POP] = self.p_cue_event
+        p[total - self.decision_ms :, _DECISION_POP] = self.p_cue_event
+        return p
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
+        """Draw a new episode (cues, rest delay, all spikes) and return its first frame.
+
+        :param seed: seed of the environment's random generator.
+        :param options: unused.
+        :return: the first frame and an empty info dict.
+        """
+        super().reset(seed=seed)
+        cues = self.np_random.integers(LEFT, RIGHT + 1, size=self.n_cues).tolist()
+        self.cues = list(self._fixed_cues) if self._fixed_cues is not None else cues
+        self.rest_ms = int(self.np_random.choice(self.rest_choices_ms))
+        p = np.repeat(self._spike_probabilities(), self.neurons_per_population, axis=1)
+        raster = self.np_random.random(p.shape) < p
+        self._frames = raster.astype(np.float32).reshape(-1, self.frame_ms, self.n_inputs)
+        self._frame = 0
+        return self._frames[0].copy(), {}
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
+        """Advance one frame; on the last frame the action is the decision and ends the episode.
+
+        :param action: 0 (left) or 1 (right).
+        :return: next frame, reward, terminated, truncated (always False), info.
+        """
+        if not self.action_space.contains(action):
+            raise ValueError(f"action={action!r} is not in {self.action_space}")
+        if self._frame >= len(self._frames):
+            raise RuntimeError("the episode has ended (or never started): call reset() before step()")
+        self._frame += 1
+        if self._frame < len(self._frames):
+            return self._frames[self._frame].copy(), 0.0, False, False, {}
+        success = int(action) == self.correct_action
+        info = {"is_success": success, "correct_action": self.correct_action}
+        terminal = np.zeros(self.observation_space.shape, dtype=np.float32)
+        return terminal, 1.0 if success else -1.0, True, False, info
+

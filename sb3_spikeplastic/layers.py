@@ -1,0 +1,137 @@
+"""A fully connected layer of SRM neurons whose synapses are plastic: efficacy :math:`W + \\alpha \\odot E`.
+
+Within one plasticity interval the efficacy is constant and the network is feed-forward, so a layer processes
+the whole interval at once: one (batched) matrix product for the synaptic input, a Toeplitz product for the PSP
+filter, and only the element-wise threshold/refractory recursion runs step by step (SpikePropamine §2.2 with
+SLAYER's SRM neuron).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple, Optional
+
+import torch
+from torch import Tensor, nn
+
+from .neurons import AlphaFilterState, SRMParameters, alpha_filter_matrices, alpha_kernel_sum, srm_spikes
+from .plasticity import PlasticityRule, PlasticState
+
+
+class LayerState(NamedTuple):
+    """Per-environment state of one layer, all with a leading batch axis.
+
+    :param psp: alpha-filter state of the layer's *presynaptic* spikes ``(batch, n_in)`` each.
+    :param refractory: refractory-filter state of the layer's own spikes ``(batch, n_out)`` each.
+    :param plastic: the trace ``E`` and rule state.
+    """
+
+    psp: AlphaFilterState
+    refractory: AlphaFilterState
+    plastic: PlasticState
+
+
+class LayerOutput(NamedTuple):
+    """What a layer produced over one interval: ``spikes`` and ``membrane`` ``(batch, L, n_out)``, and the
+    neuromodulatory signal of the interval's plasticity update (``None`` for unmodulated rules)."""
+
+    spikes: Tensor
+    membrane: Tensor
+    modulation: Optional[Tensor]
+
+
+class PlasticSRMLayer(nn.Module):
+    """SRM layer with plastic synapses.
+
+    .. math::
+        u(t) = (W + \\alpha \\odot E)\\,(\\varepsilon * s_{in})(t) + (\\nu * s)(t), \\qquad s(t) = H(u(t) - \\vartheta)
+
+    and, after each interval, ``E <- clip(F(r_pre, r_post, E), ±E_max)`` by the layer's rule.
+
+    :param n_in: presynaptic neurons.
+    :param n_out: neurons of this layer.
+    :param rule: the layer's plasticity rule module (``StaticRule`` for fixed weights).
+    :param neuron: SRM constants.
+    :param w_init_mean: mean of the initial ``W``.
+    :param w_init_std: standard deviation of the initial ``W``.
+    :param alpha_init_mean: mean of the initial ``alpha`` (ignored by rules without a trace).
+    :param alpha_init_std: standard deviation of the initial ``alpha``.
+    """
+
+    def __init__(self, n_in: int, n_out: int, rule: PlasticityRule, neuron: SRMParameters = SRMParameters(),
+                 w_init_mean: float = 0.0, w_init_std: float = 1.0, alpha_init_mean: float = 0.0,
+                 alpha_init_std: float = 1.0):
+        super().__init__()
+        if (rule.n_in, rule.n_out) != (n_in, n_out):
+            raise ValueError(f"rule sized ({rule.n_in}, {rule.n_out}) does not fit layer ({n_in}, {n_out})")
+        self.n_in, self.n_out, self.neuron, self.rule = n_in, n_out, neuron, rule
+        self.weight = nn.Parameter(w_init_mean + w_init_std * torch.randn(n_out, n_in))
+        self.alpha = nn.Parameter(alpha_init_mean + alpha_init_std * torch.randn(n_out, n_in)) if rule.has_trace else None
+        self._filters: dict[tuple, tuple] = {}
+
+    @property
+    def plastic(self) -> bool:
+        return self.alpha is not None
+
+    def initial_state(self, batch: int, dtype: torch.dtype = torch.float32, device=None) -> LayerState:
+        def zeros(n):
+            return torch.zeros(batch, n, dtype=dtype, device=device)
+
+        return LayerState(
+            AlphaFilterState(zeros(self.n_in), zeros(self.n_in)),
+            AlphaFilterState(zeros(self.n_out), zeros(self.n_out)),
+            self.rule.initial_state(batch, dtype, device),
+        )
+
+    def efficacy(self, trace: Tensor) -> Tensor:
+        """:math:`W + \\alpha \\odot E`, per environment ``(batch, n_out, n_in)``; just ``W`` for a static layer."""
+        if self.alpha is None:
+            return self.weight
+        return torch.addcmul(self.weight, self.alpha, trace)
+
+    def _psp_filter(self, length: int, dtype, device):
+        key = (length, dtype, device)
+        if key not in self._filters:
+            self._filters[key] = alpha_filter_matrices(length, self.neuron.tau_s, self.neuron.dt, dtype, device)
+        return self._filters[key]
+
+    def forward(self, spikes_in: Tensor, state: LayerState, monitor: bool = False) -> tuple[LayerOutput, LayerState]:
+        """Run one plasticity interval of presynaptic spikes ``(batch, L, n_in)``.
+
+        With ``monitor`` the output also carries the interval's neuromodulatory signal (computed once more, so
+        it is off on the training path).
+
+        The synaptic input is computed as ``K @ (S W_eff^T)`` plus the decayed carried PSP mapped through
+        ``W_eff`` — equal to filtering the presynaptic spikes first (the filter is linear and ``W_eff`` is
+        constant within the interval), but the Toeplitz product runs over ``n_out`` instead of ``n_in`` columns.
+        Then ``E`` is updated from the interval's rates and acts from the next interval on.
+        """
+        kernel, g1, g2, v1, v2, d_len = self._psp_filter(spikes_in.shape[1], spikes_in.dtype, spikes_in.device)
+        w_eff = self.efficacy(state.plastic.trace)
+        w_t = w_eff.transpose(-1, -2)
+        h1, h2 = state.psp
+        drive = spikes_in @ w_t  # (batch, L, n_out)
+        carried = g1[:, None] * (h1.unsqueeze(1) @ w_t) + g2[:, None] * (h2.unsqueeze(1) @ w_t)
+        synaptic = kernel @ drive + carried
+        length = spikes_in.shape[1]
+        psp = AlphaFilterState(
+            (v1 @ spikes_in) + d_len * h1,
+            (v2 @ spikes_in) + d_len * (h2 + length * h1),
+        )
+        spikes, membrane, refractory = srm_spikes(synaptic, state.refractory, self.neuron)
+        modulation = None
+        plastic = state.plastic
+        if self.plastic:
+            r_pre, r_post = spikes_in.mean(1), spikes.mean(1)
+            if monitor:
+                modulation = self.rule.modulation(r_post)
+            plastic = self.rule.step(r_pre, r_post, plastic)
+        return LayerOutput(spikes, membrane, modulation), LayerState(psp, refractory, plastic)
+
+
+def fan_in_std(n_in: int, rms_rate: float, neuron: SRMParameters, gain: float) -> float:
+    """Initial weight std that puts the membrane's spread at ``gain * theta`` for inputs firing at ``rms_rate``.
+
+    With zero-mean weights, :math:`\\mathrm{std}(u) \\approx \\sigma_W \\sqrt{n_{in}}\\, r_{rms} \\sum_k\\varepsilon(k)`.
+    """
+    return gain * neuron.theta / (alpha_kernel_sum(neuron.tau_s, neuron.dt) * rms_rate * math.sqrt(n_in))

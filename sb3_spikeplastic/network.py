@@ -1,0 +1,254 @@
+"""The plastic spiking network: input coding -> plastic SRM layers -> output population -> decoder.
+
+One call of :class:`SpikingPlasticNetwork` is one environment step: ``T`` network steps of 1 ms, split into
+plasticity intervals of ``plasticity_interval`` steps. The per-environment state (:class:`NetworkState`: every
+layer's filters, traces and rule state, plus the input sampler's key) is passed in and returned, never stored.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, NamedTuple, Optional, Sequence, Union
+
+import torch
+from torch import Tensor, nn
+
+from .coding import advance_keys, initial_keys
+from .layers import LayerOutput, LayerState, PlasticSRMLayer, fan_in_std
+from .neurons import SRMParameters
+from .plasticity import get_rule_class
+
+
+class NetworkState(NamedTuple):
+    """Per-environment state of the whole network (leading batch axis everywhere).
+
+    :param layers: one :class:`~sb3_spikeplastic.layers.LayerState` per layer.
+    :param noise_key: ``(batch,)`` int32 key of the replayable input sampler. It is the random stream, not memory:
+        it advances every step and is *not* reset at episode starts (otherwise every episode would see the same
+        input noise).
+    """
+
+    layers: tuple[LayerState, ...]
+    noise_key: Tensor
+
+    def reset(self, episode_start: Tensor) -> "NetworkState":
+        """The state with every environment where ``episode_start`` is 1 set back to its initial value (zeros):
+        ``state * (1 - episode_start)``."""
+        keep = 1.0 - episode_start.to(self.noise_key.device).float()
+
+        def zero_where_started(x: Tensor) -> Tensor:
+            return x * keep.to(x.dtype).view(-1, *([1] * (x.dim() - 1)))
+
+        return NetworkState(map_tensors(zero_where_started, self.layers), self.noise_key)
+
+    def select(self, index) -> "NetworkState":
+        """The state of the environments ``index`` (anything that indexes the batch axis)."""
+        return map_tensors(lambda x: x[index], self)
+
+    def detach(self) -> "NetworkState":
+        return map_tensors(torch.Tensor.detach, self)
+
+    def to(self, device) -> "NetworkState":
+        return map_tensors(lambda x: x.to(device), self)
+
+    @staticmethod
+    def cat(states: Sequence["NetworkState"]) -> "NetworkState":
+        """Concatenate states along the batch axis."""
+        return zip_tensors(lambda xs: torch.cat(xs, 0), states)
+
+    @staticmethod
+    def stack(states: Sequence["NetworkState"]) -> "NetworkState":
+        """Stack states on a new leading axis (e.g. chunk snapshots ``(n_chunks, batch, ...)``)."""
+        return zip_tensors(lambda xs: torch.stack(xs, 0), states)
+
+    def nbytes(self) -> int:
+        """Memory held by the state's tensors."""
+        total = 0
+
+        def count(x: Tensor) -> Tensor:
+            nonlocal total
+            total += x.numel() * x.element_size()
+            return x
+
+        map_tensors(count, self)
+        return total
+
+
+def map_tensors(fn: Callable[[Tensor], Tensor], tree):
+    """Apply ``fn`` to every tensor of a nest of (named) tuples, keeping the structure."""
+    if isinstance(tree, Tensor):
+        return fn(tree)
+    items = [map_tensors(fn, x) for x in tree]
+    return type(tree)(*items) if hasattr(tree, "_fields") else type(tree)(items)
+
+
+def zip_tensors(fn: Callable[[list[Tensor]], Tensor], trees: Sequence):
+    """Combine same-structured nests leaf by leaf with ``fn`` (a list of tensors -> a tensor)."""
+    first = trees[0]
+    if isinstance(first, Tensor):
+        return fn(list(trees))
+    items = [zip_tensors(fn, [t[i] for t in trees]) for i in range(len(first))]
+    return type(first)(*items) if hasattr(first, "_fields") else type(first)(items)
+
+
+class NetworkRecord(NamedTuple):
+    """Everything the network did during one environment step, for figures (``record=True``).
+
+    :param input_spikes: ``(batch, T, n_in)``.
+    :param spikes: per layer ``(batch, T, n)``.
+    :param membrane: per layer ``(batch, T, n)``.
+    :param modulation: per layer, the neuromodulatory signal of each interval ``(batch, n_intervals, n)`` or ``None``.
+    :param traces: per layer, ``E`` after each interval ``(batch, n_intervals, n_out, n_in)`` or ``None``.
+    """
+
+    input_spikes: Tensor
+    spikes: tuple[Tensor, ...]
+    membrane: tuple[Tensor, ...]
+    modulation: tuple[Optional[Tensor], ...]
+    traces: tuple[Optional[Tensor], ...]
+
+
+class NetworkOutput(NamedTuple):
+    """Result of one environment step.
+
+    :param action: the decoder's output: mean actions (continuous) or logits (discrete), ``(batch, n_actions)``.
+    :param rates: per layer (hidden layers, then the output population) the mean spike rate over the step.
+    :param record: the full activity when requested, else ``None``.
+    """
+
+    action: Tensor
+    rates: tuple[Tensor, ...]
+    record: Optional[NetworkRecord]
+
+
+IntOrSeq = Union[float, Sequence[float]]
+
+#: fan-in at which the rules' default ``alpha_init_mean`` was measured (the T-maze's 40 inputs)
+ALPHA_REFERENCE_FAN_IN = 40
+
+
+def _per_layer(value: IntOrSeq, n_layers: int, name: str) -> list[float]:
+    if isinstance(value, (int, float)):
+        return [float(value)] * n_layers
+    values = [float(v) for v in value]
+    if len(values) != n_layers:
+        raise ValueError(f"{name} needs one value per layer ({n_layers}), got {values}")
+    return values
+
+
+class SpikingPlasticNetwork(nn.Module):
+    """Feed-forward SNN with plastic synapses (SpikePropamine): ``encoder -> hidden layers -> output -> decoder``.
+
+    :param encoder: maps ``(obs, keys, T)`` to input spikes ``(batch, T, n_in)``
+        (:class:`~sb3_spikeplastic.coding.PopulationEncoder` or :class:`~sb3_spikeplastic.coding.RasterInput`).
+    :param decoder: maps output rates ``(batch, n_out)`` to actions or logits.
+    :param hidden_sizes: neurons per hidden layer (paper HalfCheetah: ``(64, 64)``).
+    :param steps: network steps ``T`` per environment step (1 ms each).
+    :param rule: plasticity rule name (see :func:`~sb3_spikeplastic.plasticity.available_rules`).
+    :param plastic_layers: indices of the plastic layers (0 = input->first hidden; the last is the output
+        layer), or ``"all"``. The others use the ``static`` rule.
+    :param neuron: SRM constants shared by all layers.
+    :param e_max: trace clip bound.
+    :param plasticity_interval: :math:`\\Delta\\tau`, network steps between trace updates; must divide ``steps``
+        (default: ``steps``, one update per environment step).
+    :param rule_kwargs: extra keyword arguments of the rule class (e.g. ``eta_init``, ``modulation``).
+    :param w_init_gain: initial weight spread per layer (or one value for all): the std of ``W`` puts the
+        membrane spread at ``gain * theta`` (:func:`~sb3_spikeplastic.layers.fan_in_std`).
+    :param w_init_mean: mean of the initial ``W`` per layer (or one value).
+    :param alpha_init_mean: mean of the initial ``alpha`` per layer (default: the rule's ``alpha_init_mean``,
+        measured on the T-maze's 40-input layer, times ``40 / n_in``: the positive feedback of a positive-mean
+        ``alpha`` grows with the number of inputs, and unscaled it drives 600-input layers to saturation).
+    :param alpha_init_std: std of the initial ``alpha`` per layer (default: 10% of the mean, as measured).
+    :param hidden_rms_rate: assumed rms firing probability of hidden neurons, for the weight init of the layers
+        after the first.
+    """
+
+    def __init__(self, encoder: nn.Module, decoder: nn.Module, hidden_sizes: Sequence[int] = (64, 64),
+                 steps: int = 50, rule: str = "dp-oja", plastic_layers: Union[str, Sequence[int]] = "all",
+                 neuron: SRMParameters = SRMParameters(), e_max: float = 1.0,
+                 plasticity_interval: Optional[int] = None, rule_kwargs: Optional[dict] = None,
+                 w_init_gain: IntOrSeq = 3.0, w_init_mean: IntOrSeq = 0.0, alpha_init_mean: Optional[IntOrSeq] = None,
+                 alpha_init_std: Optional[IntOrSeq] = None, hidden_rms_rate: float = 0.2):
+        super().__init__()
+        interval = steps if plasticity_interval is None else int(plasticity_interval)
+        if steps < 1 or interval < 1 or steps % interval:
+            raise ValueError(f"plasticity_interval={interval} must be a positive divisor of steps T={steps}")
+        self.encoder, self.decoder, self.steps, self.interval, self.neuron = encoder, decoder, int(steps), interval, neuron
+        sizes = [encoder.n_neurons, *[int(h) for h in hidden_sizes], decoder.n_neurons]
+        n_layers = len(sizes) - 1
+        if plastic_layers == "all":
+            plastic = set(range(n_layers))
+        else:
+            bad = [i for i in plastic_layers if not -n_layers <= int(i) < n_layers]
+            if bad:
+                raise ValueError(f"plastic_layers {bad} out of range; accepted: 0..{n_layers - 1} or 'all'")
+            plastic = {int(i) % n_layers for i in plastic_layers}
+        rule_cls = get_rule_class(rule)
+        static_cls = get_rule_class("static")
+        gains = _per_layer(w_init_gain, n_layers, "w_init_gain")
+        w_means = _per_layer(w_init_mean, n_layers, "w_init_mean")
+        if alpha_init_mean is None:
+            a_means = [rule_cls.alpha_init_mean * ALPHA_REFERENCE_FAN_IN / n for n in sizes[:-1]]
+        else:
+            a_means = _per_layer(alpha_init_mean, n_layers, "alpha_init_mean")
+        a_stds = [0.1 * abs(m) for m in a_means] if alpha_init_std is None else _per_layer(alpha_init_std, n_layers,
+                                                                                             "alpha_init_std")
+        layers = []
+        for i, (n_in, n_out) in enumerate(zip(sizes[:-1], sizes[1:])):
+            cls = rule_cls if i in plastic else static_cls
+            try:
+                layer_rule = cls(n_in, n_out, e_max=e_max, **(rule_kwargs or {})) if cls.has_trace else cls(n_in, n_out)
+            except TypeError as exc:
+                raise ValueError(f"bad rule_kwargs {rule_kwargs!r} for rule {cls.name!r}: {exc}") from None
+            rms = encoder.rms_rate() if i == 0 else hidden_rms_rate
+            layers.append(PlasticSRMLayer(n_in, n_out, layer_rule, neuron, w_means[i],
+                                          fan_in_std(n_in, rms, neuron, gains[i]), a_means[i], a_stds[i]))
+        self.layers = nn.ModuleList(layers)
+        self.rule_name = rule
+
+    @property
+    def sizes(self) -> list[int]:
+        return [self.layers[0].n_in] + [layer.n_out for layer in self.layers]
+
+    def initial_state(self, batch: int, seed: int = 0, device=None, dtype: torch.dtype = torch.float32) -> NetworkState:
+        """Initial state of ``batch`` environments; ``seed`` picks the input-noise streams."""
+        device = device if device is not None else self.layers[0].weight.device
+        return NetworkState(tuple(layer.initial_state(batch, dtype, device) for layer in self.layers),
+                            initial_keys(batch, seed, device))
+
+    def forward(self, obs: Tensor, state: NetworkState, record: bool = False) -> tuple[NetworkOutput, NetworkState]:
+        """One environment step for a batch of observations; returns ``(output, new_state)``."""
+        spikes_in = self.encoder(obs, state.noise_key, self.steps)
+        layer_states = list(state.layers)
+        n_intervals = self.steps // self.interval
+        outputs: list[list[LayerOutput]] = [[] for _ in self.layers]
+        traces: list[list[Tensor]] = [[] for _ in self.layers]
+        for j in range(n_intervals):
+            x = spikes_in if n_intervals == 1 else spikes_in[:, j * self.interval:(j + 1) * self.interval]
+            for i, layer in enumerate(self.layers):
+                out, layer_states[i] = layer(x, layer_states[i], monitor=record)
+                outputs[i].append(out)
+                if record and layer.plastic:
+                    traces[i].append(layer_states[i].plastic.trace)
+                x = out.spikes
+        spikes = [outs[0].spikes if n_intervals == 1 else torch.cat([o.spikes for o in outs], 1) for outs in outputs]
+        rates = tuple(s.mean(1) for s in spikes)
+        new_state = NetworkState(tuple(layer_states), advance_keys(state.noise_key))
+        rec = None
+        if record:
+            rec = NetworkRecord(
+                spikes_in, tuple(spikes),
+                tuple(torch.cat([o.membrane for o in outs], 1) for outs in outputs),
+                tuple(torch.stack([o.modulation for o in outs], 1) if outs[0].modulation is not None else None
+                      for outs in outputs),
+                tuple(torch.stack(t, 1) if t else None for t in traces),
+            )
+        return NetworkOutput(self.decoder(rates[-1]), rates, rec), new_state
+
+    def forward_sequence(self, obs: Tensor, episode_start: Tensor, state: NetworkState) -> tuple[list[NetworkOutput], NetworkState]:
+        """Run a sequence ``obs`` of shape ``(L, batch, ...)`` from ``state``, resetting where ``episode_start``
+        ``(L, batch)`` is 1 (truncated BPTT through the whole sequence, traces included)."""
+        outputs = []
+        for k in range(obs.shape[0]):
+            out, state = self(obs[k], state.reset(episode_start[k]))
+            outputs.append(out)
+        return outputs, state

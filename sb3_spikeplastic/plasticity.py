@@ -1,0 +1,323 @@
+"""Differentiable plasticity and neuromodulation rules (SpikePropamine §2.2–2.3) and their registry.
+
+A plastic layer's efficacy is :math:`W + \\alpha \\odot E(t)`; ``W`` and ``alpha`` are learned between rollouts and
+the trace ``E`` (one per environment, zero at episode start) is updated every :math:`\\Delta\\tau` network steps from
+the interval's firing rates :math:`r_{pre}` (presynaptic, shape ``(batch, n_in)``) and :math:`r_{post}`
+(postsynaptic, ``(batch, n_out)``), then clipped to :math:`[-E_{max}, E_{max}]`.
+
+The rule math is a set of pure functions (:func:`dp_oja_update`, ...). A rule *module* holds one layer's learned
+local parameters (:math:`\\eta`, :math:`\\psi`, :math:`W_m`, ...) and maps ``(r_pre, r_post, state) -> state``;
+the per-environment state (:class:`PlasticState`) is always passed in and returned, never stored.
+
+Users add rules by subclassing :class:`PlasticityRule` and decorating it with :func:`register_rule`; the name
+is then accepted everywhere a rule name is (``policy_kwargs=dict(rule="my-rule")``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable, ClassVar, NamedTuple, Optional
+
+import torch
+from torch import Tensor, nn
+
+
+class PlasticState(NamedTuple):
+    """Per-environment plastic state of one layer.
+
+    :param trace: the synaptic trace ``E``, shape ``(batch, n_out, n_in)`` (``(batch, 0)`` for rules without one).
+    :param extra: rule-specific state tensors with a leading batch axis (BCM: ``(phi,)``), reset with ``E``.
+    """
+
+    trace: Tensor
+    extra: tuple[Tensor, ...] = ()
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Pure rule math. Shapes: E (B, n_out, n_in), r_pre (B, n_in), r_post / M (B, n_out); eta a scalar tensor.
+
+
+def outer(post: Tensor, pre: Tensor) -> Tensor:
+    """Batched outer product ``post ⊗ pre`` of shape ``(B, n_out, n_in)``."""
+    return post.unsqueeze(-1) * pre.unsqueeze(-2)
+
+
+def dp_linear_update(E: Tensor, r_pre: Tensor, r_post: Tensor, eta: Tensor) -> Tensor:
+    """Linear-decay DP rule (paper eq. 6): :math:`E' = (1-\\eta)E + \\eta\\, r_{post} \\otimes r_{pre}`."""
+    return (1 - eta) * E + eta * outer(r_post, r_pre)
+
+
+def oja_postsynaptic_term(E: Tensor, r_pre: Tensor, post: Tensor) -> Tensor:
+    """The bracket of the paper's Oja forms, :math:`post - E\\,r_{pre}`, shape ``(B, n_out)``."""
+    return post - (E @ r_pre.unsqueeze(-1)).squeeze(-1)
+
+
+def dp_oja_update(E: Tensor, r_pre: Tensor, r_post: Tensor, eta: Tensor) -> Tensor:
+    """DP-Oja (paper eq. 7, as written): :math:`E' = (1-\\eta)E + \\eta\\,(r_{post} - E r_{pre}) \\otimes r_{pre}`.
+
+    Textbook Oja subtracts :math:`y^2 w` (the decay scales with the postsynaptic rate squared); the paper's form
+    subtracts the trace's own prediction :math:`E r_{pre}` of the postsynaptic rate instead. We follow the paper.
+    """
+    return (1 - eta) * E + eta * outer(oja_postsynaptic_term(E, r_pre, r_post), r_pre)
+
+
+def bcm_presynaptic_term(r_pre: Tensor, phi: Tensor, psi: Tensor) -> Tensor:
+    """:math:`r_\\beta = r_{pre} \\odot (r_{pre} - (\\phi + \\psi))` (paper eq. 9).
+
+    Textbook BCM puts the sliding threshold on the *postsynaptic* rate; the paper's form slides it on the
+    presynaptic side, with a learned offset ``psi``. We follow the paper.
+    """
+    return r_pre * (r_pre - (phi + psi))
+
+
+def bcm_threshold_update(phi: Tensor, r_pre: Tensor, eta_phi: Tensor) -> Tensor:
+    """Sliding threshold EMA (paper eq. 10, :math:`\\omega` = identity): :math:`\\phi' = (1-\\eta_\\phi)\\phi + \\eta_\\phi r_{pre}`."""
+    return (1 - eta_phi) * phi + eta_phi * r_pre
+
+
+def dp_bcm_update(E: Tensor, r_beta: Tensor, r_post: Tensor, eta: Tensor) -> Tensor:
+    """DP-BCM (paper eq. 8): :math:`E' = (1-\\eta)E + \\eta\\, r_{post} \\otimes r_\\beta`."""
+    return (1 - eta) * E + eta * outer(r_post, r_beta)
+
+
+def ndp_oja_update(E: Tensor, r_pre: Tensor, r_post: Tensor, modulation: Tensor, eta: Tensor) -> Tensor:
+    """NDP-Oja (paper eq. 11): :math:`E' = (1-\\eta)E + \\eta\\,(M \\odot r_{post} - E r_{pre}) \\otimes r_{pre}`."""
+    return (1 - eta) * E + eta * outer(oja_postsynaptic_term(E, r_pre, modulation * r_post), r_pre)
+
+
+def ndp_bcm_update(E: Tensor, r_beta: Tensor, r_post: Tensor, modulation: Tensor, eta: Tensor) -> Tensor:
+    """NDP-BCM (paper eq. 13): :math:`E' = (1-\\eta)E + \\eta\\,(M \\odot r_{post}) \\otimes r_\\beta`."""
+    return (1 - eta) * E + eta * outer(modulation * r_post, r_beta)
+
+
+MODULATION_FORMS = ("linear", "tanh")
+
+
+def modulatory_signal(w_m: Tensor, r_post: Tensor, form: str = "linear") -> Tensor:
+    """Neuromodulatory signal of a layer, :math:`M = W_m r_{post}` (paper eq. 12).
+
+    ``form="tanh"`` bounds it, :math:`M = \\tanh(W_m r_{post})`: an explicit stabiliser option, not the paper's
+    equation (unbounded ``M`` lets Hebbian positive feedback drive gradients through the trace to 1e11+).
+    """
+    m = r_post @ w_m.T
+    return torch.tanh(m) if form == "tanh" else m
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Rule modules and registry.
+
+RULES: dict[str, type["PlasticityRule"]] = {}
+
+
+def register_rule(name: str, *, override: bool = False) -> Callable[[type["PlasticityRule"]], type["PlasticityRule"]]:
+    """Class decorator that registers a :class:`PlasticityRule` subclass under ``name``.
+
+    :param name: the name accepted by ``policy_kwargs=dict(rule=name)`` and ``--rule``.
+    :param override: allow replacing an existing registration (otherwise a duplicate name is an error).
+    """
+
+    def decorator(cls: type[PlasticityRule]) -> type[PlasticityRule]:
+        if not (isinstance(cls, type) and issubclass(cls, PlasticityRule)):
+            raise TypeError(f"register_rule({name!r}) expects a PlasticityRule subclass, got {cls!r}")
+        if name in RULES and not override:
+            raise ValueError(f"plasticity rule {name!r} is already registered (pass override=True to replace it)")
+        cls.name = name
+        RULES[name] = cls
+        return cls
+
+    return decorator
+
+
+def available_rules() -> tuple[str, ...]:
+    """Names of all registered rules."""
+    return tuple(RULES)
+
+
+def get_rule_class(name: str) -> type["PlasticityRule"]:
+    """The rule class registered as ``name``; an unknown name is a one-line error listing the accepted ones."""
+    try:
+        return RULES[name]
+    except KeyError:
+        raise ValueError(f"unknown plasticity rule {name!r}; accepted: {', '.join(RULES)}") from None
+
+
+def _logit(p: float) -> float:
+    if not 0.0 < p < 1.0:
+        raise ValueError(f"a rate must lie in (0, 1), got {p!r}")
+    return math.log(p / (1 - p))
+
+
+class PlasticityRule(nn.Module):
+    """Base class of a plasticity rule for one layer: its learned local parameters and its update.
+
+    Subclasses implement :meth:`update` (the rule's equation, without clipping) and, if they keep state besides
+    ``E``, :meth:`initial_extra_state`. :meth:`step` applies one update and the clip to ``±e_max``.
+
+    :param n_in: presynaptic neurons.
+    :param n_out: postsynaptic neurons.
+    :param e_max: trace clip bound :math:`E_{max}` (applied after every update).
+    :param eta_init: initial plasticity rate :math:`\\eta \\in (0, 1)`; learned as ``sigmoid(eta_logit)``.
+    """
+
+    name: ClassVar[str] = ""
+    #: whether the rule keeps a trace ``E`` (``False`` only for the fixed-weight baseline)
+    has_trace: ClassVar[bool] = True
+    #: whether the rule takes a neuromodulatory signal (reported by monitoring)
+    modulated: ClassVar[bool] = False
+    #: default mean of the plasticity coefficients ``alpha`` of the layers using this rule. The trace lives on the
+    #: scale of products of rates in spikes/ms (|E| ~ 0.003-0.03), so ``alpha`` must start large and positive for
+    #: the plastic term to matter at all (measured: zero-mean alpha learned no better than the static network).
+    alpha_init_mean: ClassVar[float] = 10.0
+
+    def __init__(self, n_in: int, n_out: int, e_max: float = 1.0, eta_init: float = 0.05):
+        super().__init__()
+        if e_max <= 0 or not math.isfinite(e_max):
+            raise ValueError(f"e_max must be a positive finite number, got {e_max!r}")
+        self.n_in, self.n_out, self.e_max = n_in, n_out, float(e_max)
+        if self.has_trace:
+            self.eta_logit = nn.Parameter(torch.tensor(_logit(eta_init)))
+
+    @property
+    def eta(self) -> Tensor:
+        """The plasticity rate :math:`\\eta = \\sigma(\\eta_{logit}) \\in (0, 1)`."""
+        return torch.sigmoid(self.eta_logit)
+
+    def initial_extra_state(self, batch: int, dtype: torch.dtype, device) -> tuple[Tensor, ...]:
+        """Rule-specific state at episode start (default: none)."""
+        return ()
+
+    def initial_state(self, batch: int, dtype: torch.dtype = torch.float32, device=None) -> PlasticState:
+        """Zero trace and initial rule state for ``batch`` environments."""
+        shape = (batch, self.n_out, self.n_in) if self.has_trace else (batch, 0)
+        return PlasticState(torch.zeros(shape, dtype=dtype, device=device), self.initial_extra_state(batch, dtype, device))
+
+    def update(self, r_pre: Tensor, r_post: Tensor, state: PlasticState) -> PlasticState:
+        """The rule's equation: the state after one interval with rates ``r_pre``, ``r_post`` (no clipping)."""
+        raise NotImplementedError
+
+    def modulation(self, r_post: Tensor) -> Optional[Tensor]:
+        """The neuromodulatory signal for these rates (``None`` for unmodulated rules)."""
+        return None
+
+    def step(self, r_pre: Tensor, r_post: Tensor, state: PlasticState) -> PlasticState:
+        """One plasticity update followed by the clip of ``E`` to ``[-e_max, e_max]``."""
+        if not self.has_trace:
+            return state
+        new = self.update(r_pre, r_post, state)
+        return PlasticState(new.trace.clamp(-self.e_max, self.e_max), new.extra)
+
+    def extra_repr(self) -> str:
+        return f"n_in={self.n_in}, n_out={self.n_out}, e_max={self.e_max}"
+
+
+@register_rule("static")
+class StaticRule(PlasticityRule):
+    """No plasticity: a fixed-weight SNN, the paper's baseline. Keeps no trace."""
+
+    has_trace = False
+    alpha_init_mean = 0.0
+
+
+@register_rule("dp-linear")
+class DPLinearRule(PlasticityRule):
+    """Linear-decay differentiable plasticity, :func:`dp_linear_update`. Learned: :math:`\\eta`."""
+
+    def update(self, r_pre, r_post, state):
+        return PlasticState(dp_linear_update(state.trace, r_pre, r_post, self.eta))
+
+
+@register_rule("dp-oja")
+class DPOjaRule(PlasticityRule):
+    """Differentiable Oja's rule as written in the paper, :func:`dp_oja_update`. Learned: :math:`\\eta`."""
+
+    def update(self, r_pre, r_post, state):
+        return PlasticState(dp_oja_update(state.trace, r_pre, r_post, self.eta))
+
+
+class _BCMRule(PlasticityRule):
+    """Shared parameters and state of the BCM rules: sliding threshold ``phi`` (state) with rate ``eta_phi`` and
+    learned offset ``psi``.
+
+    :param eta_phi_init: initial :math:`\\eta_\\phi \\in (0, 1)` (learned as a sigmoid).
+    """
+
+    # r_beta is a product of two rates (~1e-3), an order of magnitude below the Oja/linear traces.
+    alpha_init_mean = 30.0
+
+    def __init__(self, n_in: int, n_out: int, e_max: float = 1.0, eta_init: float = 0.05, eta_phi_init: float = 0.05):
+        super().__init__(n_in, n_out, e_max, eta_init)
+        self.eta_phi_logit = nn.Parameter(torch.tensor(_logit(eta_phi_init)))
+        self.psi = nn.Parameter(torch.zeros(n_in))
+
+    @property
+    def eta_phi(self) -> Tensor:
+        return torch.sigmoid(self.eta_phi_logit)
+
+    def initial_extra_state(self, batch, dtype, device):
+        return (torch.zeros(batch, self.n_in, dtype=dtype, device=device),)
+
+    def presynaptic(self, r_pre: Tensor, state: PlasticState) -> tuple[Tensor, Tensor]:
+        """``(r_beta, phi')``: ``r_beta`` uses ``phi`` before its own update."""
+        (phi,) = state.extra
+        return bcm_presynaptic_term(r_pre, phi, self.psi), bcm_threshold_update(phi, r_pre, self.eta_phi)
+
+
+@register_rule("dp-bcm")
+class DPBCMRule(_BCMRule):
+    """Differentiable BCM as written in the paper, :func:`dp_bcm_update`. Learned: :math:`\\eta, \\eta_\\phi, \\psi`."""
+
+    def update(self, r_pre, r_post, state):
+        r_beta, phi = self.presynaptic(r_pre, state)
+        return PlasticState(dp_bcm_update(state.trace, r_beta, r_post, self.eta), (phi,))
+
+
+class _ModulatedMixin:
+    """Learned modulatory weights :math:`W_m \\in R^{n_{out} \\times n_{out}}` and the modulation form."""
+
+    modulated = True
+
+    def _init_modulation(self, n_out: int, wm_init_gain: float, wm_init_std: float, modulation: str) -> None:
+        if modulation not in MODULATION_FORMS:
+            raise ValueError(f"unknown modulation form {modulation!r}; accepted: {', '.join(MODULATION_FORMS)}")
+        self.modulation_form = modulation
+        # Starting near gain * identity makes M ~ r_post: the rule begins close to its DP form.
+        self.w_m = nn.Parameter(wm_init_gain * torch.eye(n_out) + wm_init_std * torch.randn(n_out, n_out))
+
+    def modulation(self, r_post: Tensor) -> Tensor:
+        return modulatory_signal(self.w_m, r_post, self.modulation_form)
+
+
+@register_rule("ndp-oja")
+class NDPOjaRule(_ModulatedMixin, PlasticityRule):
+    """Neuromodulated Oja (paper eqs. 11–12), :func:`ndp_oja_update`. Learned: :math:`\\eta, W_m`.
+
+    :param wm_init_gain: ``W_m`` starts at ``wm_init_gain * I + N(0, wm_init_std^2)``.
+    :param wm_init_std: see ``wm_init_gain``.
+    :param modulation: ``"linear"`` (paper, :math:`M = W_m r_{post}`) or ``"tanh"`` (bounded, a stabiliser).
+    """
+
+    def __init__(self, n_in, n_out, e_max=1.0, eta_init=0.05, wm_init_gain=1.0, wm_init_std=0.1, modulation="linear"):
+        super().__init__(n_in, n_out, e_max, eta_init)
+        self._init_modulation(n_out, wm_init_gain, wm_init_std, modulation)
+
+    def update(self, r_pre, r_post, state):
+        m = self.modulation(r_post)
+        return PlasticState(ndp_oja_update(state.trace, r_pre, r_post, m, self.eta))
+
+
+@register_rule("ndp-bcm")
+class NDPBCMRule(_ModulatedMixin, _BCMRule):
+    """Neuromodulated BCM (paper eqs. 13–16), :func:`ndp_bcm_update`. Learned: :math:`\\eta, \\eta_\\phi, \\psi, W_m`.
+
+    Parameters as :class:`_BCMRule` and :class:`NDPOjaRule`.
+    """
+
+    def __init__(self, n_in, n_out, e_max=1.0, eta_init=0.05, eta_phi_init=0.05, wm_init_gain=1.0, wm_init_std=0.1,
+                 modulation="linear"):
+        super().__init__(n_in, n_out, e_max, eta_init, eta_phi_init)
+        self._init_modulation(n_out, wm_init_gain, wm_init_std, modulation)
+
+    def update(self, r_pre, r_post, state):
+        r_beta, phi = self.presynaptic(r_pre, state)
+        m = self.modulation(r_post)
+        return PlasticState(ndp_bcm_update(state.trace, r_beta, r_post, m, self.eta), (phi,))
