@@ -1,0 +1,297 @@
+"""``SpikePlasticPolicy``: the plastic spiking network as a Stable-Baselines3 actor-critic policy.
+
+This is the only module that knows SB3 policies. The policy is recurrent: its network state (filters, traces)
+is carried across environment steps by :class:`sb3_spikeplastic.PPO` during rollouts and by
+:meth:`SpikePlasticPolicy.predict` (``state`` / ``episode_start``) everywhere else, so SB3's
+``evaluate_policy`` and ``EvalCallback`` work unchanged. The state is never stored on the policy.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Optional, Sequence, Union
+
+import numpy as np
+import torch
+from gymnasium import spaces
+from stable_baselines3.common.distributions import CategoricalDistribution, DiagGaussianDistribution
+from stable_baselines3.common.policies import ActorCriticPolicy
+from stable_baselines3.common.preprocessing import get_action_dim
+from stable_baselines3.common.type_aliases import Schedule
+from torch import Tensor, nn
+
+from .coding import ContinuousDecoder, DiscreteDecoder, PopulationEncoder, RasterInput
+from .network import NetworkOutput, NetworkState, SpikingPlasticNetwork
+from .neurons import SRMParameters
+
+MISUSE_MESSAGE = (
+    "SpikePlasticPolicy is recurrent (its synapses and neurons carry state across environment steps) and needs "
+    "the recurrent PPO: use `from sb3_spikeplastic import PPO` instead of stable_baselines3.PPO"
+)
+
+
+def is_spike_raster_space(space: spaces.Space) -> bool:
+    """A ``Box`` of shape ``(T, n)`` with bounds ``[0, 1]`` is taken as a spike raster (e.g. ``TMazeCue``)."""
+    return (isinstance(space, spaces.Box) and len(space.shape) == 2 and bool(np.all(space.low == 0))
+            and bool(np.all(space.high == 1)))
+
+
+class SpikePlasticPolicy(ActorCriticPolicy):
+    """Actor-critic policy whose actor is a spiking network with differentiable plasticity (SpikePropamine).
+
+    Observations: a 1-D ``Box`` is population-encoded (place cells); a ``Box`` of shape ``(T, n)`` in ``[0, 1]``
+    is a spike raster and passes straight through (then ``T`` is the raster length). Actions: ``Box`` through the
+    paper's ±1 half-population decoder and a Gaussian with a learned state-independent ``log_std``;
+    ``Discrete`` through one output population per action, rates times a learned scale as logits.
+    The critic reads the spike rates of every layer (so it sees the plastic memory) through a small MLP;
+    ``critic="mlp"`` gives a separate memoryless MLP on the observation instead.
+
+    :param observation_space: observation space.
+    :param action_space: action space (``Box`` or ``Discrete``).
+    :param lr_schedule: learning-rate schedule.
+    :param rule: plasticity rule name (``static``, ``dp-linear``, ``dp-oja``, ``dp-bcm``, ``ndp-oja``,
+        ``ndp-bcm`` or any registered with :func:`~sb3_spikeplastic.plasticity.register_rule`).
+    :param hidden_sizes: neurons per hidden layer (paper: ``(64, 64)``).
+    :param steps: network steps ``T`` per environment step (1 ms each; paper HalfCheetah: 50). ``None``: the
+        raster length for spike observations, else 50.
+    :param plastic_layers: indices of the plastic layers (0 is input->first hidden, the last is the output
+        layer) or ``"all"``.
+    :param neuron: SRM constants as a dict of :class:`~sb3_spikeplastic.neurons.SRMParameters` fields
+        (``theta``, ``tau_s``, ``tau_ref``, ``scale_ref``, ``tau_rho``, ``scale_rho``, ``dt``).
+    :param e_max: trace clip bound :math:`E_{max}`.
+    :param plasticity_interval: :math:`\\Delta\\tau` in network steps (must divide ``steps``; default ``steps``).
+    :param rule_kwargs: extra arguments of the rule (e.g. ``eta_init``, ``modulation="tanh"``).
+    :param encoder_pop_size: place cells per observation dimension (paper: 50).
+    :param encoder_beta: place-cell sharpness (paper: 15).
+    :param encoder_p_min: floor spike probability (paper: 0.05).
+    :param obs_bounds: ``(low, high)`` for the encoder where the observation space is unbounded (scalars or
+        arrays; with ``VecNormalize`` use the normalised range). Finite space bounds are used as they are.
+    :param input_rms_rate: expected rms firing probability of spike-raster inputs (weight init only).
+    :param action_pop_size: output neurons per action dimension (continuous, even; paper: 100) or per action
+        (discrete). ``None``: 100 for ``Box``, 1 for ``Discrete``.
+    :param logit_scale_init: initial scale of the discrete decoder's logits.
+    :param w_init_gain: initial weight spread per layer (see :class:`~sb3_spikeplastic.network.SpikingPlasticNetwork`).
+    :param w_init_mean: initial weight mean per layer.
+    :param alpha_init_mean: initial plasticity-coefficient mean per layer (``None``: the rule's default).
+    :param alpha_init_std: initial plasticity-coefficient std per layer (``None``: 10% of the mean).
+    :param critic: ``"snn"`` (value from the spiking layers' rates) or ``"mlp"`` (memoryless MLP on the observation).
+    :param critic_hidden: hidden units of the critic's MLP.
+    :param log_std_init: initial log standard deviation of the Gaussian actions.
+    :param kwargs: passed to :class:`~stable_baselines3.common.policies.ActorCriticPolicy` (optimizer etc.).
+    """
+
+    recurrent = True
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Space,
+        lr_schedule: Schedule,
+        rule: str = "dp-oja",
+        hidden_sizes: Sequence[int] = (64, 64),
+        steps: Optional[int] = None,
+        plastic_layers: Union[str, Sequence[int]] = "all",
+        neuron: Optional[dict] = None,
+        e_max: float = 1.0,
+        plasticity_interval: Optional[int] = None,
+        rule_kwargs: Optional[dict] = None,
+        encoder_pop_size: int = 50,
+        encoder_beta: float = 15.0,
+        encoder_p_min: float = 0.05,
+        obs_bounds: tuple = (-3.0, 3.0),
+        input_rms_rate: float = 0.25,
+        action_pop_size: Optional[int] = None,
+        logit_scale_init: float = 20.0,
+        w_init_gain: Union[float, Sequence[float]] = 3.0,
+        w_init_mean: Union[float, Sequence[float]] = 0.0,
+        alpha_init_mean: Optional[Union[float, Sequence[float]]] = None,
+        alpha_init_std: Optional[Union[float, Sequence[float]]] = None,
+        critic: str = "snn",
+        critic_hidden: int = 64,
+        log_std_init: float = 0.0,
+        **kwargs: Any,
+    ):
+        if kwargs.pop("use_sde", False):
+            raise ValueError("use_sde=True is not supported by SpikePlasticPolicy (its actions come from spike rates)")
+        if critic not in ("snn", "mlp"):
+            raise ValueError(f"unknown critic {critic!r}; accepted: snn, mlp")
+        if not isinstance(action_space, (spaces.Box, spaces.Discrete)):
+            raise ValueError(f"SpikePlasticPolicy supports Box and Discrete actions, got {action_space}")
+        if not isinstance(observation_space, spaces.Box):
+            raise ValueError(f"SpikePlasticPolicy supports Box observations, got {observation_space}")
+        raster = is_spike_raster_space(observation_space)
+        if not raster and len(observation_space.shape) != 1:
+            raise ValueError(
+                f"observation shape {observation_space.shape} is neither a vector (population-encoded) nor a "
+                "(T, n) spike raster with bounds [0, 1]"
+            )
+        if raster and steps is not None and steps != observation_space.shape[0]:
+            raise ValueError(f"steps={steps} does not match the spike-raster length {observation_space.shape[0]}")
+        self.snn_config = dict(
+            rule=rule, hidden_sizes=tuple(int(h) for h in hidden_sizes),
+            steps=int(observation_space.shape[0] if raster else (steps or 50)), plastic_layers=plastic_layers,
+            neuron=dict(neuron or {}), e_max=e_max, plasticity_interval=plasticity_interval,
+            rule_kwargs=dict(rule_kwargs or {}), encoder_pop_size=encoder_pop_size, encoder_beta=encoder_beta,
+            encoder_p_min=encoder_p_min, obs_bounds=obs_bounds, input_rms_rate=input_rms_rate,
+            action_pop_size=action_pop_size, logit_scale_init=logit_scale_init, w_init_gain=w_init_gain,
+            w_init_mean=w_init_mean, alpha_init_mean=alpha_init_mean, alpha_init_std=alpha_init_std,
+            critic=critic, critic_hidden=critic_hidden,
+        )
+        super().__init__(observation_space, action_space, lr_schedule, log_std_init=log_std_init, **kwargs)
+
+    # ----------------------------------------------------------------------------------------------------------
+    # Construction
+
+    def _make_encoder(self) -> nn.Module:
+        cfg, space = self.snn_config, self.observation_space
+        if is_spike_raster_space(space):
+            return RasterInput(space.shape[0], space.shape[1], cfg["input_rms_rate"])
+        low = np.broadcast_to(np.asarray(cfg["obs_bounds"][0], dtype=np.float64), space.shape)
+        high = np.broadcast_to(np.asarray(cfg["obs_bounds"][1], dtype=np.float64), space.shape)
+        low = np.where(np.isfinite(space.low), space.low, low)
+        high = np.where(np.isfinite(space.high), space.high, high)
+        return PopulationEncoder(low, high, cfg["encoder_pop_size"], cfg["encoder_beta"], cfg["encoder_p_min"])
+
+    def _make_decoder(self) -> nn.Module:
+        cfg, space = self.snn_config, self.action_space
+        if isinstance(space, spaces.Box):
+            return ContinuousDecoder(space.low, space.high, cfg["action_pop_size"] or 100)
+        return DiscreteDecoder(int(space.n), cfg["action_pop_size"] or 1, cfg["logit_scale_init"])
+
+    def _build(self, lr_schedule: Schedule) -> None:
+        cfg = self.snn_config
+        try:
+            neuron = SRMParameters(**cfg["neuron"])
+        except TypeError:
+            raise ValueError(f"bad neuron constants {cfg['neuron']}; accepted keys: {', '.join(SRMParameters._fields)}") from None
+        self.snn = SpikingPlasticNetwork(
+            self._make_encoder(), self._make_decoder(), cfg["hidden_sizes"], cfg["steps"], cfg["rule"],
+            cfg["plastic_layers"], neuron, cfg["e_max"], cfg["plasticity_interval"], cfg["rule_kwargs"],
+            cfg["w_init_gain"], cfg["w_init_mean"], cfg["alpha_init_mean"], cfg["alpha_init_std"],
+        )
+        if isinstance(self.action_dist, DiagGaussianDistribution):
+            self.log_std = nn.Parameter(torch.full((get_action_dim(self.action_space),), float(self.log_std_init)))
+        elif not isinstance(self.action_dist, CategoricalDistribution):
+            raise ValueError(f"unsupported action distribution {type(self.action_dist).__name__}")
+        hidden = cfg["critic_hidden"]
+        if cfg["critic"] == "snn":
+            critic_in = sum(self.snn.sizes[1:])
+        else:
+            critic_in = int(np.prod(self.observation_space.shape))
+        self.value_net = nn.Sequential(nn.Linear(critic_in, hidden), nn.Tanh(), nn.Linear(hidden, 1))
+        self.optimizer = self.optimizer_class(self.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        for unused in ("net_arch", "activation_fn", "ortho_init", "use_sde", "full_std", "use_expln",
+                       "squash_output", "sde_net_arch"):
+            data.pop(unused, None)
+        data.update(self.snn_config)
+        return data
+
+    # ----------------------------------------------------------------------------------------------------------
+    # Recurrent interface used by sb3_spikeplastic.PPO
+
+    def initial_state(self, n_envs: int, seed: int = 0) -> NetworkState:
+        """Initial network state for ``n_envs`` environments (``seed`` picks the input-noise streams)."""
+        return self.snn.initial_state(n_envs, seed=seed, device=self.device)
+
+    def _value(self, obs: Tensor, out: NetworkOutput) -> Tensor:
+        features = torch.cat(out.rates, -1) if self.snn_config["critic"] == "snn" else obs.flatten(1).float()
+        return self.value_net(features)
+
+    def _distribution(self, out: NetworkOutput):
+        if isinstance(self.action_dist, DiagGaussianDistribution):
+            return self.action_dist.proba_distribution(out.action, self.log_std)
+        return self.action_dist.proba_distribution(action_logits=out.action)
+
+    def step(self, obs: Tensor, state: NetworkState, episode_start: Tensor, deterministic: bool = False):
+        """One rollout step: ``(actions, values, log_probs, new_state, network_output)`` after resetting the state
+        where ``episode_start`` is 1."""
+        obs = self._preprocess(obs)
+        out, new_state = self.snn(obs, state.reset(episode_start))
+        distribution = self._distribution(out)
+        actions = distribution.get_actions(deterministic=deterministic)
+        log_prob = distribution.log_prob(actions)
+        actions = actions.reshape((-1, *self.action_space.shape))
+        return actions, self._value(obs, out), log_prob, new_state, out
+
+    def value_with_state(self, obs: Tensor, state: NetworkState, episode_start: Optional[Tensor] = None) -> Tensor:
+        """Value of ``obs`` seen from ``state`` (the state itself is not advanced: bootstrap values)."""
+        obs = self._preprocess(obs)
+        if episode_start is not None:
+            state = state.reset(episode_start)
+        out, _ = self.snn(obs, state)
+        return self._value(obs, out)
+
+    def evaluate_actions_sequence(self, obs: Tensor, actions: Tensor, episode_starts: Tensor, state: NetworkState):
+        """Re-run sequences ``(L, batch, ...)`` from chunk-start ``state`` with truncated BPTT through the whole
+        chunk (traces included), resetting where ``episode_starts`` is 1.
+
+        :return: ``(values, log_prob, entropy, outputs)``; the first three flattened over ``L * batch``
+            (time-major), ``outputs`` the per-step :class:`~sb3_spikeplastic.network.NetworkOutput`.
+        """
+        obs = self._preprocess(obs.flatten(0, 1)).view(obs.shape[0], obs.shape[1], *self.observation_space.shape)
+        outputs, _ = self.snn.forward_sequence(obs, episode_starts, state)
+        merged = NetworkOutput(torch.cat([o.action for o in outputs]),
+                               tuple(torch.cat(r) for r in zip(*[o.rates for o in outputs])), None)
+        distribution = self._distribution(merged)
+        flat_actions = actions.flatten(0, 1)
+        if isinstance(self.action_space, spaces.Discrete):
+            flat_actions = flat_actions.long().flatten()
+        values = self._value(obs.flatten(0, 1), merged)
+        return values, distribution.log_prob(flat_actions), distribution.entropy(), outputs
+
+    def _preprocess(self, obs: Tensor) -> Tensor:
+        obs = obs.float()
+        if not torch.isfinite(obs).all():
+            raise ValueError("non-finite observation passed to SpikePlasticPolicy (NaN or inf); check the env or VecNormalize")
+        return obs
+
+    # ----------------------------------------------------------------------------------------------------------
+    # SB3 API
+
+    def forward(self, obs: Tensor, deterministic: bool = False):
+        # stable_baselines3.PPO's rollout calls this without state: refuse instead of training silently wrong.
+        raise RuntimeError(MISUSE_MESSAGE)
+
+    def predict(self, observation: np.ndarray, state: Optional[NetworkState] = None,
+                episode_start: Optional[np.ndarray] = None, deterministic: bool = False):
+        """Actions for ``observation`` and the next network state, as SB3's recurrent policies do.
+
+        :param observation: one observation or a batch (vectorised env).
+        :param state: the state returned by the previous call; ``None`` starts fresh.
+        :param episode_start: 1 where an episode starts (the state is reset there); ``None``: no reset.
+        :param deterministic: use the mean action (Gaussian) or the arg-max (discrete). Input spikes stay random
+            but replayable: the same observations and state give the same actions.
+        :return: ``(actions, new_state)``.
+        """
+        self.set_training_mode(False)
+        obs_tensor, vectorized_env = self.obs_to_tensor(observation)
+        n_envs = obs_tensor.shape[0]
+        if state is None:
+            state = self.initial_state(n_envs)
+        starts = torch.zeros(n_envs) if episode_start is None else torch.as_tensor(np.asarray(episode_start, dtype=np.float32).reshape(-1))
+        with torch.no_grad():
+            actions, _, _, state, _ = self.step(obs_tensor, state, starts.to(self.device), deterministic)
+        actions = actions.cpu().numpy()
+        if isinstance(self.action_space, spaces.Box):
+            actions = np.clip(actions, self.action_space.low, self.action_space.high)
+        if not vectorized_env:
+            actions = actions.squeeze(axis=0)
+        return actions, state
+
+    def _predict(self, observation: Tensor, deterministic: bool = False) -> Tensor:
+        raise RuntimeError(MISUSE_MESSAGE)
+
+    def predict_values(self, obs: Tensor) -> Tensor:
+        raise RuntimeError(MISUSE_MESSAGE)
+
+    def evaluate_actions(self, obs: Tensor, actions: Tensor):
+        raise RuntimeError(MISUSE_MESSAGE)
+
+
+class MisusedSpikePlasticPolicy(SpikePlasticPolicy):
+    """What ``stable_baselines3.PPO("SpikePlasticPolicy", ...)`` resolves to: it refuses at construction."""
+
+    def __init__(self, *args, **kwargs):
+        raise TypeError(MISUSE_MESSAGE)

@@ -1,0 +1,321 @@
+"""Recurrent PPO for spiking plastic policies: a thin layer over ``stable_baselines3.PPO``.
+
+For a recurrent policy (:class:`~sb3_spikeplastic.policy.SpikePlasticPolicy`) the algorithm
+
+* carries the per-environment network state through rollouts, resetting it where an episode starts;
+* stores a state snapshot only at the start of each ``bptt_steps``-long chunk (never per step);
+* trains on shuffled minibatches of whole chunks, re-running each chunk from its snapshot with truncated BPTT
+  (through the plastic traces too), resetting inside a chunk where an episode starts;
+* bootstraps both the last value and time-limit truncations with the post-step state.
+
+Any other policy (``MlpPolicy``...) goes through SB3's own code paths unchanged.
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar, Generator, NamedTuple, Optional, Union
+
+import numpy as np
+import torch
+from gymnasium import spaces
+from stable_baselines3 import PPO as SB3PPO
+from stable_baselines3.common.buffers import RolloutBuffer
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import GymEnv, Schedule
+from stable_baselines3.common.utils import explained_variance, obs_as_tensor
+from stable_baselines3.common.vec_env import VecEnv
+from torch import Tensor
+from torch.nn import functional as F
+
+from .monitoring import RolloutActivity
+from .network import NetworkState, map_tensors
+from .policy import SpikePlasticPolicy
+
+
+class ChunkSamples(NamedTuple):
+    """A minibatch of whole chunks, time-major ``(L, n_chunks, ...)``, and the chunks' start states."""
+
+    observations: Tensor
+    actions: Tensor
+    old_values: Tensor
+    old_log_prob: Tensor
+    advantages: Tensor
+    returns: Tensor
+    episode_starts: Tensor
+    states: NetworkState
+
+
+class ChunkRolloutBuffer(RolloutBuffer):
+    """SB3's rollout buffer plus one network-state snapshot per ``chunk_len`` steps and environment.
+
+    :param chunk_len: steps per chunk (``bptt_steps``); must divide ``buffer_size``.
+    Other parameters as :class:`~stable_baselines3.common.buffers.RolloutBuffer`.
+    """
+
+    def __init__(self, buffer_size: int, observation_space, action_space, device="auto", gae_lambda=1.0, gamma=0.99,
+                 n_envs=1, chunk_len: int = 32):
+        if buffer_size % chunk_len:
+            raise ValueError(f"n_steps={buffer_size} must be a multiple of bptt_steps={chunk_len}")
+        self.chunk_len = chunk_len
+        super().__init__(buffer_size, observation_space, action_space, device, gae_lambda, gamma, n_envs)
+
+    def reset(self) -> None:
+        super().reset()
+        self.snapshots: list[NetworkState] = []
+
+    def add_snapshot(self, state: NetworkState) -> None:
+        """Store the state entering step ``self.pos`` (must be a chunk start)."""
+        if self.pos != len(self.snapshots) * self.chunk_len:
+            raise RuntimeError(f"snapshot at step {self.pos} is not at the start of chunk {len(self.snapshots)}")
+        self.snapshots.append(state.detach())
+
+    def snapshot_nbytes(self) -> int:
+        return sum(s.nbytes() for s in self.snapshots)
+
+    def get_chunks(self, chunks_per_batch: int) -> Generator[ChunkSamples, None, None]:
+        """Shuffled minibatches of ``chunks_per_batch`` whole chunks."""
+        if not self.full:
+            raise RuntimeError("the rollout buffer is not full")
+        n_chunks = self.buffer_size // self.chunk_len
+        total = n_chunks * self.n_envs
+        # Snapshots stacked to (n_chunks, n_envs, ...) then flattened to chunk index c * n_envs + e.
+        states = map_tensors(lambda x: x.flatten(0, 1), NetworkState.stack(self.snapshots))
+        offsets = np.arange(self.chunk_len)[:, None]
+        order = np.random.permutation(total)
+        for start in range(0, total, chunks_per_batch):
+            idx = order[start:start + chunks_per_batch]
+            times = (idx // self.n_envs)[None, :] * self.chunk_len + offsets  # (L, n)
+            envs = np.broadcast_to(idx % self.n_envs, times.shape)
+
+            def take(arr: np.ndarray) -> Tensor:
+                return self.to_torch(arr[times, envs])
+
+            yield ChunkSamples(
+                take(self.observations), take(self.actions), take(self.values), take(self.log_probs),
+                take(self.advantages), take(self.returns), take(self.episode_starts),
+                states.select(torch.as_tensor(idx, device=states.noise_key.device)),
+            )
+
+
+class PPO(SB3PPO):
+    """Proximal Policy Optimization (``stable_baselines3.PPO``) extended to recurrent spiking plastic policies.
+
+    A drop-in for SB3's PPO: with ``MlpPolicy`` and friends it behaves exactly like it. With
+    ``"SpikePlasticPolicy"`` it trains with truncated backpropagation through time over chunks of
+    ``bptt_steps`` environment steps (see the module docstring).
+
+    :param bptt_steps: environment steps per training chunk (truncated-BPTT length) for recurrent policies;
+        must divide ``n_steps`` and ``batch_size``.
+    Other parameters as :class:`stable_baselines3.PPO`; ``batch_size`` keeps its meaning (transitions per
+    minibatch), so a minibatch holds ``batch_size // bptt_steps`` chunks.
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
+        **SB3PPO.policy_aliases,
+        "SpikePlasticPolicy": SpikePlasticPolicy,
+    }
+
+    def __init__(
+        self,
+        policy: Union[str, type[BasePolicy]],
+        env: Union[GymEnv, str],
+        learning_rate: Union[float, Schedule] = 3e-4,
+        n_steps: int = 2048,
+        batch_size: int = 64,
+        n_epochs: int = 10,
+        gamma: float = 0.99,
+        gae_lambda: float = 0.95,
+        clip_range: Union[float, Schedule] = 0.2,
+        clip_range_vf: Union[None, float, Schedule] = None,
+        normalize_advantage: bool = True,
+        ent_coef: float = 0.0,
+        vf_coef: float = 0.5,
+        max_grad_norm: float = 0.5,
+        use_sde: bool = False,
+        sde_sample_freq: int = -1,
+        rollout_buffer_class: Optional[type[RolloutBuffer]] = None,
+        rollout_buffer_kwargs: Optional[dict[str, Any]] = None,
+        target_kl: Optional[float] = None,
+        stats_window_size: int = 100,
+        tensorboard_log: Optional[str] = None,
+        policy_kwargs: Optional[dict[str, Any]] = None,
+        verbose: int = 0,
+        seed: Optional[int] = None,
+        device: Union[torch.device, str] = "auto",
+        bptt_steps: int = 32,
+        _init_setup_model: bool = True,
+    ):
+        self.bptt_steps = int(bptt_steps)
+        super().__init__(
+            policy, env, learning_rate=learning_rate, n_steps=n_steps, batch_size=batch_size, n_epochs=n_epochs,
+            gamma=gamma, gae_lambda=gae_lambda, clip_range=clip_range, clip_range_vf=clip_range_vf,
+            normalize_advantage=normalize_advantage, ent_coef=ent_coef, vf_coef=vf_coef,
+            max_grad_norm=max_grad_norm, use_sde=use_sde, sde_sample_freq=sde_sample_freq,
+            rollout_buffer_class=rollout_buffer_class, rollout_buffer_kwargs=rollout_buffer_kwargs,
+            target_kl=target_kl, stats_window_size=stats_window_size, tensorboard_log=tensorboard_log,
+            policy_kwargs=policy_kwargs, verbose=verbose, seed=seed, device=device,
+            _init_setup_model=False,
+        )
+        if self.recurrent:
+            self._check_chunking()
+        if _init_setup_model:
+            self._setup_model()
+
+    @property
+    def recurrent(self) -> bool:
+        return bool(getattr(self.policy_class, "recurrent", False))
+
+    def _check_chunking(self) -> None:
+        if self.bptt_steps < 1:
+            raise ValueError(f"bptt_steps must be >= 1, got {self.bptt_steps}")
+        if self.n_steps % self.bptt_steps:
+            raise ValueError(f"n_steps={self.n_steps} must be a multiple of bptt_steps={self.bptt_steps}")
+        if self.batch_size % self.bptt_steps:
+            raise ValueError(
+                f"batch_size={self.batch_size} (transitions) must be a multiple of bptt_steps={self.bptt_steps}"
+            )
+        if self.env is not None and self.batch_size > self.n_steps * self.n_envs:
+            raise ValueError(
+                f"batch_size={self.batch_size} exceeds the rollout size n_steps * n_envs = {self.n_steps * self.n_envs}"
+            )
+
+    def _setup_model(self) -> None:
+        if self.recurrent:
+            self.rollout_buffer_class = ChunkRolloutBuffer
+            self.rollout_buffer_kwargs = {**(self.rollout_buffer_kwargs or {}), "chunk_len": self.bptt_steps}
+        super()._setup_model()
+        self._last_network_state: Optional[NetworkState] = None
+        if self.recurrent:
+            self._last_network_state = self.policy.initial_state(self.n_envs, seed=self.seed or 0)
+            self.rollout_activity = RolloutActivity(self.policy.snn)
+
+    def _excluded_save_params(self) -> list[str]:
+        # The rollout state belongs to the running environments, not to the model.
+        return [*super()._excluded_save_params(), "_last_network_state", "rollout_activity"]
+
+    # --------------------------------------------------------------------------------------------------------------
+
+    def collect_rollouts(self, env: VecEnv, callback: BaseCallback, rollout_buffer: RolloutBuffer,
+                         n_rollout_steps: int) -> bool:
+        if not self.recurrent:
+            return super().collect_rollouts(env, callback, rollout_buffer, n_rollout_steps)
+        assert self._last_obs is not None, "No previous observation was provided"
+        self.policy.set_training_mode(False)
+        n_steps = 0
+        rollout_buffer.reset()
+        self.rollout_activity.reset()
+        callback.on_rollout_start()
+        state = self._last_network_state
+        while n_steps < n_rollout_steps:
+            if n_steps % self.bptt_steps == 0:
+                rollout_buffer.add_snapshot(state)
+            with torch.no_grad():
+                obs_tensor = obs_as_tensor(self._last_obs, self.device)
+                starts = torch.as_tensor(self._last_episode_starts, dtype=torch.float32, device=self.device)
+                actions, values, log_probs, state, out = self.policy.step(obs_tensor, state, starts)
+            self.rollout_activity.add(out)
+            actions = actions.cpu().numpy()
+            clipped_actions = actions
+            if isinstance(self.action_space, spaces.Box):
+                clipped_actions = np.clip(actions, self.action_space.low, self.action_space.high)
+            new_obs, rewards, dones, infos = env.step(clipped_actions)
+            self.num_timesteps += env.num_envs
+            callback.update_locals(locals())
+            if not callback.on_step():
+                self._last_network_state = state
+                return False
+            self._update_info_buffer(infos, dones)
+            n_steps += 1
+            if isinstance(self.action_space, spaces.Discrete):
+                actions = actions.reshape(-1, 1)
+            for idx, done in enumerate(dones):
+                if done and infos[idx].get("terminal_observation") is not None and infos[idx].get("TimeLimit.truncated", False):
+                    terminal_obs = self.policy.obs_to_tensor(infos[idx]["terminal_observation"])[0]
+                    with torch.no_grad():
+                        # The post-step state of this env, before the reset the next step will apply.
+                        terminal_value = self.policy.value_with_state(terminal_obs, state.select([idx]))[0]
+                    rewards[idx] += self.gamma * terminal_value.item()
+            rollout_buffer.add(self._last_obs, actions, rewards, self._last_episode_starts, values, log_probs)
+            self._last_obs = new_obs
+            self._last_episode_starts = dones
+        self._last_network_state = state
+        with torch.no_grad():
+            last_values = self.policy.value_with_state(
+                obs_as_tensor(new_obs, self.device), state,
+                torch.as_tensor(dones, dtype=torch.float32, device=self.device))
+        rollout_buffer.compute_returns_and_advantage(last_values=last_values, dones=dones)
+        self.rollout_activity.record(self.logger, state)
+        callback.update_locals(locals())
+        callback.on_rollout_end()
+        return True
+
+    def train(self) -> None:
+        if not self.recurrent:
+            return super().train()
+        self.policy.set_training_mode(True)
+        self._update_learning_rate(self.policy.optimizer)
+        clip_range = self.clip_range(self._current_progress_remaining)
+        clip_range_vf = None if self.clip_range_vf is None else self.clip_range_vf(self._current_progress_remaining)
+        entropy_losses, pg_losses, value_losses, clip_fractions, grad_norms = [], [], [], [], []
+        approx_kl_divs: list[float] = []
+        continue_training = True
+        loss = torch.zeros(())
+        for epoch in range(self.n_epochs):
+            approx_kl_divs = []
+            for batch in self.rollout_buffer.get_chunks(self.batch_size // self.bptt_steps):
+                values, log_prob, entropy, _ = self.policy.evaluate_actions_sequence(
+                    batch.observations, batch.actions, batch.episode_starts, batch.states)
+                values = values.flatten()
+                advantages = batch.advantages.flatten()
+                old_log_prob = batch.old_log_prob.flatten()
+                old_values, returns = batch.old_values.flatten(), batch.returns.flatten()
+                if self.normalize_advantage and len(advantages) > 1:
+                    advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+                ratio = torch.exp(log_prob - old_log_prob)
+                policy_loss = -torch.min(advantages * ratio,
+                                         advantages * torch.clamp(ratio, 1 - clip_range, 1 + clip_range)).mean()
+                pg_losses.append(policy_loss.item())
+                clip_fractions.append(torch.mean((torch.abs(ratio - 1) > clip_range).float()).item())
+                if clip_range_vf is None:
+                    values_pred = values
+                else:
+                    values_pred = old_values + torch.clamp(values - old_values, -clip_range_vf, clip_range_vf)
+                value_loss = F.mse_loss(returns, values_pred)
+                value_losses.append(value_loss.item())
+                entropy_loss = -torch.mean(entropy) if entropy is not None else -torch.mean(-log_prob)
+                entropy_losses.append(entropy_loss.item())
+                loss = policy_loss + self.ent_coef * entropy_loss + self.vf_coef * value_loss
+                with torch.no_grad():
+                    log_ratio = log_prob - old_log_prob
+                    approx_kl_div = torch.mean((torch.exp(log_ratio) - 1) - log_ratio).item()
+                    approx_kl_divs.append(approx_kl_div)
+                if self.target_kl is not None and approx_kl_div > 1.5 * self.target_kl:
+                    continue_training = False
+                    if self.verbose >= 1:
+                        print(f"Early stopping at step {epoch} due to reaching max kl: {approx_kl_div:.2f}")
+                    break
+                self.policy.optimizer.zero_grad()
+                loss.backward()
+                # Plastic traces make raw gradient norms span 1e1..1e12 across rules: clipping is essential.
+                grad_norms.append(torch.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm).item())
+                self.policy.optimizer.step()
+            self._n_updates += 1
+            if not continue_training:
+                break
+        explained_var = explained_variance(self.rollout_buffer.values.flatten(), self.rollout_buffer.returns.flatten())
+        self.logger.record("train/entropy_loss", np.mean(entropy_losses))
+        self.logger.record("train/policy_gradient_loss", np.mean(pg_losses))
+        self.logger.record("train/value_loss", np.mean(value_losses))
+        self.logger.record("train/approx_kl", np.mean(approx_kl_divs))
+        self.logger.record("train/clip_fraction", np.mean(clip_fractions))
+        self.logger.record("train/loss", loss.item())
+        self.logger.record("train/explained_variance", explained_var)
+        if grad_norms:
+            self.logger.record("train/grad_norm", float(np.median(grad_norms)))
+        if hasattr(self.policy, "log_std"):
+            self.logger.record("train/std", torch.exp(self.policy.log_std).mean().item())
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.record("train/clip_range", clip_range)
+        if clip_range_vf is not None:
+            self.logger.record("train/clip_range_vf", clip_range_vf)
