@@ -1,1 +1,57 @@
-print("stub")
+"""Gymnasium environments of sb3-spikeplastic; importing this module registers their ids.
+
+* ``TMazeCue-v0``: the spiking cue-association T-maze, low noise (:class:`TMazeCueEnv`).
+* ``TMazeCueNoisy-v0``: the same with the paper's high-noise spike probabilities.
+* ``NoisyHalfCheetah-v5``: ``HalfCheetah-v5`` with observation, action and joint-friction noise (``obs_noise``,
+  ``action_noise``, ``friction_noise`` standard deviations, ``friction_target``; all 0 by default).
+
+This package imports neither torch nor the rest of the plugin.
+"""
+
+from typing import Any
+
+import gymnasium
+
+from sb3_spikeplastic.envs.noise import (
+    FRICTION_TARGETS,
+    NOISE_TYPES,
+    ActionNoise,
+    FrictionNoise,
+    ObservationNoise,
+    make_noisy_env,
+    noise_kwargs,
+)
+from sb3_spikeplastic.envs.tmaze import TMazeCueEnv
+
+__all__ = [
+    "FRICTION_TARGETS",
+    "NOISE_TYPES",
+    "ActionNoise",
+    "FrictionNoise",
+    "ObservationNoise",
+    "TMazeCueEnv",
+    "make_noisy_env",
+    "noise_kwargs",
+]
+
+
+def _register(env_id: str, **kwargs: Any) -> None:
+    # Re-registering an id makes gymnasium warn; a reload of this module must stay silent.
+    if env_id not in gymnasium.registry:
+        gymnasium.register(id=env_id, **kwargs)
+
+
+_register("TMazeCue-v0", entry_point="sb3_spikeplastic.envs.tmaze:TMazeCueEnv", kwargs={"noise": "low"})
+_register("TMazeCueNoisy-v0", entry_point="sb3_spikeplastic.envs.tmaze:TMazeCueEnv", kwargs={"noise": "high"})
+_register(
+    "NoisyHalfCheetah-v5",
+    entry_point="sb3_spikeplastic.envs.noise:make_noisy_base_env",
+    kwargs={
+        "base_id": "HalfCheetah-v5",
+        "obs_noise": 0.0,
+        "action_noise": 0.0,
+        "friction_noise": 0.0,
+        "friction_target": "damping",
+    },
+    max_episode_steps=1000,
+)

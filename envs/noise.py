@@ -55,9 +55,13 @@ class _NoiseWrapper(gymnasium.Wrapper):
         # the same integer, and the noise must not replay the environment's random numbers.
         return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(self._stream,)))
 
-    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict]:
+    def _reseed(self, seed: int | None) -> None:
+        # Unseeded resets continue the current stream, as the environment's own generator does.
         if seed is not None:
             self.noise_rng = self._generator(seed)
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict]:
+        self._reseed(seed)
         return self.env.reset(seed=seed, options=options)
 
 
@@ -168,12 +172,14 @@ class FrictionNoise(_NoiseWrapper, RecordConstructorArgs):
         """Degrees of freedom of the joints driven by joint-transmission actuators, in actuator order."""
         import mujoco  # only this wrapper needs MuJoCo itself
 
-        joint_transmissions = (mujoco.mjtTrn.mjTRN_JOINT, mujoco.mjtTrn.mjTRN_JOINTINPARENT)
-        joints = [int(j) for t, j in zip(model.actuator_trntype, model.actuator_trnid[:, 0]) if t in joint_transmissions]
+        # Compared as ints: MuJoCo's pybind enums do not compare equal to numpy integers from the model's arrays.
+        joint_transmissions = {int(mujoco.mjtTrn.mjTRN_JOINT), int(mujoco.mjtTrn.mjTRN_JOINTINPARENT)}
+        joints = [
+            int(j) for t, j in zip(model.actuator_trntype, model.actuator_trnid[:, 0]) if int(t) in joint_transmissions
+        ]
         if not joints:
             raise ValueError("FrictionNoise target='damping' needs actuators that drive joints; the model has none")
-        dofs = np.concatenate([np.flatnonzero(model.dof_jntid == j) for j in dict.fromkeys(joints)])
-        return dofs
+        return np.concatenate([np.flatnonzero(model.dof_jntid == j) for j in dict.fromkeys(joints)])
 
     def _apply(self, factors: np.ndarray) -> None:
         if self.target == "damping":
@@ -182,8 +188,7 @@ class FrictionNoise(_NoiseWrapper, RecordConstructorArgs):
             self._model.geom_friction[:] = self._nominal * factors[:, None]
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict]:
-        if seed is not None:
-            self.noise_rng = self._generator(seed)
+        self._reseed(seed)
         if self.sigma != 0.0:
             z = self.noise_rng.normal(0.0, self.sigma, size=len(self._nominal))
             self.factors = np.maximum(1.0 + z, 0.0)

@@ -48,13 +48,14 @@ class TMazeCueEnv(gymnasium.Env):
 
     Timeline of one episode (defaults; ``L``/``R`` = one cue slot of ``cue_ms``, ``.`` = gap of ``gap_ms``)::
 
-        | lead |  L  .  R  .  R  .  L  .  R  .  L  .  L  |   rest r   | decision |
-        | 0-24 | 7 cues x 25 ms, 6 gaps x 25 ms = 325 ms | 45/75/105  |  25 ms   |
-        ^ reset                                                         ^ the last frame: its action counts
+        | lead-in |  L  .  R  .  R  .  L  .  R  .  L  .  L  |   rest r    | decision |
+        | 5/0/20  | 7 cues x 25 ms, 6 gaps x 25 ms = 325 ms |  45/75/105  |  25 ms   |
+        ^ reset returns the first frame          the action on the last frame is the decision ^
 
-    * The cue phase lasts ``n_cues * cue_ms + (n_cues - 1) * gap_ms`` ms. The gaps keep consecutive cues apart as
-      in the paper's raster figure (Fig. 1B); 25 ms (one cue length) is the longest round gap for which the longest
-      episode still fits the 500 ms horizon of appendix 5.4 (with a 30 ms gap it would take 505 ms).
+    * The cue phase lasts ``n_cues * cue_ms + (n_cues - 1) * gap_ms`` ms. The gaps keep consecutive cues apart, as
+      the pauses between cues in the paper's input raster (Fig. 1B) do; a gap of one cue length is a 50 % duty
+      cycle, and the longest episode (475 ms) stays within the 500 ms horizon of appendix 5.4 (gaps up to 32 ms
+      would fit).
     * The rest delay is exactly ``r`` ms and the decision period closes the episode. So that the episode is a whole
       number of frames and the decision period is the end of the last frame, a *lead-in* of
       ``(-(cue phase + r + decision_ms)) mod frame_ms`` ms of cue-rest activity precedes the first cue.
@@ -79,7 +80,7 @@ class TMazeCueEnv(gymnasium.Env):
     :param noise: noise level, ``"low"`` or ``"high"``; it sets the spike probabilities left as ``None``.
     :param n_cues: number of cues; odd, so that one side always has more.
     :param cue_ms: duration of one cue in ms.
-    :param gap_ms: silence (cue-rest activity) between consecutive cues in ms.
+    :param gap_ms: pause (cue-rest activity) between consecutive cues in ms.
     :param rest_choices_ms: rest delays between the last cue and the decision period, drawn uniformly per episode.
     :param decision_ms: duration of the decision period in ms.
     :param frame_ms: milliseconds per observation (one environment step).
@@ -91,10 +92,11 @@ class TMazeCueEnv(gymnasium.Env):
     :param cues: a fixed cue sequence (``n_cues`` values, 0 = left, 1 = right) shown in every episode instead of
         random cues, e.g. all-left for figures. The random stream is consumed as with random cues, so for one seed
         the rest delay and the noise population's spikes do not depend on the cues.
-    :param render_mode: only ``None`` is supported.
+    :param render_mode: ``None`` or ``"rgb_array"`` (the current frame's raster, white = spike, one 4x4 pixel block
+        per neuron-millisecond; time runs down). SB3 creates environments from an id with ``"rgb_array"``.
     """
 
-    metadata = {"render_modes": []}
+    metadata = {"render_modes": ["rgb_array"]}
 
     def __init__(
         self,
@@ -115,8 +117,8 @@ class TMazeCueEnv(gymnasium.Env):
     ) -> None:
         if noise not in NOISE_LEVELS:
             raise ValueError(f"noise={noise!r} is not one of {tuple(NOISE_LEVELS)}")
-        if render_mode is not None:
-            raise ValueError(f"render_mode={render_mode!r} is not supported; TMazeCueEnv only accepts None")
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode={render_mode!r} is not supported; accepted: None, 'rgb_array'")
         self.n_cues = _check_int("n_cues", n_cues, 1)
         if self.n_cues % 2 == 0:
             raise ValueError(f"n_cues={n_cues!r} must be odd so that one side always shows more cues")
@@ -126,7 +128,8 @@ class TMazeCueEnv(gymnasium.Env):
         self.frame_ms = _check_int("frame_ms", frame_ms, 1)
         self.neurons_per_population = _check_int("neurons_per_population", neurons_per_population, 1)
         self.horizon_ms = _check_int("horizon_ms", horizon_ms, 1)
-        if isinstance(rest_choices_ms, (str, bytes)) or not isinstance(rest_choices_ms, Sequence) or not rest_choices_ms:
+        is_sequence = np.iterable(rest_choices_ms) and not isinstance(rest_choices_ms, (str, bytes))
+        if not is_sequence or len(rest_choices_ms) == 0:
             raise ValueError(f"rest_choices_ms={rest_choices_ms!r} must be a non-empty sequence of integers >= 0")
         self.rest_choices_ms = tuple(_check_int("rest_choices_ms", r, 0) for r in rest_choices_ms)
 
@@ -136,11 +139,12 @@ class TMazeCueEnv(gymnasium.Env):
         self.p_cue_rest = _check_probability("p_cue_rest", defaults[1] if p_cue_rest is None else p_cue_rest)
         self.p_noise = _check_probability("p_noise", defaults[2] if p_noise is None else p_noise)
 
+        self._fixed_cues: list[int] | None = None
         if cues is not None:
-            if len(cues) != self.n_cues or any(c not in (LEFT, RIGHT) for c in cues):
+            fixed = list(cues) if np.iterable(cues) else []
+            if len(fixed) != self.n_cues or any(c not in (LEFT, RIGHT) for c in fixed):
                 raise ValueError(f"cues={cues!r} must be {self.n_cues} values, each 0 (left) or 1 (right)")
-            cues = [int(c) for c in cues]
-        self._fixed_cues = cues
+            self._fixed_cues = [int(c) for c in fixed]
 
         self.cue_phase_ms = self.n_cues * self.cue_ms + (self.n_cues - 1) * self.gap_ms
         longest = max(self.episode_length_ms(r) for r in self.rest_choices_ms)
@@ -153,7 +157,7 @@ class TMazeCueEnv(gymnasium.Env):
         self.n_inputs = _N_POPULATIONS * self.neurons_per_population
         self.observation_space = spaces.Box(0.0, 1.0, shape=(self.frame_ms, self.n_inputs), dtype=np.float32)
         self.action_space = spaces.Discrete(2)
-        self.render_mode = None
+        self.render_mode = render_mode
 
         #: Sides of the current episode's cues (0 = left, 1 = right), in order of presentation.
         self.cues: list[int] = []
@@ -216,6 +220,15 @@ class TMazeCueEnv(gymnasium.Env):
         self._frames = raster.astype(np.float32).reshape(-1, self.frame_ms, self.n_inputs)
         self._frame = 0
         return self._frames[0].copy(), {}
+
+    def render(self) -> np.ndarray | None:
+        """The current frame's spike raster as an RGB image (``render_mode="rgb_array"``), else ``None``."""
+        if self.render_mode != "rgb_array":
+            return None
+        frame = self._frames[min(self._frame, len(self._frames) - 1)] if len(self._frames) else np.zeros(
+            (self.frame_ms, self.n_inputs), dtype=np.float32)
+        pixels = np.kron(frame, np.ones((4, 4), dtype=np.float32))
+        return np.repeat((pixels * 255).astype(np.uint8)[..., None], 3, axis=-1)
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
         """Advance one frame; on the last frame the action is the decision and ends the episode.

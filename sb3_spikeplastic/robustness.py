@@ -1,0 +1,202 @@
+"""Robustness to noise after training: the protocol of the paper's Fig. 4 F-H (§3.2).
+
+For one noise type and a grid of standard deviations ``sigma``, every model's mean return over ``n_episodes``
+episodes is measured and reported as a ratio to the same model's mean return without noise (``sigma = 0``, always
+evaluated). The noise is applied by the wrappers of :mod:`sb3_spikeplastic.envs.noise`.
+
+Every (model, ``sigma``) cell is evaluated on a fresh vectorised environment seeded alike, so all models and noise
+levels see the same initial states, and the noise draws of a given ``sigma`` are the same for every model: the
+comparison between models is paired.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize
+from tqdm.auto import tqdm
+
+from sb3_spikeplastic.envs.noise import make_noisy_env, noise_kwargs
+
+
+@dataclasses.dataclass(frozen=True)
+class RobustnessRow:
+    """The result of one (model, ``sigma``) cell.
+
+    :param model: the model's name (its key in ``models``).
+    :param noise_type: ``"obs"``, ``"action"`` or ``"friction"``.
+    :param sigma: the noise's standard deviation.
+    :param mean_return: mean episode return.
+    :param std_return: standard deviation of the episode returns.
+    :param n_episodes: number of episodes.
+    :param ratio: ``mean_return`` over the same model's mean return at ``sigma = 0`` (NaN if that is 0); as in the
+        paper, it reads as the fraction of performance kept only when the noise-free return is positive.
+    """
+
+    model: str
+    noise_type: str
+    sigma: float
+    mean_return: float
+    std_return: float
+    n_episodes: int
+    ratio: float
+
+
+def _make_eval_env(
+    env_id: str,
+    noise: Mapping[str, Any],
+    env_kwargs: Mapping[str, Any],
+    n_envs: int,
+    seed: int,
+    vec_normalize_path: str | os.PathLike | None,
+) -> VecEnv:
+    """Seeded ``DummyVecEnv`` of monitored noisy environments, with frozen ``VecNormalize`` statistics if given."""
+
+    def make_one() -> Monitor:
+        # The Monitor is outermost so that it records the returns of the noisy environment.
+        return Monitor(make_noisy_env(env_id, **noise, **env_kwargs))
+
+    venv: VecEnv = DummyVecEnv([make_one] * n_envs)
+    venv.seed(seed)
+    if vec_normalize_path is not None:
+        venv = VecNormalize.load(str(vec_normalize_path), venv)
+        # Evaluation must neither update the statistics nor see normalised rewards.
+        venv.training = False
+        venv.norm_reward = False
+    return venv
+
+
+def evaluate_robustness(
+    models: Mapping[str, Any],
+    env_id: str,
+    noise_type: str,
+    sigmas: Sequence[float],
+    n_episodes: int = 100,
+    seed: int = 0,
+    deterministic: bool = True,
+    vec_normalize_stats: Mapping[str, str | os.PathLike | None] | None = None,
+    progress_bar: bool = True,
+    env_kwargs: Mapping[str, Any] | None = None,
+    n_envs: int = 1,
+    friction_target: str = "damping",
+) -> list[RobustnessRow]:
+    """Mean return of every model under one noise type, for each ``sigma`` (paper Fig. 4 F-H).
+
+    Episodes are run by Stable-Baselines3's ``evaluate_policy``, which passes the recurrent state and
+    ``episode_start`` to ``model.predict`` at every step, so recurrent and plastic policies keep (and reset) their
+    state correctly.
+
+    :param models: name -> trained model (anything with SB3's ``predict(obs, state, episode_start,
+        deterministic)``).
+    :param env_id: registered id of the noise-free environment, e.g. ``"HalfCheetah-v5"``.
+    :param noise_type: one of :data:`sb3_spikeplastic.envs.noise.NOISE_TYPES`.
+    :param sigmas: noise standard deviations; 0 is added if missing, and the grid is evaluated in increasing order.
+    :param n_episodes: episodes per (model, ``sigma``); the paper uses 100.
+    :param seed: seed of the environments (environment ``i`` gets ``seed + i``) and, when ``deterministic`` is
+        False, of torch's generator before every cell, so that the sampled actions are reproducible too.
+    :param deterministic: whether the policies act deterministically.
+    :param vec_normalize_stats: name -> path of the model's saved ``VecNormalize`` statistics (or None); they are
+        loaded frozen, with reward normalisation off.
+    :param progress_bar: show a tqdm progress bar over all episodes.
+    :param env_kwargs: arguments of ``gymnasium.make`` for ``env_id`` (e.g. ``max_episode_steps``).
+    :param n_envs: environments stepped side by side (batches the policy's forward pass).
+    :param friction_target: the friction parameters perturbed by ``"friction"`` noise.
+    :return: one row per (model, ``sigma``), models in the given order, ``sigma`` increasing.
+    """
+    noise_kwargs(noise_type, 0.0, friction_target)  # fail on a bad noise type or target before any work
+    grid = sorted({0.0, *(float(s) for s in sigmas)})
+    for sigma in grid:
+        noise_kwargs(noise_type, sigma)
+    if not models:
+        raise ValueError("models is empty: pass at least one name -> model")
+    if isinstance(n_episodes, bool) or not isinstance(n_episodes, int) or n_episodes < 1:
+        raise ValueError(f"n_episodes={n_episodes!r} must be an integer >= 1")
+    if isinstance(n_envs, bool) or not isinstance(n_envs, int) or n_envs < 1:
+        raise ValueError(f"n_envs={n_envs!r} must be an integer >= 1")
+    stats = dict(vec_normalize_stats or {})
+    unknown = sorted(set(stats) - set(models))
+    if unknown:
+        raise ValueError(f"vec_normalize_stats names {unknown} that are not in models {sorted(models)}")
+    env_kwargs = dict(env_kwargs or {})
+
+    rows: list[RobustnessRow] = []
+    with tqdm(
+        total=len(models) * len(grid) * n_episodes, disable=not progress_bar, desc="robustness", unit="episode"
+    ) as bar:
+
+        def count_episode(local_vars: dict[str, Any], _globals: dict[str, Any]) -> None:
+            # evaluate_policy calls back for every counted step; a Monitor "episode" entry marks a finished episode.
+            if local_vars["done"] and "episode" in local_vars["info"]:
+                bar.update(1)
+
+        for name, model in models.items():
+            baseline = math.nan
+            for sigma in grid:
+                bar.set_postfix(model=name, noise=noise_type, sigma=sigma)
+                venv = _make_eval_env(
+                    env_id, noise_kwargs(noise_type, sigma, friction_target), env_kwargs, n_envs, seed, stats.get(name)
+                )
+                if not deterministic:
+                    torch.manual_seed(seed)
+                try:
+                    returns, _ = evaluate_policy(
+                        model,
+                        venv,
+                        n_eval_episodes=n_episodes,
+                        deterministic=deterministic,
+                        return_episode_rewards=True,
+                        callback=count_episode,
+                    )
+                finally:
+                    venv.close()
+                mean = float(np.mean(returns))
+                if sigma == 0.0:
+                    baseline = mean
+                ratio = mean / baseline if baseline != 0.0 else math.nan
+                rows.append(RobustnessRow(name, noise_type, sigma, mean, float(np.std(returns)), len(returns), ratio))
+    return rows
+
+
+def write_csv(rows: Sequence[RobustnessRow], path: str | os.PathLike) -> Path:
+    """Write the rows to a CSV file with a header (parent folders are created).
+
+    :param rows: rows from :func:`evaluate_robustness`.
+    :param path: the file to write.
+    :return: the path written.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    names = [field.name for field in dataclasses.fields(RobustnessRow)]
+    with path.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=names)
+        writer.writeheader()
+        writer.writerows(dataclasses.asdict(row) for row in rows)
+    return path
+
+
+def format_table(rows: Sequence[RobustnessRow]) -> str:
+    """Format the rows as a Markdown table.
+
+    :param rows: rows from :func:`evaluate_robustness`.
+    :return: the table, one line per row after the header.
+    """
+    lines = [
+        "| model | noise | sigma | mean return | std return | episodes | ratio to sigma=0 |",
+        "|---|---|---:|---:|---:|---:|---:|",
+    ]
+    lines += [
+        f"| {r.model} | {r.noise_type} | {r.sigma:g} | {r.mean_return:.2f} | {r.std_return:.2f} | {r.n_episodes} "
+        f"| {r.ratio:.3f} |"
+        for r in rows
+    ]
+    return "\n".join(lines)

@@ -1,0 +1,177 @@
+"""SpikePlasticPolicy + recurrent PPO: replay exactness, state handling, SB3 integration, save/load, misuse."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import stable_baselines3
+import torch
+from stable_baselines3.common.callbacks import EvalCallback
+from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+import sb3_spikeplastic
+from sb3_spikeplastic import PPO, SpikePlasticPolicy
+from sb3_spikeplastic.envs.tmaze import TMazeCueEnv
+from sb3_spikeplastic.network import map_tensors
+
+SMALL = dict(hidden_sizes=(16,), steps=10, encoder_pop_size=8, action_pop_size=4)
+
+
+def vec(make, n, seed=0):
+    env = DummyVecEnv([lambda: Monitor(make()) for _ in range(n)])
+    env.seed(seed)
+    return env
+
+
+def tmaze(n=2):
+    return vec(lambda: TMazeCueEnv(neurons_per_population=4), n)
+
+
+def assert_replay_exact(model):
+    """Every chunk of the last rollout, re-run from its snapshot, reproduces the rollout's log-probs and values."""
+    policy, buf = model.policy, model.rollout_buffer
+    n_batches = 0
+    with torch.no_grad():
+        for batch in buf.get_chunks(model.batch_size // model.bptt_steps):
+            values, log_prob, _, _ = policy.evaluate_actions_sequence(
+                batch.observations, batch.actions, batch.episode_starts, batch.states)
+            ratio = torch.exp(log_prob - batch.old_log_prob.flatten())
+            assert (ratio - 1).abs().max().item() <= 1e-5
+            assert (values.flatten() - batch.old_values.flatten()).abs().max().item() <= 1e-5
+            n_batches += 1
+    assert n_batches == -(-buf.buffer_size * buf.n_envs // model.batch_size)  # every chunk was checked
+
+
+@pytest.mark.parametrize("rule", ["dp-oja", "ndp-bcm", "static"])
+def test_replay_exactness_spike_raster_episodes_end_inside_chunks(rule):
+    model = PPO("SpikePlasticPolicy", tmaze(3), n_steps=48, batch_size=32, bptt_steps=16, n_epochs=1,
+                learning_rate=0.0, seed=1, policy_kwargs=dict(rule=rule, hidden_sizes=(16,)))
+    model.learn(2 * 48 * 3)
+    starts = model.rollout_buffer.episode_starts
+    assert starts[1:].sum() > 0 and (starts[np.arange(48) % 16 != 0].sum() > 0)  # resets inside chunks
+    assert_replay_exact(model)
+
+
+def test_replay_exactness_population_encoded_discrete_and_ratio_one_in_training():
+    # CartPole: vector observations (stochastic place-cell encoding), short episodes ending inside chunks.
+    model = PPO("SpikePlasticPolicy", vec(lambda: gym.make("CartPole-v1"), 2), n_steps=64, batch_size=32,
+                bptt_steps=8, n_epochs=1, learning_rate=0.0, seed=0, policy_kwargs=dict(rule="ndp-oja", **SMALL))
+    model.learn(128)
+    assert model.logger.name_to_value.get("train/clip_fraction", 0.0) == 0.0
+    assert_replay_exact(model)
+
+
+def test_replay_exactness_continuous_with_time_limit_truncation():
+    env = vec(lambda: gym.make("Pendulum-v1", max_episode_steps=20), 2)
+    model = PPO("SpikePlasticPolicy", env, n_steps=32, batch_size=16, bptt_steps=8, n_epochs=1,
+                learning_rate=0.0, seed=0, policy_kwargs=dict(rule="dp-bcm", **SMALL))
+    model.learn(64)
+    assert_replay_exact(model)
+
+
+def test_rollout_state_reset_exactly_at_episode_starts():
+    policy_kwargs = dict(rule="dp-oja", **SMALL)
+    model = PPO("SpikePlasticPolicy", vec(lambda: gym.make("CartPole-v1"), 2), n_steps=16, batch_size=16,
+                bptt_steps=8, seed=0, policy_kwargs=policy_kwargs)
+    policy = model.policy
+    obs = torch.zeros(2, 4)
+    state = policy.initial_state(2)
+    with torch.no_grad():
+        for _ in range(3):
+            _, _, _, state, _ = policy.step(obs, state, torch.zeros(2))
+        reset = state.reset(torch.tensor([1.0, 0.0]))
+    fresh = policy.initial_state(2)
+    for got, want, old in zip(_leaves(reset.layers), _leaves(fresh.layers), _leaves(state.layers)):
+        assert torch.equal(got[0], want[0]) and torch.equal(got[1], old[1])
+    assert torch.equal(reset.noise_key, state.noise_key)
+
+
+def _leaves(tree):
+    out = []
+    map_tensors(lambda x: out.append(x) or x, tree)
+    return out
+
+
+def test_snapshots_only_at_chunk_starts_and_memory():
+    model = PPO("SpikePlasticPolicy", tmaze(2), n_steps=32, batch_size=32, bptt_steps=16, seed=0,
+                policy_kwargs=dict(rule="dp-oja", hidden_sizes=(16,)))
+    model.learn(64)
+    buf = model.rollout_buffer
+    assert len(buf.snapshots) == 32 // 16
+    per_env = model._last_network_state.nbytes() / 2
+    assert buf.snapshot_nbytes() == pytest.approx(2 * 2 * per_env)
+
+
+def test_save_load_identical_deterministic_actions_and_learn_continues(tmp_path):
+    model = PPO("SpikePlasticPolicy", vec(lambda: gym.make("Pendulum-v1"), 1), n_steps=32, batch_size=32,
+                bptt_steps=8, seed=0, policy_kwargs=dict(rule="ndp-oja", rule_kwargs=dict(modulation="tanh"),
+                                                         neuron=dict(theta=8.0), **SMALL))
+    model.learn(32)
+    model.save(tmp_path / "m.zip")
+    loaded = PPO.load(tmp_path / "m.zip")
+    assert loaded.policy.snn_config == model.policy.snn_config
+    assert loaded.policy.snn.neuron.theta == 8.0
+
+    def rollout(m):
+        env = gym.make("Pendulum-v1")
+        obs, _ = env.reset(seed=3)
+        state, actions = None, []
+        for t in range(50):
+            a, state = m.predict(obs, state=state, episode_start=np.array([t == 0]), deterministic=True)
+            actions.append(a)
+            obs, *_ = env.step(a)
+        return np.array(actions)
+
+    np.testing.assert_array_equal(rollout(model), rollout(loaded))
+    loaded.set_env(vec(lambda: gym.make("Pendulum-v1"), 1))
+    loaded.learn(32, reset_num_timesteps=False)
+    assert loaded.num_timesteps == 64
+
+
+def test_evaluate_policy_eval_callback_and_vecnormalize(tmp_path):
+    def make():
+        return gym.make("Pendulum-v1", max_episode_steps=16)
+
+    train_env = VecNormalize(vec(make, 2))
+    eval_env = VecNormalize(vec(make, 1), training=False, norm_reward=False)
+    model = PPO("SpikePlasticPolicy", train_env, n_steps=16, batch_size=16, bptt_steps=8, seed=0,
+                policy_kwargs=dict(rule="dp-oja", **SMALL))
+    callback = EvalCallback(eval_env, eval_freq=8, n_eval_episodes=2, best_model_save_path=str(tmp_path),
+                            log_path=str(tmp_path), verbose=0)
+    model.learn(64, callback=callback)
+    assert (tmp_path / "best_model.zip").exists()
+    # evaluated mid-rollout (every 8 of 16 rollout steps) without touching the rollout state
+    assert len(callback.evaluations_results) == 4 and np.isfinite(callback.last_mean_reward)
+    mean, std = evaluate_policy(model, eval_env, n_eval_episodes=3)
+    assert np.isfinite(mean) and np.isfinite(std)
+
+
+def test_vanilla_sb3_ppo_refuses_spike_policy():
+    with pytest.raises(TypeError, match="sb3_spikeplastic import PPO"):
+        stable_baselines3.PPO("SpikePlasticPolicy", tmaze(1))
+    model = stable_baselines3.PPO(SpikePlasticPolicy, tmaze(1), n_steps=16, batch_size=16)
+    with pytest.raises(RuntimeError, match="sb3_spikeplastic import PPO"):
+        model.learn(16)
+
+
+def test_drop_in_for_sb3_policies():
+    model = PPO("MlpPolicy", vec(lambda: gym.make("CartPole-v1"), 1), n_steps=32, batch_size=16, seed=0)
+    model.learn(64)
+    assert model.num_timesteps == 64
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(n_steps=30, bptt_steps=16, batch_size=16), "n_steps=30 must be a multiple of bptt_steps=16"),
+    (dict(n_steps=32, bptt_steps=16, batch_size=24), "batch_size=24"),
+    (dict(n_steps=32, bptt_steps=16, batch_size=128), "exceeds the rollout size"),
+])
+def test_bad_chunking_is_a_clear_error(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        PPO("SpikePlasticPolicy", tmaze(2), **kwargs)
+
+
+def test_unknown_rule_is_a_clear_error():
+    with pytest.raises(ValueError, match="unknown plasticity rule 'hebb'.*dp-oja"):
+        PPO("SpikePlasticPolicy", tmaze(1), n_steps=16, batch_size=16, bptt_steps=16,
+            policy_kwargs=dict(rule="hebb"))

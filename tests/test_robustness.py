@@ -1,0 +1,118 @@
+"""The Fig. 4 F-H robustness protocol: end to end with PPO, recurrent state, VecNormalize, CSV and Markdown."""
+
+import csv
+
+import gymnasium
+import numpy as np
+import pytest
+from stable_baselines3 import PPO
+from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+from sb3_spikeplastic.robustness import RobustnessRow, evaluate_robustness, format_table, write_csv
+
+SHORT = {"max_episode_steps": 5}
+
+
+@pytest.fixture(autouse=True)
+def _mujoco_log_in_tmp(tmp_path, monkeypatch):
+    # MuJoCo 4.0 warns that HalfCheetah's `settotalmass` is deprecated and appends that to ./MUJOCO_LOG.TXT.
+    monkeypatch.chdir(tmp_path)
+
+
+class RecurrentStub:
+    """A constant-action stand-in for a recurrent model: its state counts the steps of the current episode.
+
+    It checks that within an evaluation it always gets back the state it returned.
+    """
+
+    def __init__(self, action: float = 0.5) -> None:
+        self.action = action
+        self.returned = None  # the state of the last call
+        self.states = []
+        self.observations = []
+
+    def predict(self, observation, state=None, episode_start=None, deterministic=False):
+        assert deterministic
+        if state is None:  # the first step of an evaluation: every environment starts an episode
+            assert episode_start.all()
+        else:
+            assert state is self.returned
+        steps = np.where(episode_start, 0, 0 if state is None else state) + 1
+        self.returned = steps
+        self.states.append(steps.copy())
+        self.observations.append(observation.copy())
+        return np.full((len(observation), 6), self.action, np.float32), steps
+
+
+def test_end_to_end_with_ppo(tmp_path):
+    env = gymnasium.make("HalfCheetah-v5", max_episode_steps=20)
+    model = PPO("MlpPolicy", env, n_steps=64, batch_size=64, n_epochs=1, seed=0, device="cpu").learn(64)
+    normalized_env = VecNormalize(DummyVecEnv([lambda: gymnasium.make("HalfCheetah-v5", max_episode_steps=20)]))
+    normalized = PPO("MlpPolicy", normalized_env, n_steps=64, batch_size=64, n_epochs=1, seed=0, device="cpu")
+    normalized.learn(64)
+    normalized_env.save(tmp_path / "vecnormalize.pkl")
+
+    models = {"mlp": model, "mlp-normalized": normalized}
+    stats = {"mlp-normalized": tmp_path / "vecnormalize.pkl"}
+    kwargs = dict(n_episodes=2, vec_normalize_stats=stats, env_kwargs={"max_episode_steps": 20})
+    rows = evaluate_robustness(models, "HalfCheetah-v5", "action", [0.5, 0.1], progress_bar=True, **kwargs)
+
+    assert [(r.model, r.sigma) for r in rows] == [(m, s) for m in models for s in (0.0, 0.1, 0.5)]
+    assert all(isinstance(r, RobustnessRow) and r.n_episodes == 2 and r.noise_type == "action" for r in rows)
+    assert all(r.ratio == 1.0 for r in rows if r.sigma == 0.0)
+    for r in rows:
+        baseline = next(b for b in rows if b.model == r.model and b.sigma == 0.0)
+        assert r.ratio == pytest.approx(r.mean_return / baseline.mean_return)
+    again = evaluate_robustness(models, "HalfCheetah-v5", "action", [0.5, 0.1], progress_bar=False, **kwargs)
+    assert again == rows  # seeded: every cell is reproducible
+
+    path = write_csv(rows, tmp_path / "out" / "robustness.csv")
+    with path.open() as f:
+        read = list(csv.DictReader(f))
+    assert len(read) == 6 and float(read[0]["ratio"]) == 1.0 and read[1]["sigma"] == "0.1"
+    table = format_table(rows).splitlines()
+    assert len(table) == 2 + 6 and table[2].startswith("| mlp | action | 0 |")
+
+
+@pytest.mark.parametrize("noise_type", ["action", "friction"])  # a constant policy ignores observations
+def test_recurrent_state_is_threaded_and_reset_at_episode_starts(noise_type):
+    stub = RecurrentStub()
+    rows = evaluate_robustness(
+        {"stub": stub}, "HalfCheetah-v5", noise_type, [1.0], n_episodes=4, n_envs=2, progress_bar=False,
+        env_kwargs=SHORT,
+    )
+    counts = np.array(stub.states)
+    assert counts.max() == SHORT["max_episode_steps"]  # carried through every episode, reset after its end
+    assert [r.n_episodes for r in rows] == [4, 4] and rows[0].ratio == 1.0
+    assert rows[1].mean_return != rows[0].mean_return
+
+
+def test_vec_normalize_statistics_are_used_frozen(tmp_path):
+    venv = VecNormalize(DummyVecEnv([lambda: gymnasium.make("HalfCheetah-v5")]), clip_obs=10.0)
+    venv.obs_rms.mean[:] = 100.0  # far from any observation: normalised observations clip at -10
+    venv.save(tmp_path / "stats.pkl")
+    stub = RecurrentStub()
+    evaluate_robustness(
+        {"stub": stub}, "HalfCheetah-v5", "obs", [0.1], n_episodes=2, progress_bar=False, env_kwargs=SHORT,
+        vec_normalize_stats={"stub": tmp_path / "stats.pkl"},
+    )
+    assert np.all(np.concatenate(stub.observations) == -10.0)
+
+
+@pytest.mark.parametrize(
+    "kwargs, bad",
+    [
+        ({"noise_type": "gravity"}, "'gravity'"),
+        ({"sigmas": [0.1, -0.2]}, "-0.2"),
+        ({"n_episodes": 0}, "0"),
+        ({"vec_normalize_stats": {"other": None}}, "other"),
+        ({"noise_type": "friction", "friction_target": "frictionloss"}, "'frictionloss'"),
+    ],
+)
+def test_bad_arguments_name_the_value(kwargs, bad):
+    arguments = {"models": {"stub": RecurrentStub()}, "env_id": "HalfCheetah-v5", "noise_type": "obs", "sigmas": [0.1]}
+    with pytest.raises(ValueError) as excinfo:
+        evaluate_robustness(**{**arguments, **kwargs})
+    assert bad in str(excinfo.value)
+    if bad == "'gravity'":
+        assert all(name in str(excinfo.value) for name in ("'obs'", "'action'", "'friction'"))
