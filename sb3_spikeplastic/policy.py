@@ -196,7 +196,12 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         return self.snn.initial_state(n_envs, seed=seed, device=self.device)
 
     def _value(self, obs: Tensor, out: NetworkOutput) -> Tensor:
-        features = torch.cat(out.rates, -1) if self.snn_config["critic"] == "snn" else obs.flatten(1).float()
+        if self.snn_config["critic"] == "snn":
+            # Detached: the value loss trains only the readout. Through the plastic traces the raw gradients reach
+            # 1e6+, so a shared value gradient would dominate the clipped update and drown the policy gradient.
+            features = torch.cat(out.rates, -1).detach()
+        else:
+            features = obs.flatten(1).float()
         return self.value_net(features)
 
     def _distribution(self, out: NetworkOutput):
