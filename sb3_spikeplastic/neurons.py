@@ -35,6 +35,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from . import _fast
+
 
 class SRMParameters(NamedTuple):
     """Constants of the SRM-alpha neuron (SpikePropamine appendix 5.5 defaults).
@@ -172,17 +174,41 @@ def srm_spike_loop(
 
     ``state`` holds the refractory filter (``h1``, ``h2``) of the layer's own spikes. Returns
     ``(spikes, membrane, new_state)``, all without autograd (see :class:`SRMSpikeRecursion`).
+
+    On CPU (float32/float64) this runs the compiled loop of :mod:`sb3_spikeplastic._fast`, built on first use;
+    elsewhere, with ``SB3_SPIKEPLASTIC_NO_COMPILE=1``, or if the build failed (one warning), it runs
+    :func:`_srm_spike_loop_reference`. Both give bit-identical spikes, membrane and state.
+    """
+    d, c = _decay_and_gain(params.tau_ref, params.dt)
+    kappa = params.scale_ref * params.theta * c
+    fast = _fast.srm_loop(synaptic, state.h1, state.h2, d, kappa, params.theta)
+    if fast is not None:
+        spikes, membrane, h1, h2 = fast
+        return spikes, membrane, AlphaFilterState(h1, h2)
+    return _srm_spike_loop_reference(synaptic, state, params)
+
+
+def _srm_spike_loop_reference(
+    synaptic: Tensor, state: AlphaFilterState, params: SRMParameters
+) -> tuple[Tensor, Tensor, AlphaFilterState]:
+    """Pure-PyTorch :func:`srm_spike_loop`: the fallback (any device) and the specification of the fast path.
+
+    Per step, in the tensors' dtype: ``h2 = (h2 + h1) * d``, ``u = syn - h2 * kappa``, ``s = (u >= theta)``,
+    ``h1 = h1 * d + s``, every operation rounded separately. ``u`` is deliberately two ops rather than
+    ``torch.sub(syn, h2, alpha=kappa)``, which PyTorch's vectorised CPU kernels evaluate with a fused
+    multiply-add (depending on the CPU capability), so its rounding cannot be reproduced portably.
     """
     d, c = _decay_and_gain(params.tau_ref, params.dt)
     kappa = params.scale_ref * params.theta * c
     h1, h2 = state.h1.clone(), state.h2.clone()
     spikes = torch.empty_like(synaptic)
     membrane = torch.empty_like(synaptic)
-    # In-place ops on preallocated slices: this loop is the hottest path of the package (~1.5x over fresh tensors).
+    # In-place ops on preallocated slices (~1.5x over fresh tensors when this loop is the hot path).
     for t in range(synaptic.shape[-2]):
         h2.add_(h1).mul_(d)
         u = membrane[:, t]
-        torch.sub(synaptic[:, t], h2, alpha=kappa, out=u)
+        torch.mul(h2, kappa, out=u)
+        torch.sub(synaptic[:, t], u, out=u)
         s = spikes[:, t]
         torch.ge(u, params.theta, out=s)
         h1.mul_(d).add_(s)
@@ -205,7 +231,9 @@ class SRMSpikeRecursion(torch.autograd.Function):
     @staticmethod
     def forward(ctx, synaptic: Tensor, h1: Tensor, h2: Tensor, params: SRMParameters):
         spikes, membrane, new_state = srm_spike_loop(synaptic, AlphaFilterState(h1, h2), params)
-        ctx.save_for_backward(slayer_surrogate(membrane, params))
+        # Rollouts run under no_grad: computing the surrogate there was the layer's main cost (measured 8x at B=64).
+        if ctx.needs_input_grad[0]:
+            ctx.save_for_backward(slayer_surrogate(membrane, params))
         ctx.mark_non_differentiable(new_state.h1, new_state.h2)
         return spikes, membrane, new_state.h1, new_state.h2
 

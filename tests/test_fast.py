@@ -1,0 +1,279 @@
+"""The compiled SRM spike loop (sb3_spikeplastic._fast) against the pure-PyTorch reference loop.
+
+The compiled loop must give *bit-identical* spikes, membrane and state (``torch.equal``), not merely close ones:
+a membrane value one ulp off can flip a spike at the threshold and change a whole trajectory.
+The first test to need the extension builds it (once, cached on disk; ~10-30 s).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from sb3_spikeplastic import _fast
+from sb3_spikeplastic import neurons
+from sb3_spikeplastic.neurons import (
+    AlphaFilterState,
+    SRMParameters,
+    SRMSpikeRecursion,
+    _decay_and_gain,
+    _srm_spike_loop_reference,
+    slayer_surrogate,
+    srm_spike_loop,
+)
+
+PARAMS = [
+    SRMParameters(),
+    # theta, d and kappa not representable in float32: checks that the constants are rounded as torch does
+    SRMParameters(theta=0.7, tau_ref=3.0, scale_ref=1.5, dt=0.5),
+]
+PARAM_IDS = ["paper", "inexact"]
+DTYPES = [torch.float32, torch.float64]
+
+
+@pytest.fixture
+def compiled(monkeypatch):
+    """The compiled op (built on first use); skips, naming the build error, where it cannot be built."""
+    monkeypatch.delenv(_fast.NO_COMPILE_ENV, raising=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        op = _fast.load_srm_loop()
+    if op is None:
+        pytest.skip(f"compiled SRM loop unavailable: {_fast._error}")
+    return op
+
+
+def constants(p: SRMParameters) -> tuple[float, float]:
+    d, c = _decay_and_gain(p.tau_ref, p.dt)
+    return d, p.scale_ref * p.theta * c
+
+
+def random_case(batch, length, n, dtype, p, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    # drive around the threshold so that spikes are frequent and the refractory feedback matters
+    syn = p.theta * (0.3 + 1.5 * torch.rand(batch, length, n, generator=g, dtype=dtype))
+    state = AlphaFilterState(
+        2 * torch.rand(batch, n, generator=g, dtype=dtype), 3 * torch.rand(batch, n, generator=g, dtype=dtype)
+    )
+    return syn, state
+
+
+def fast_loop(syn, state, p):
+    d, kappa = constants(p)
+    out = _fast.srm_loop(syn, state.h1, state.h2, d, kappa, p.theta)
+    assert out is not None, "the compiled path did not apply"
+    spikes, membrane, h1, h2 = out
+    return spikes, membrane, AlphaFilterState(h1, h2)
+
+
+def assert_identical(a, b):
+    names = ["spikes", "membrane", "h1", "h2"]
+    for name, x, y in zip(names, [a[0], a[1], *a[2]], [b[0], b[1], *b[2]]):
+        assert x.dtype == y.dtype and x.shape == y.shape, name
+        assert torch.equal(x, y), f"{name} differs: max |diff| = {(x - y).abs().max().item()}"
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=["f32", "f64"])
+@pytest.mark.parametrize("batch", [1, 8])
+@pytest.mark.parametrize("n", [1, 64, 600])
+@pytest.mark.parametrize("length", [1, 25, 50])
+def test_compiled_equals_reference_bitwise(compiled, dtype, batch, n, length):
+    p = PARAMS[0]
+    syn, state = random_case(batch, length, n, dtype, p, seed=batch * 1000 + n + length)
+    fast = fast_loop(syn, state, p)
+    assert_identical(fast, _srm_spike_loop_reference(syn, state, p))
+    if batch * n * length > 1000:
+        assert 0 < fast[0].mean() < 1
+
+
+@pytest.mark.parametrize("p", PARAMS, ids=PARAM_IDS)
+@pytest.mark.parametrize("dtype", DTYPES, ids=["f32", "f64"])
+def test_carried_state_across_two_calls(compiled, p, dtype):
+    syn, state = random_case(8, 50, 64, dtype, p, seed=7)
+    f1 = fast_loop(syn[:, :20], state, p)  # non-contiguous slices on purpose
+    r1 = _srm_spike_loop_reference(syn[:, :20], state, p)
+    assert_identical(f1, r1)
+    f2 = fast_loop(syn[:, 20:], f1[2], p)
+    r2 = _srm_spike_loop_reference(syn[:, 20:], r1[2], p)
+    assert_identical(f2, r2)
+    # and splitting the interval changes nothing
+    whole = fast_loop(syn, state, p)
+    assert_identical((torch.cat([f1[0], f2[0]], 1), torch.cat([f1[1], f2[1]], 1), f2[2]), whole)
+
+
+def threshold_case(p: SRMParameters, dtype, batch=4, length=30, n=50, seed=3):
+    """Synaptic input built step by step so that many membrane values land exactly on ``theta`` (as
+    PyTorch rounds it) or one ulp either side, with the refractory feedback active."""
+    d, kappa = constants(p)
+    g = torch.Generator().manual_seed(seed)
+    theta = torch.tensor(p.theta, dtype=dtype)
+    syn = p.theta * (0.3 + 1.5 * torch.rand(batch, length, n, generator=g, dtype=dtype))
+    pick = torch.randint(0, 4, (batch, length, n), generator=g)  # 0: free, 1: at, 2: just below, 3: just above
+    state = AlphaFilterState(torch.zeros(batch, n, dtype=dtype), torch.zeros(batch, n, dtype=dtype))
+    for t in range(length):
+        r = (state.h2 + state.h1) * d * kappa  # what the recursion subtracts at this step
+        target = torch.where(
+            pick[:, t] == 2,
+            torch.nextafter(theta, torch.tensor(-math.inf, dtype=dtype)),
+            torch.where(pick[:, t] == 3, torch.nextafter(theta, torch.tensor(math.inf, dtype=dtype)), theta),
+        )
+        x = target + r
+        for _ in range(8):  # nudge x by ulps until x - r rounds to the target
+            u = x - r
+            x = torch.where(u < target, torch.nextafter(x, torch.full_like(x, math.inf)), x)
+            x = torch.where(u > target, torch.nextafter(x, torch.full_like(x, -math.inf)), x)
+        syn[:, t] = torch.where(pick[:, t] > 0, x, syn[:, t])
+        _, _, state = _srm_spike_loop_reference(syn[:, t : t + 1], state, p)
+    return syn
+
+
+@pytest.mark.parametrize("p", PARAMS, ids=PARAM_IDS)
+@pytest.mark.parametrize("dtype", DTYPES, ids=["f32", "f64"])
+def test_inputs_exactly_at_threshold(compiled, p, dtype):
+    syn = threshold_case(p, dtype)
+    batch, _, n = syn.shape
+    zero = AlphaFilterState(torch.zeros(batch, n, dtype=dtype), torch.zeros(batch, n, dtype=dtype))
+    ref = _srm_spike_loop_reference(syn, zero, p)
+    theta = torch.tensor(p.theta, dtype=dtype)
+    membrane = ref[1]
+    # the case is meaningful: many values exactly at theta (spike) and one ulp below (no spike)
+    assert (membrane == theta).sum() > 50
+    below = torch.nextafter(theta, torch.tensor(-math.inf, dtype=dtype))
+    assert (membrane == below).sum() > 50
+    assert torch.equal(ref[0], (membrane >= theta).to(dtype))
+    assert_identical(fast_loop(syn, zero, p), ref)
+
+
+def test_srm_spike_loop_dispatches_to_compiled(compiled, monkeypatch):
+    p = PARAMS[0]
+    syn, state = random_case(2, 10, 5, torch.float32, p)
+    expected = _srm_spike_loop_reference(syn, state, p)
+
+    def forbidden(*args, **kwargs):
+        raise AssertionError("fallback used although the compiled loop is available")
+
+    monkeypatch.setattr(neurons, "_srm_spike_loop_reference", forbidden)
+    assert_identical(srm_spike_loop(syn, state, p), expected)
+
+
+def test_env_var_forces_fallback(monkeypatch):
+    p = PARAMS[0]
+    syn, state = random_case(2, 10, 5, torch.float32, p)
+    monkeypatch.setenv(_fast.NO_COMPILE_ENV, "1")
+
+    def forbidden():
+        raise AssertionError("compiled loop requested although disabled")
+
+    monkeypatch.setattr(_fast, "load_srm_loop", forbidden)
+    d, kappa = constants(p)
+    assert _fast.srm_loop(syn, state.h1, state.h2, d, kappa, p.theta) is None
+    assert_identical(srm_spike_loop(syn, state, p), _srm_spike_loop_reference(syn, state, p))
+    monkeypatch.setenv(_fast.NO_COMPILE_ENV, "0")
+    assert not _fast.compiled_disabled()
+
+
+def test_build_failure_warns_once_and_falls_back(monkeypatch):
+    monkeypatch.delenv(_fast.NO_COMPILE_ENV, raising=False)
+    monkeypatch.setattr(_fast, "_tried", False)
+    monkeypatch.setattr(_fast, "_op", None)
+    monkeypatch.setattr(_fast, "_error", None)
+
+    def no_compiler():
+        raise RuntimeError("no C++ compiler found")
+
+    monkeypatch.setattr(_fast, "_build", no_compiler)
+    p = PARAMS[0]
+    syn, state = random_case(2, 10, 5, torch.float32, p)
+    with pytest.warns(RuntimeWarning, match="identical results but is slower") as record:
+        a = srm_spike_loop(syn, state, p)
+        b = srm_spike_loop(syn, state, p)
+    assert len([w for w in record if issubclass(w.category, RuntimeWarning)]) == 1
+    assert_identical(a, _srm_spike_loop_reference(syn, state, p))
+    assert_identical(b, a)
+
+
+def test_fallback_for_unsupported_inputs(compiled):
+    p = PARAMS[0]
+    d, kappa = constants(p)
+    syn, state = random_case(2, 10, 5, torch.float32, p)
+    # mixed dtypes, half precision and broadcast state are left to the PyTorch loop
+    assert _fast.srm_loop(syn, state.h1.double(), state.h2, d, kappa, p.theta) is None
+    assert _fast.srm_loop(syn.half(), state.h1.half(), state.h2.half(), d, kappa, p.theta) is None
+    assert _fast.srm_loop(syn, state.h1[:1], state.h2[:1], d, kappa, p.theta) is None
+
+
+def test_outputs_carry_no_autograd(compiled):
+    p = PARAMS[0]
+    syn, state = random_case(2, 10, 5, torch.float64, p)
+    syn.requires_grad_()
+    spikes, membrane, new = srm_spike_loop(syn, state, p)
+    assert not (spikes.requires_grad or membrane.requires_grad or new.h1.requires_grad or new.h2.requires_grad)
+    # the autograd wrapper is unaffected: element-wise surrogate gradient
+    spikes, membrane, _, _ = SRMSpikeRecursion.apply(syn, state.h1, state.h2, p)
+    upstream = torch.randn_like(spikes)
+    (spikes * upstream).sum().backward()
+    assert torch.allclose(syn.grad, upstream * slayer_surrogate(membrane.detach(), p), rtol=1e-12, atol=0)
+
+
+def test_no_compile_at_import():
+    code = (
+        "import sb3_spikeplastic, sb3_spikeplastic.neurons, sb3_spikeplastic.layers\n"
+        "from sb3_spikeplastic import _fast\n"
+        "assert not _fast._tried, 'compiled at import'\n"
+    )
+    env = dict(os.environ)
+    env.pop(_fast.NO_COMPILE_ENV, None)
+    subprocess.run([sys.executable, "-c", code], check=True, env=env, timeout=120)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("dtype", DTYPES, ids=["f32", "f64"])
+def test_fallback_on_cuda_matches_cpu(dtype):
+    p = PARAMS[1]
+    syn, state = random_case(8, 50, 64, dtype, p, seed=11)
+    cpu = srm_spike_loop(syn, state, p)
+    cuda_state = AlphaFilterState(state.h1.cuda(), state.h2.cuda())
+    gpu = srm_spike_loop(syn.cuda(), cuda_state, p)
+    assert gpu[0].device.type == "cuda"
+    assert_identical(tuple(x.cpu() for x in gpu[:2]) + (AlphaFilterState(gpu[2].h1.cpu(), gpu[2].h2.cpu()),), cpu)
+
+
+def test_numpy_oracle_float32():
+    """Independent of both implementations: the recursion in numpy float32, one rounding per operation."""
+    p = PARAMS[1]
+    syn, state = random_case(3, 40, 17, torch.float32, p, seed=5)
+    d, kappa = (np.float32(x) for x in constants(p))
+    theta = np.float32(p.theta)
+    x, h1, h2 = syn.numpy(), state.h1.numpy().copy(), state.h2.numpy().copy()
+    spikes, membrane = np.empty_like(x), np.empty_like(x)
+    for t in range(x.shape[1]):
+        h2 = (h2 + h1) * d
+        u = x[:, t] - h2 * kappa
+        s = (u >= theta).astype(np.float32)
+        h1 = h1 * d + s
+        spikes[:, t], membrane[:, t] = s, u
+    # srm_spike_loop runs the compiled loop where available: both implementations must match the oracle
+    for out in (srm_spike_loop(syn, state, p), _srm_spike_loop_reference(syn, state, p)):
+        np.testing.assert_array_equal(out[0].numpy(), spikes)
+        np.testing.assert_array_equal(out[1].numpy(), membrane)
+        np.testing.assert_array_equal(out[2].h1.numpy(), h1)
+        np.testing.assert_array_equal(out[2].h2.numpy(), h2)
+
+
+def test_stale_build_lock_is_removed(tmp_path):
+    lock = tmp_path / "lock"
+    lock.touch()
+    _fast._clear_stale_lock(tmp_path)  # fresh: another process may be compiling
+    assert lock.exists()
+    old = lock.stat().st_mtime - 3600
+    os.utime(lock, (old, old))
+    with pytest.warns(RuntimeWarning, match="stale build lock"):
+        _fast._clear_stale_lock(tmp_path)
+    assert not lock.exists()
