@@ -1,13 +1,29 @@
-"""What the spiking network is doing, as TensorBoard scalars (``snn/``, ``plasticity/``).
+"""What the spiking network is doing: TensorBoard scalars (``snn/``, ``plasticity/``), figures and hyperparameters.
 
-:class:`RolloutActivity` accumulates per-layer statistics over a rollout (cheap: the rates are computed
-anyway) and records them, with the traces' state at the rollout's end, through SB3's logger.
+* :class:`RolloutActivity` accumulates per-layer statistics over a rollout (cheap: the rates are computed
+  anyway) and records them, with the traces' state at the rollout's end, through SB3's logger.
+  :class:`sb3_spikeplastic.PPO` does this for every rollout.
+* :func:`record_episode` runs one episode of a policy on a single environment and keeps everything the network did
+  (input, hidden and output spikes, membrane potentials, modulation, traces) as an :class:`EpisodeActivity`;
+  :func:`sb3_spikeplastic.figures.activity_figure` draws it.
+* :class:`ActivityFigureCallback` logs that figure to TensorBoard (``snn/activity``) every few rollouts.
+* :func:`write_hyperparameters` writes a run's hyperparameters to TensorBoard once, as a Markdown table.
+
+Matplotlib is imported only when a figure is drawn, and only through ``matplotlib.figure.Figure`` (the Agg
+renderer, no GUI backend).
 """
 
 from __future__ import annotations
 
+import dataclasses
+from typing import Any, Callable, Mapping, Optional, Union
+
+import gymnasium
+import numpy as np
 import torch
-from stable_baselines3.common.logger import Logger
+from gymnasium import spaces
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.logger import Figure, Logger, TensorBoardOutputFormat
 
 from .network import NetworkOutput, NetworkState, SpikingPlasticNetwork
 
@@ -21,11 +37,16 @@ class RolloutActivity:
     traces at the end of the rollout, and for neuromodulated rules ``modulation_mean`` / ``modulation_std`` of
     :math:`M = W_m r_{post}` over the rollout's steps.
 
+    Also recorded: ``plasticity/layer{i}/alpha_abs_mean`` (mean ``|alpha|`` of plastic layers) and, when ``policy``
+    has a Gaussian action distribution, ``snn/action_std`` (``exp(log_std)`` averaged over action dimensions).
+
     :param network: the policy's network.
+    :param policy: the policy (optional; for ``snn/action_std``).
     """
 
-    def __init__(self, network: SpikingPlasticNetwork):
+    def __init__(self, network: SpikingPlasticNetwork, policy: Optional[torch.nn.Module] = None):
         self.network = network
+        self.policy = policy
         self.reset()
 
     def reset(self) -> None:
@@ -53,6 +74,9 @@ class RolloutActivity:
         """Write the statistics of the rollout and of the final traces to ``logger``."""
         if self.steps == 0:
             return
+        log_std = getattr(self.policy, "log_std", None)
+        if isinstance(log_std, torch.Tensor):
+            logger.record("snn/action_std", torch.exp(log_std).mean().item())
         for i, (layer, layer_state) in enumerate(zip(self.network.layers, state.layers)):
             logger.record(f"snn/layer{i}/spike_rate", self.rate[i] / self.steps)
             logger.record(f"snn/layer{i}/silent_fraction", self.silent[i] / self.steps)
@@ -60,9 +84,256 @@ class RolloutActivity:
                 continue
             rule, trace = layer.rule, layer_state.plastic.trace
             logger.record(f"plasticity/layer{i}/eta", rule.eta.item())
+            logger.record(f"plasticity/layer{i}/alpha_abs_mean", layer.alpha.abs().mean().item())
             logger.record(f"plasticity/layer{i}/trace_abs_mean", trace.abs().mean().item())
             logger.record(f"plasticity/layer{i}/trace_clip_fraction", (trace.abs() >= 0.99 * rule.e_max).float().mean().item())
             if rule.modulated:
                 mean = self.mod_sum[i] / self.steps
                 logger.record(f"plasticity/layer{i}/modulation_mean", mean)
                 logger.record(f"plasticity/layer{i}/modulation_std", max(self.mod_sq[i] / self.steps - mean**2, 0.0) ** 0.5)
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# One episode's activity, for figures
+
+
+@dataclasses.dataclass
+class EpisodeActivity:
+    """Everything the network did during (the first ``max_steps`` steps of) one episode, as numpy arrays.
+
+    Time runs over network steps (1 ms each): ``n_steps * steps_per_env_step`` of them.
+
+    :param input_spikes: ``(time, n_in)`` input spikes.
+    :param spikes: per layer (hidden layers, then the output population) ``(time, n)`` spikes.
+    :param membrane: per layer ``(time, n)`` membrane potentials.
+    :param modulation: per layer ``(n_intervals, n)`` neuromodulatory signal of each plasticity interval, or
+        ``None`` for unmodulated layers.
+    :param traces: per layer ``(n_intervals, n_out, n_in)`` trace ``E`` after each interval, or ``None`` for
+        static layers.
+    :param steps_per_env_step: network steps ``T`` per environment step.
+    :param interval: network steps per plasticity interval.
+    :param theta: firing threshold.
+    :param actions: the actions taken.
+    :param rewards: the rewards received.
+    :param done: whether the episode ended within the recorded steps.
+    :param info: the last step's ``info``.
+    :param rule: the plasticity rule's name.
+    :param input_groups: optional ``(label, first, stop)`` ranges of input neurons (e.g. T-maze populations).
+    """
+
+    input_spikes: np.ndarray
+    spikes: list[np.ndarray]
+    membrane: list[np.ndarray]
+    modulation: list[Optional[np.ndarray]]
+    traces: list[Optional[np.ndarray]]
+    steps_per_env_step: int
+    interval: int
+    theta: float
+    actions: list[Any]
+    rewards: list[float]
+    done: bool
+    info: dict
+    rule: str = ""
+    input_groups: Optional[list[tuple[str, int, int]]] = None
+
+    @property
+    def n_steps(self) -> int:
+        """Environment steps recorded."""
+        return len(self.rewards)
+
+    @property
+    def episode_return(self) -> float:
+        return float(np.sum(self.rewards))
+
+
+def tmaze_input_groups(env: gymnasium.Env) -> Optional[list[tuple[str, int, int]]]:
+    """The input populations of a ``TMazeCueEnv`` (left cue, right cue, decision, noise), else ``None``."""
+    from sb3_spikeplastic.envs.tmaze import TMazeCueEnv
+
+    inner = env.unwrapped
+    if not isinstance(inner, TMazeCueEnv):
+        return None
+    n = inner.neurons_per_population
+    return [(label, i * n, (i + 1) * n) for i, label in enumerate(("left cue", "right cue", "decision", "noise"))]
+
+
+@torch.no_grad()
+def record_episode(
+    policy,
+    env: gymnasium.Env,
+    seed: Optional[int] = 0,
+    deterministic: bool = True,
+    max_steps: Optional[int] = None,
+    obs_transform: Optional[Callable[[np.ndarray], np.ndarray]] = None,
+    network_seed: int = 0,
+) -> EpisodeActivity:
+    """Run one episode of a :class:`~sb3_spikeplastic.SpikePlasticPolicy` on a single (non-vectorised) environment
+    and record the network's activity step by step (``policy.snn(obs, state, record=True)``), from the initial
+    (reset) network state.
+
+    The global random generators are not touched when ``deterministic`` (the input spikes come from the network's
+    counter-based sampler), so calling this during training does not change the training run.
+
+    :param policy: the policy.
+    :param env: a Gymnasium environment with the policy's spaces.
+    :param seed: ``env.reset(seed=...)``: the same seed shows the same episode (e.g. the same cues) every time.
+    :param deterministic: mean / arg-max actions.
+    :param max_steps: record at most this many environment steps (``None``: about one second of network time,
+        ``max(1, 1000 // T)`` steps).
+    :param obs_transform: applied to each observation before the policy (e.g. ``VecNormalize.normalize_obs``).
+    :param network_seed: seed of the input sampler's stream.
+    """
+    net = policy.snn
+    T = net.steps
+    if max_steps is None:
+        max_steps = max(1, 1000 // T)
+    obs, info = env.reset(seed=seed)
+    state = policy.initial_state(1, seed=network_seed)
+    records, actions, rewards, done = [], [], [], False
+    for _ in range(max_steps):
+        x = obs_transform(obs) if obs_transform is not None else obs
+        x = torch.as_tensor(np.asarray(x, dtype=np.float32)[None], device=policy.device)
+        out, state = net(policy._preprocess(x), state, record=True)
+        action = policy._distribution(out).get_actions(deterministic=deterministic).cpu().numpy()[0]
+        if isinstance(policy.action_space, spaces.Box):
+            action = np.clip(action.reshape(policy.action_space.shape), policy.action_space.low, policy.action_space.high)
+        else:
+            action = int(np.asarray(action).reshape(-1)[0])
+        obs, reward, terminated, truncated, info = env.step(action)
+        records.append(out.record)
+        actions.append(action)
+        rewards.append(float(reward))
+        if terminated or truncated:
+            done = True
+            break
+
+    def cat(tensors, axis=0):
+        return np.concatenate([t[0].float().cpu().numpy() for t in tensors], axis)
+
+    n_layers = len(net.layers)
+    return EpisodeActivity(
+        input_spikes=cat([r.input_spikes for r in records]),
+        spikes=[cat([r.spikes[i] for r in records]) for i in range(n_layers)],
+        membrane=[cat([r.membrane[i] for r in records]) for i in range(n_layers)],
+        modulation=[cat([r.modulation[i] for r in records]) if records[0].modulation[i] is not None else None
+                    for i in range(n_layers)],
+        traces=[cat([r.traces[i] for r in records]) if records[0].traces[i] is not None else None
+                for i in range(n_layers)],
+        steps_per_env_step=T,
+        interval=net.interval,
+        theta=float(net.neuron.theta),
+        actions=actions,
+        rewards=rewards,
+        done=done,
+        info=dict(info),
+        rule=str(getattr(net, "rule_name", "")),
+        input_groups=tmaze_input_groups(env),
+    )
+
+
+class ActivityFigureCallback(BaseCallback):
+    """Every ``every`` rollouts, log a figure of one episode's network activity to TensorBoard (``snn/activity``):
+    input / hidden / output spike rasters, output membrane potentials, the traces of a few synapses and the
+    modulatory signals (:func:`sb3_spikeplastic.figures.activity_figure`).
+
+    The episode runs on a separate single environment made by ``env`` (never a training environment), always reset
+    with the same ``seed``, so successive figures show the same episode (e.g. the same T-maze cues) as training
+    goes on. With ``VecNormalize`` the training statistics normalise its observations (without updating them).
+
+    :param env: an environment id, or a function returning a fresh environment.
+    :param every: rollouts between figures (>= 1).
+    :param env_kwargs: ``gymnasium.make`` arguments when ``env`` is an id.
+    :param seed: reset seed of the episode.
+    :param max_steps: environment steps recorded (see :func:`record_episode`).
+    :param deterministic: mean / arg-max actions.
+    :param tag: the logger key.
+    """
+
+    def __init__(self, env: Union[str, Callable[[], gymnasium.Env]], every: int = 10,
+                 env_kwargs: Optional[Mapping[str, Any]] = None, seed: int = 0, max_steps: Optional[int] = None,
+                 deterministic: bool = True, tag: str = "snn/activity", verbose: int = 0):
+        super().__init__(verbose)
+        if int(every) < 1:
+            raise ValueError(f"every={every!r} must be >= 1 rollout")
+        if isinstance(env, str):
+            env_id, kwargs = env, dict(env_kwargs or {})
+            self._make_env: Callable[[], gymnasium.Env] = lambda: gymnasium.make(env_id, **kwargs)
+            self._title = env_id
+        else:
+            self._make_env = env
+            self._title = ""
+        self.every, self.seed, self.max_steps = int(every), seed, max_steps
+        self.deterministic, self.tag = deterministic, tag
+        self.n_rollouts = 0
+        self._env: Optional[gymnasium.Env] = None
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _on_rollout_end(self) -> None:
+        self.n_rollouts += 1
+        if self.n_rollouts % self.every:
+            return
+        self.logger.record(self.tag, Figure(self.make_figure(), close=True), exclude=("stdout", "log", "json", "csv"))
+
+    def make_figure(self):
+        """Record the episode and draw its figure (a ``matplotlib.figure.Figure``)."""
+        from .figures import activity_figure
+
+        if self._env is None:
+            self._env = self._make_env()
+            if not self._title and self._env.spec is not None:
+                self._title = self._env.spec.id
+        vec_normalize = self.model.get_vec_normalize_env()
+        obs_transform = vec_normalize.normalize_obs if vec_normalize is not None and vec_normalize.norm_obs else None
+        policy = self.model.policy
+        was_training = policy.training
+        policy.set_training_mode(False)
+        try:
+            activity = record_episode(policy, self._env, seed=self.seed, deterministic=self.deterministic,
+                                      max_steps=self.max_steps, obs_transform=obs_transform)
+        finally:
+            policy.set_training_mode(was_training)
+        return activity_figure(activity, title=f"{self._title}  step {self.num_timesteps:,}")
+
+    def _on_training_end(self) -> None:
+        if self._env is not None:
+            self._env.close()
+            self._env = None
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# Hyperparameters
+
+
+def flatten_config(config: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested mappings flattened to dotted keys (``policy_kwargs.rule``)."""
+    flat: dict[str, Any] = {}
+    for key, value in config.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping) and value:
+            flat.update(flatten_config(value, name + "."))
+        else:
+            flat[name] = value
+    return flat
+
+
+def hyperparameter_markdown(config: Mapping[str, Any]) -> str:
+    """A Markdown table (``| hyperparameter | value |``) of a (nested) configuration."""
+    lines = ["| hyperparameter | value |", "|---|---|"]
+    for key, value in flatten_config(config).items():
+        text = str(value).replace("|", "\\|").replace("\n", " ")
+        lines.append(f"| {key} | {text} |")
+    return "\n".join(lines)
+
+
+def write_hyperparameters(logger: Logger, config: Mapping[str, Any], tag: str = "hyperparameters", step: int = 0) -> bool:
+    """Write ``config`` as a Markdown table to the TensorBoard outputs of an SB3 ``logger`` (TensorBoard's TEXT
+    tab). Returns whether there was a TensorBoard output to write to."""
+    written = False
+    for output in logger.output_formats:
+        if isinstance(output, TensorBoardOutputFormat):
+            output.writer.add_text(tag, hyperparameter_markdown(config), step)
+            output.writer.flush()
+            written = True
+    return written

@@ -147,6 +147,10 @@ class PPO(SB3PPO):
         _init_setup_model: bool = True,
     ):
         self.bptt_steps = int(bptt_steps)
+        policy_class = self.policy_aliases.get(policy, policy) if isinstance(policy, str) else policy
+        if getattr(policy_class, "recurrent", False):
+            # Before SB3's own checks, whose warnings about mini-batches do not apply to chunks.
+            self._check_chunking(n_steps, batch_size)
         super().__init__(
             policy, env, learning_rate=learning_rate, n_steps=n_steps, batch_size=batch_size, n_epochs=n_epochs,
             gamma=gamma, gae_lambda=gae_lambda, clip_range=clip_range, clip_range_vf=clip_range_vf,
@@ -157,8 +161,10 @@ class PPO(SB3PPO):
             policy_kwargs=policy_kwargs, verbose=verbose, seed=seed, device=device,
             _init_setup_model=False,
         )
-        if self.recurrent:
-            self._check_chunking()
+        if self.recurrent and self.env is not None and self.batch_size > self.n_steps * self.n_envs:
+            raise ValueError(
+                f"batch_size={self.batch_size} exceeds the rollout size n_steps * n_envs = {self.n_steps * self.n_envs}"
+            )
         if _init_setup_model:
             self._setup_model()
 
@@ -166,19 +172,13 @@ class PPO(SB3PPO):
     def recurrent(self) -> bool:
         return bool(getattr(self.policy_class, "recurrent", False))
 
-    def _check_chunking(self) -> None:
+    def _check_chunking(self, n_steps: int, batch_size: int) -> None:
         if self.bptt_steps < 1:
             raise ValueError(f"bptt_steps must be >= 1, got {self.bptt_steps}")
-        if self.n_steps % self.bptt_steps:
-            raise ValueError(f"n_steps={self.n_steps} must be a multiple of bptt_steps={self.bptt_steps}")
-        if self.batch_size % self.bptt_steps:
-            raise ValueError(
-                f"batch_size={self.batch_size} (transitions) must be a multiple of bptt_steps={self.bptt_steps}"
-            )
-        if self.env is not None and self.batch_size > self.n_steps * self.n_envs:
-            raise ValueError(
-                f"batch_size={self.batch_size} exceeds the rollout size n_steps * n_envs = {self.n_steps * self.n_envs}"
-            )
+        if n_steps % self.bptt_steps:
+            raise ValueError(f"n_steps={n_steps} must be a multiple of bptt_steps={self.bptt_steps}")
+        if batch_size % self.bptt_steps:
+            raise ValueError(f"batch_size={batch_size} (transitions) must be a multiple of bptt_steps={self.bptt_steps}")
 
     def _setup_model(self) -> None:
         if self.recurrent:
@@ -188,7 +188,7 @@ class PPO(SB3PPO):
         self._last_network_state: Optional[NetworkState] = None
         if self.recurrent:
             self._last_network_state = self.policy.initial_state(self.n_envs, seed=self.seed or 0)
-            self.rollout_activity = RolloutActivity(self.policy.snn)
+            self.rollout_activity = RolloutActivity(self.policy.snn, self.policy)
 
     def _excluded_save_params(self) -> list[str]:
         # The rollout state belongs to the running environments, not to the model.

@@ -1,0 +1,878 @@
+"""``sb3-spikeplastic``: train, evaluate, test robustness, plot and inspect spiking plastic policies.
+
+::
+
+    sb3-spikeplastic train --env TMazeCue-v0 --rule dp-oja --seed 0 -f logs --tensorboard-log tb
+    sb3-spikeplastic evaluate --run logs/ppo/TMazeCue-v0_1
+    sb3-spikeplastic robustness --env HalfCheetah-v5 --noise action --models oja=logs/ppo/HalfCheetah-v5_1 \\
+        static=logs/ppo/HalfCheetah-v5_2 --sigmas 0 0.1 0.2 0.4 -o robustness
+    sb3-spikeplastic plot logs/ppo/TMazeCue-v0_1 logs/ppo/TMazeCue-v0_2 -o curves.png
+    sb3-spikeplastic inspect --run logs/ppo/TMazeCue-v0_1
+
+``train`` writes an rl-zoo-like run folder ``<log folder>/ppo/<EnvId>_<n>/``:
+
+* ``<EnvId>.zip`` — the final model (also written on Ctrl-C), ``best_model.zip`` and ``evaluations.npz`` with
+  ``--eval-freq``, ``rl_model_<steps>_steps.zip`` (+ ``rl_model_vecnormalize_<steps>_steps.pkl``) with
+  ``--save-freq``. Every model and statistics file is written to a temporary file and renamed into place, so a
+  crash never leaves a half-written one.
+* ``<EnvId>/config.yml`` — the resolved hyperparameters, itself a hyperparameter file (``--conf`` reproduces the
+  run), ``<EnvId>/args.yml`` — the command's arguments (with the seed actually used), ``<EnvId>/vecnormalize.pkl``
+  when normalising, ``command.txt`` — the command line.
+* ``<i>.monitor.csv`` — SB3 Monitor files (one per environment, with an ``is_success`` column, empty where the env
+  reports no success), ``progress.csv`` — the logger's scalars, and the TensorBoard events (here, or under
+  ``--tensorboard-log``).
+
+Everything is validated before the run folder is created (environment id, rule, hyperparameter keys and values,
+and the model itself is constructed), so bad input writes nothing and fails with one line
+``sb3-spikeplastic: error: ...`` and exit status 2. If training crashes before its first environment step, the run
+folder is removed; later, it is kept (its logs explain the crash) and marked by ``FAILED.txt`` with the traceback,
+and no final model is written (checkpoints and the best model stay). Ctrl-C saves the model and exits with
+status 130.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import random
+import re
+import shlex
+import sys
+import traceback
+from pathlib import Path
+from typing import Any, Callable, Optional, Sequence
+
+import gymnasium
+
+PROG = "sb3-spikeplastic"
+
+
+class UsageError(Exception):
+    """Bad input: reported as one line ``sb3-spikeplastic: error: ...`` with exit status 2."""
+
+
+def _use_agg() -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Validation helpers
+
+
+def check_env_id(env_id: str, conf_entries: Sequence[str] = ()) -> str:
+    """``env_id`` if Gymnasium knows it (after the plugin registered its environments), else a ``UsageError``."""
+    import difflib
+
+    import sb3_spikeplastic  # noqa: F401  (registers TMazeCue-v0, TMazeCueNoisy-v0, NoisyHalfCheetah-v5)
+
+    if env_id in gymnasium.registry:
+        return env_id
+    known = sorted(gymnasium.registry)
+    close = difflib.get_close_matches(env_id, known, n=3, cutoff=0.6)
+    hint = f"did you mean {', '.join(close)}? " if close else ""
+    listed = [e for e in conf_entries if e != "default" and e in gymnasium.registry]
+    raise UsageError(
+        f"unknown environment id {env_id!r}; {hint}accepted: any of gymnasium's {len(known)} registered ids"
+        + (f", with tuned hyperparameters: {', '.join(listed)}" if listed else "")
+        + " (python -c 'import gymnasium, sb3_spikeplastic; gymnasium.pprint_registry()' lists them)"
+    )
+
+
+def _check_int(name: str, value: Optional[int], minimum: int) -> None:
+    if value is not None and value < minimum:
+        raise UsageError(f"{name}={value} must be >= {minimum}")
+
+
+def _check_device(device: str) -> str:
+    import torch
+
+    try:
+        torch.device(device if device != "auto" else "cpu")
+    except (RuntimeError, TypeError):
+        raise UsageError(f"unknown device {device!r}; accepted: cpu, cuda, cuda:<n>, mps, auto") from None
+    return device
+
+
+def _check_rule(rule: Optional[str]) -> None:
+    from .plasticity import available_rules
+
+    if rule is not None and rule not in available_rules():
+        raise UsageError(f"unknown rule {rule!r}; accepted: {', '.join(available_rules())}")
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Files
+
+
+def atomic_write(path: os.PathLike, write: Callable[[Any], None], binary: bool = True) -> Path:
+    """Write ``path`` through ``write(file)`` into a temporary file beside it, then rename it into place."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    try:
+        with open(tmp, "wb" if binary else "w") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+def save_model(model, path: os.PathLike) -> Path:
+    """``model.save`` to ``path`` atomically."""
+    return atomic_write(path, model.save)
+
+
+def save_vecnormalize(venv, path: os.PathLike) -> Path:
+    """``VecNormalize`` statistics to ``path`` atomically (the same pickle as ``VecNormalize.save``)."""
+    import pickle
+
+    return atomic_write(path, lambda f: pickle.dump(venv, f))
+
+
+def next_run_dir(root: Path, env_id: str) -> Path:
+    """Create and return ``root/<env_id>_<n>`` with ``n`` the next free integer (from 1)."""
+    root.mkdir(parents=True, exist_ok=True)
+    pattern = re.compile(rf"^{re.escape(env_id)}_(\d+)$")
+    n = max([int(m.group(1)) for p in root.iterdir() if (m := pattern.match(p.name))], default=0) + 1
+    while True:
+        candidate = root / f"{env_id}_{n}"
+        try:
+            candidate.mkdir()
+            return candidate
+        except FileExistsError:
+            n += 1
+
+
+class RunInfo:
+    """What a run folder (or a model file) holds: the model, its VecNormalize statistics, env id and config."""
+
+    def __init__(self, model_path: Path, env_id: Optional[str], vecnormalize: Optional[Path],
+                 config: Optional[dict], run_dir: Optional[Path]):
+        self.model_path, self.env_id, self.vecnormalize = model_path, env_id, vecnormalize
+        self.config, self.run_dir = config or {}, run_dir
+
+    @property
+    def env_kwargs(self) -> dict:
+        return dict(self.config.get("env_kwargs") or {})
+
+
+def _read_run_config(run_dir: Path) -> tuple[Optional[str], Optional[dict]]:
+    from .config import yaml_load
+
+    for cfg in sorted(run_dir.glob("*/config.yml")):
+        data = yaml_load(cfg.read_text())
+        if isinstance(data, dict) and len(data) == 1:
+            env_id, config = next(iter(data.items()))
+            return env_id, config
+    return None, None
+
+
+def locate_run(path: str, best: bool = False) -> RunInfo:
+    """Resolve a run folder or a model ``.zip`` into a :class:`RunInfo` (``UsageError`` if there is no model)."""
+    p = Path(path)
+    if p.is_dir():
+        env_id, config = _read_run_config(p)
+        if env_id is None:
+            raise UsageError(f"{path!r} is not a run folder of `{PROG} train` (no <EnvId>/config.yml in it)")
+        model = p / ("best_model.zip" if best else f"{env_id}.zip")
+        if not model.is_file():
+            failed = " (training failed: see FAILED.txt)" if (p / "FAILED.txt").exists() else ""
+            raise UsageError(f"run folder {path!r} has no {model.name}{failed}")
+        vecnorm = p / env_id / "vecnormalize.pkl"
+        return RunInfo(model, env_id, vecnorm if vecnorm.is_file() else None, config, p)
+    if p.is_file() or Path(f"{path}.zip").is_file():
+        p = p if p.is_file() else Path(f"{path}.zip")
+        env_id, config = _read_run_config(p.parent)
+        candidates = []
+        m = re.match(r"^(.*)_(\d+)_steps$", p.stem)
+        if m:  # a checkpoint: its own statistics
+            candidates.append(p.parent / f"{m.group(1)}_vecnormalize_{m.group(2)}_steps.pkl")
+        candidates += [p.parent / p.stem / "vecnormalize.pkl", p.parent / "vecnormalize.pkl"]
+        if env_id is not None:
+            candidates.append(p.parent / env_id / "vecnormalize.pkl")
+        vecnorm = next((c for c in candidates if c.is_file()), None)
+        return RunInfo(p, env_id, vecnorm, config, p.parent if env_id else None)
+    raise UsageError(f"no run folder or model file {path!r}")
+
+
+def load_model(info: RunInfo, device: str = "cpu"):
+    from .ppo import PPO
+
+    try:
+        return PPO.load(str(info.model_path), device=device)
+    except Exception as exc:  # a corrupt or foreign file
+        raise UsageError(f"cannot load model {str(info.model_path)!r}: {type(exc).__name__}: {exc}") from None
+
+
+def make_eval_env(env_id: str, n_envs: int, seed: int, env_kwargs: Optional[dict] = None,
+                  vecnormalize: Optional[Path] = None, make: Optional[Callable] = None):
+    """Monitored ``DummyVecEnv`` with frozen ``VecNormalize`` statistics (no reward normalisation) if given."""
+    from stable_baselines3.common.monitor import Monitor
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    kwargs = dict(env_kwargs or {})
+    make = make or (lambda: gymnasium.make(env_id, **kwargs))
+    venv = DummyVecEnv([lambda: Monitor(make()) for _ in range(n_envs)])
+    venv.seed(seed)
+    if vecnormalize is not None:
+        venv = VecNormalize.load(str(vecnormalize), venv)
+        venv.training = False
+        venv.norm_reward = False
+    return venv
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# train
+
+
+def _make_train_env(env_id: str, n_envs: int, env_kwargs: dict, monitor_dir: Optional[Path]):
+    """``DummyVecEnv`` of ``n_envs`` monitored environments (Monitor CSVs in ``monitor_dir`` when given)."""
+    from stable_baselines3.common.monitor import Monitor
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    def factory(rank: int):
+        def make():
+            env = SuccessColumn(gymnasium.make(env_id, **env_kwargs))
+            filename = None if monitor_dir is None else str(monitor_dir / str(rank))
+            return Monitor(env, filename=filename, info_keywords=("is_success",))
+
+        return make
+
+    return DummyVecEnv([factory(i) for i in range(n_envs)])
+
+
+class SuccessColumn(gymnasium.Wrapper):
+    """Puts ``info["is_success"] = None`` at episode ends where the env reports no success, so that the Monitor
+    files always have an ``is_success`` column (empty for such envs; SB3 ignores ``None`` successes)."""
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        if terminated or truncated:
+            info.setdefault("is_success", None)
+        return obs, reward, terminated, truncated, info
+
+
+def _callback_classes():
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class AtomicCheckpoint(BaseCallback):
+        """Every ``save_freq`` calls, ``rl_model_<steps>_steps.zip`` (+ VecNormalize statistics), atomically."""
+
+        def __init__(self, save_freq: int, save_dir: Path):
+            super().__init__()
+            self.save_freq, self.save_dir = save_freq, save_dir
+            self.saved: list[Path] = []
+
+        def _on_step(self) -> bool:
+            if self.n_calls % self.save_freq == 0:
+                path = save_model(self.model, self.save_dir / f"rl_model_{self.num_timesteps}_steps.zip")
+                self.saved.append(path)
+                venv = self.model.get_vec_normalize_env()
+                if venv is not None:
+                    save_vecnormalize(venv, self.save_dir / f"rl_model_vecnormalize_{self.num_timesteps}_steps.pkl")
+            return True
+
+    class SaveBest(BaseCallback):
+        """Called by ``EvalCallback`` on a new best mean reward: ``best_model.zip``, atomically."""
+
+        def __init__(self, path: Path):
+            super().__init__()
+            self.path = path
+            self.saved = False
+
+        def _on_step(self) -> bool:
+            save_model(self.model, self.path)
+            self.saved = True
+            return True
+
+    return AtomicCheckpoint, SaveBest
+
+
+def _rule_label(config: dict) -> str:
+    if config.get("policy") != "SpikePlasticPolicy":
+        return str(config.get("policy", "policy")).lower().replace("policy", "") or "policy"
+    return str((config.get("policy_kwargs") or {}).get("rule", "dp-oja"))
+
+
+def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
+    import torch
+
+    from . import config as cfg
+    from .ppo import PPO
+
+    # ---- validation: nothing is written before all of this passed ----
+    try:
+        conf_entries = list(cfg.load_hyperparams_file(args.conf))
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    env_id = check_env_id(args.env, conf_entries)
+    _check_rule(args.rule)
+    for name, value, minimum in (("--n-timesteps", args.n_timesteps, 1), ("--n-envs", args.n_envs, 1),
+                                 ("--eval-freq", args.eval_freq, 0), ("--eval-episodes", args.eval_episodes, 1),
+                                 ("--save-freq", args.save_freq, 0), ("--figure-freq", args.figure_freq, 0),
+                                 ("--torch-threads", args.torch_threads, 1)):
+        _check_int(name, value, minimum)
+    device = _check_device(args.device)
+    try:
+        config = cfg.resolve_hyperparams(env_id, args.conf, args.hyperparams or (), rule=args.rule,
+                                         n_timesteps=args.n_timesteps, n_envs=args.n_envs)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    if args.figure_freq and config["policy"] != "SpikePlasticPolicy":
+        raise UsageError(f"--figure-freq needs policy SpikePlasticPolicy, not {config['policy']!r}")
+    torch.set_num_threads(args.torch_threads)
+    seed = args.seed if args.seed is not None else random.SystemRandom().randrange(2**31 - 1)
+    policy, ppo_kwargs, policy_kwargs = cfg.model_arguments(config)
+    norm_kwargs = cfg.normalize_arguments(config)
+    n_envs, env_kwargs = config["n_envs"], dict(config["env_kwargs"])
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    probe = None
+    try:  # construct the environments and the model once in memory: any error is still bad input
+        probe = _make_train_env(env_id, n_envs, env_kwargs, None)
+        if norm_kwargs is not None:
+            probe = VecNormalize(probe, **norm_kwargs)
+        model = PPO(policy, probe, **ppo_kwargs, policy_kwargs=policy_kwargs, seed=seed, device=device,
+                    verbose=args.verbose)
+    except (ValueError, TypeError, AssertionError) as exc:
+        if probe is not None:
+            probe.close()
+        message = " ".join(str(exc).split()) or type(exc).__name__
+        raise UsageError(f"invalid configuration for {env_id}: {message}") from None
+    except Exception as exc:  # e.g. gymnasium errors from env_kwargs
+        if probe is not None:
+            probe.close()
+        if type(exc).__module__.startswith("gymnasium"):
+            raise UsageError(f"cannot make {env_id} with env_kwargs={env_kwargs}: {exc}") from None
+        raise
+    probe.close()
+
+    # ---- the run folder ----
+    run_dir = next_run_dir(Path(args.log_folder) / "ppo", env_id)
+    meta_dir = run_dir / env_id
+    meta_dir.mkdir()
+    rule = _rule_label(config)
+    if args.tensorboard_log:
+        from stable_baselines3.common.utils import get_latest_run_id
+
+        tb_root = Path(args.tensorboard_log) / env_id
+        tb_root.mkdir(parents=True, exist_ok=True)
+        tb_dir = tb_root / f"ppo_{rule}_{get_latest_run_id(str(tb_root), f'ppo_{rule}') + 1}"
+    else:
+        tb_dir = run_dir
+    command = shlex.join([PROG, *argv])
+    atomic_write(run_dir / "command.txt", lambda f: f.write(command + "\n"), binary=False)
+    atomic_write(meta_dir / "config.yml", lambda f: f.write(cfg.dump_yaml({env_id: config})), binary=False)
+    run_args = {k: v for k, v in sorted(vars(args).items()) if k != "func"}
+    run_args.update(seed=seed, env=env_id, run_dir=str(run_dir), tensorboard_dir=str(tb_dir))
+    atomic_write(meta_dir / "args.yml", lambda f: f.write(cfg.dump_yaml(run_args)), binary=False)
+
+    model_path = run_dir / f"{env_id}.zip"
+    vecnorm_path = meta_dir / "vecnormalize.pkl"
+    env = eval_env = None
+    saved: list[str] = []
+
+    def save_final() -> None:
+        saved.append(str(save_model(model, model_path)))
+        if model.get_vec_normalize_env() is not None:
+            saved.append(str(save_vecnormalize(model.get_vec_normalize_env(), vecnorm_path)))
+
+    try:
+        from stable_baselines3.common.callbacks import CallbackList, EvalCallback
+        from stable_baselines3.common.logger import Logger, make_output_format
+
+        from .monitoring import ActivityFigureCallback, write_hyperparameters
+
+        env = _make_train_env(env_id, n_envs, env_kwargs, run_dir)
+        if norm_kwargs is not None:
+            env = VecNormalize(env, **norm_kwargs)
+        env.seed(seed)
+        model.set_env(env)
+        formats = ["stdout"] if args.verbose >= 1 else []
+        outputs = [make_output_format(f, str(run_dir)) for f in formats + ["csv"]]
+        outputs.append(make_output_format("tensorboard", str(tb_dir)))
+        model.set_logger(Logger(str(run_dir), outputs))
+        write_hyperparameters(model.logger, {"env_id": env_id, "seed": seed, **config})
+
+        AtomicCheckpoint, SaveBest = _callback_classes()
+        callbacks = []
+        if args.eval_freq:
+            eval_env = make_eval_env(env_id, 1, seed + n_envs, env_kwargs, None)
+            if norm_kwargs is not None:
+                eval_env = VecNormalize(eval_env, training=False, **{**norm_kwargs, "norm_reward": False})
+            callbacks.append(EvalCallback(
+                eval_env, callback_on_new_best=SaveBest(run_dir / "best_model.zip"),
+                n_eval_episodes=args.eval_episodes, eval_freq=max(args.eval_freq // n_envs, 1),
+                log_path=str(run_dir), best_model_save_path=None, deterministic=True, verbose=args.verbose))
+        if args.save_freq:
+            callbacks.append(AtomicCheckpoint(max(args.save_freq // n_envs, 1), run_dir))
+        if args.figure_freq:
+            callbacks.append(ActivityFigureCallback(env_id, every=args.figure_freq, env_kwargs=env_kwargs, seed=seed))
+
+        print(f"Training PPO ({config['policy']}, rule {rule}) on {env_id} for {config['n_timesteps']:,} steps, "
+              f"seed {seed}")
+        print(f"Run folder:  {run_dir}")
+        print(f"TensorBoard: tensorboard --logdir {args.tensorboard_log or args.log_folder}")
+        sys.stdout.flush()
+        model.learn(config["n_timesteps"], callback=CallbackList(callbacks), progress_bar=not args.no_progress)
+    except KeyboardInterrupt:
+        save_final()
+        print(f"\nInterrupted after {model.num_timesteps:,} steps; saved:", *saved, sep="\n  ")
+        return 130
+    except BaseException:
+        failure = traceback.format_exc()
+        if model.num_timesteps == 0:
+            import shutil
+
+            shutil.rmtree(run_dir, ignore_errors=True)
+            if tb_dir != run_dir:
+                shutil.rmtree(tb_dir, ignore_errors=True)
+            print(f"{PROG}: training failed before its first environment step; removed {run_dir}", file=sys.stderr)
+        else:
+            atomic_write(run_dir / "FAILED.txt", lambda f: f.write(failure), binary=False)
+            print(f"{PROG}: training failed after {model.num_timesteps:,} steps; logs kept in {run_dir} "
+                  "(see FAILED.txt; no final model written)", file=sys.stderr)
+        raise
+    finally:
+        for venv in (env, eval_env):
+            if venv is not None:
+                venv.close()
+        try:
+            model.logger.close()
+        except Exception:
+            pass
+
+    save_final()
+    print(f"\nDone: {model.num_timesteps:,} steps.")
+    print(f"  model:        {model_path}")
+    if model.get_vec_normalize_env() is not None:
+        print(f"  vecnormalize: {vecnorm_path}")
+    if args.eval_freq:
+        best = run_dir / "best_model.zip"
+        print(f"  best model:   {best if best.exists() else '(no evaluation ran)'}; evaluations.npz")
+    if args.save_freq:
+        print(f"  checkpoints:  {run_dir}/rl_model_*_steps.zip")
+    print(f"  config:       {meta_dir / 'config.yml'}")
+    print(f"  monitor:      {run_dir}/*.monitor.csv")
+    print(f"  tensorboard:  {tb_dir}")
+    print(f"Evaluate with: {PROG} evaluate --run {shlex.quote(str(run_dir))}")
+    return 0
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# evaluate
+
+
+def _parse_env_kwargs(items: Optional[Sequence[str]]) -> Optional[dict]:
+    """``--env-kwargs key=value ...`` as a dict (``None`` when not given)."""
+    from .config import parse_override
+
+    if items is None:
+        return None
+    out: dict[str, Any] = {}
+    for item in items:
+        try:
+            path, value = parse_override(item)
+        except ValueError as exc:
+            raise UsageError(str(exc).replace("hyperparameter override", "--env-kwargs entry")) from None
+        if len(path) != 1:
+            raise UsageError(f"malformed --env-kwargs entry {item!r}; expected key=value")
+        out[path[0]] = value
+    return out
+
+
+def _resolve_model_args(args: argparse.Namespace) -> tuple[RunInfo, str]:
+    if bool(args.run) == bool(args.model):
+        raise UsageError("give either --run FOLDER or --model PATH (with --env)")
+    info = locate_run(args.run or args.model, best=getattr(args, "best", False))
+    if args.model and getattr(args, "vecnormalize", None):
+        vn = Path(args.vecnormalize)
+        if not vn.is_file():
+            raise UsageError(f"no VecNormalize statistics file {args.vecnormalize!r}")
+        info.vecnormalize = vn
+    env_id = args.env or info.env_id
+    if env_id is None:
+        raise UsageError(f"--env is needed: {args.model!r} is not inside a run folder that names its environment")
+    env_kwargs = _parse_env_kwargs(args.env_kwargs)
+    if env_kwargs is not None:
+        info.config["env_kwargs"] = env_kwargs
+    elif args.env and args.env != info.env_id:
+        info.config["env_kwargs"] = {}  # the run's env_kwargs belong to its own environment
+    return info, check_env_id(env_id)
+
+
+def _check_spaces(model, env, env_id: str, model_path) -> None:
+    """``UsageError`` unless ``model`` was trained on ``env``'s observation and action spaces."""
+    from stable_baselines3.common.utils import check_for_correct_spaces
+
+    try:
+        check_for_correct_spaces(env, model.observation_space, model.action_space)
+    except ValueError as exc:
+        raise UsageError(f"model {str(model_path)!r} does not fit {env_id}: {' '.join(str(exc).split())}") from None
+
+
+def cmd_evaluate(args: argparse.Namespace, argv: Sequence[str]) -> int:
+    import numpy as np
+    import torch
+    from stable_baselines3.common.evaluation import evaluate_policy
+
+    _check_int("--episodes", args.episodes, 1)
+    _check_int("--n-envs", args.n_envs, 1)
+    info, env_id = _resolve_model_args(args)
+    torch.set_num_threads(args.torch_threads)
+    model = load_model(info, args.device)
+    try:
+        venv = make_eval_env(env_id, args.n_envs, args.seed, info.env_kwargs, info.vecnormalize)
+    except Exception as exc:
+        raise UsageError(f"cannot make {env_id}: {exc}") from None
+    try:
+        _check_spaces(model, venv, env_id, info.model_path)
+    except UsageError:
+        venv.close()
+        raise
+    successes: list[float] = []
+
+    def on_step(local_vars: dict, _globals: dict) -> None:
+        if local_vars["done"] and "episode" in local_vars["info"]:
+            value = local_vars["info"].get("is_success")
+            if value is not None:
+                successes.append(float(value))
+
+    torch.manual_seed(args.seed)
+    try:
+        returns, lengths = evaluate_policy(model, venv, n_eval_episodes=args.episodes,
+                                           deterministic=args.deterministic, return_episode_rewards=True,
+                                           callback=on_step)
+    finally:
+        venv.close()
+    returns = np.asarray(returns, dtype=float)
+    mode = "deterministic" if args.deterministic else "stochastic"
+    print(f"{env_id}: {info.model_path}" + (f" (VecNormalize: {info.vecnormalize})" if info.vecnormalize else ""))
+    print(f"mean return {returns.mean():.3f} ± {returns.std():.3f} over {len(returns)} episodes ({mode}); "
+          f"mean episode length {np.mean(lengths):.1f}")
+    if successes:
+        print(f"success rate {np.mean(successes):.3f} ({int(np.sum(successes))}/{len(successes)})")
+    return 0
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# robustness
+
+
+def cmd_robustness(args: argparse.Namespace, argv: Sequence[str]) -> int:
+    import torch
+
+    from .envs.noise import NOISE_TYPES, FRICTION_TARGETS, make_noisy_env, noise_kwargs
+    from .robustness import evaluate_robustness, format_table, write_csv
+
+    if args.noise not in NOISE_TYPES:
+        raise UsageError(f"unknown noise type {args.noise!r}; accepted: {', '.join(NOISE_TYPES)}")
+    if args.friction_target not in FRICTION_TARGETS:
+        raise UsageError(f"unknown friction target {args.friction_target!r}; accepted: {', '.join(FRICTION_TARGETS)}")
+    for s in args.sigmas:
+        if not math.isfinite(s) or s < 0:
+            raise UsageError(f"sigma {s!r} must be a finite number >= 0")
+    _check_int("--episodes", args.episodes, 1)
+    _check_int("--n-envs", args.n_envs, 1)
+    infos: dict[str, RunInfo] = {}
+    for spec in args.models:
+        name, sep, path = spec.partition("=")
+        if not sep:
+            name, path = Path(spec.rstrip("/")).name.removesuffix(".zip"), spec
+        if not name or not path:
+            raise UsageError(f"malformed --models entry {spec!r}; expected NAME=RUN_FOLDER_OR_ZIP")
+        if name in infos:
+            raise UsageError(f"model name {name!r} given twice in --models")
+        infos[name] = locate_run(path)
+    env_ids = {i.env_id for i in infos.values() if i.env_id}
+    env_id = args.env
+    if env_id is None:
+        if len(env_ids) != 1:
+            raise UsageError("--env is needed" + (f": the runs were trained on {', '.join(sorted(env_ids))}"
+                                                  if env_ids else ""))
+        env_id = env_ids.pop()
+    env_id = check_env_id(env_id)
+    env_kwargs = _parse_env_kwargs(args.env_kwargs) or {}
+    try:  # the noise must apply to this environment: fail before loading models or writing anything
+        make_noisy_env(env_id, **noise_kwargs(args.noise, 0.1, args.friction_target), **env_kwargs).close()
+    except (ValueError, TypeError) as exc:
+        raise UsageError(f"{args.noise} noise cannot be applied to {env_id} (env_kwargs={env_kwargs}): {exc}") from None
+    torch.set_num_threads(args.torch_threads)
+    models = {name: load_model(info, args.device) for name, info in infos.items()}
+    probe = gymnasium.make(env_id, **env_kwargs)
+    try:
+        for name, model in models.items():
+            _check_spaces(model, probe, env_id, infos[name].model_path)
+    finally:
+        probe.close()
+    rows = evaluate_robustness(
+        models, env_id, args.noise, args.sigmas, n_episodes=args.episodes, seed=args.seed,
+        deterministic=args.deterministic,
+        vec_normalize_stats={name: info.vecnormalize for name, info in infos.items()},
+        progress_bar=not args.no_progress, n_envs=args.n_envs, friction_target=args.friction_target,
+        env_kwargs=env_kwargs,
+    )
+    _use_agg()
+    from .figures import robustness_figure
+
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    stem = out / f"robustness_{env_id}_{args.noise}"
+    csv_path = write_csv(rows, stem.with_suffix(".csv"))
+    table = format_table(rows)
+    atomic_write(stem.with_suffix(".md"), lambda f: f.write(table + "\n"), binary=False)
+    fig = robustness_figure(rows, title=f"{env_id}: {args.noise} noise ({args.episodes} episodes per point)")
+    fig.savefig(stem.with_suffix(".png"), dpi=120)
+    print(table)
+    print(f"\nwrote {csv_path}, {stem.with_suffix('.md')}, {stem.with_suffix('.png')}")
+    return 0
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# plot
+
+
+def cmd_plot(args: argparse.Namespace, argv: Sequence[str]) -> int:
+    import numpy as np
+
+    if args.x not in ("timesteps", "episodes", "walltime"):
+        raise UsageError(f"unknown --x {args.x!r}; accepted: timesteps, episodes, walltime")
+    _check_int("--smooth", args.smooth, 1)
+    from .figures import read_monitor_files
+
+    runs = {}
+    for folder in args.runs:
+        p = Path(folder)
+        if not p.is_dir():
+            raise UsageError(f"no run folder {folder!r}")
+        if not list(p.glob("*monitor.csv")):
+            raise UsageError(f"no Monitor files (*.monitor.csv) in {folder!r}")
+        try:
+            data = read_monitor_files(p)
+        except (ValueError, KeyError) as exc:
+            raise UsageError(f"unreadable Monitor file in {folder!r}: {exc}") from None
+        if len(data["r"]) == 0:
+            raise UsageError(f"no finished episodes in the Monitor files of {folder!r}")
+        label = p.name
+        env_id, config = _read_run_config(p)
+        if config:
+            label += f" ({_rule_label(config)})"
+        if label in runs:
+            label = str(p)
+        runs[label] = data
+    _use_agg()
+    from .figures import training_curves_figure
+
+    fig = training_curves_figure(runs, x=args.x, smooth=args.smooth, title=args.title)
+    out = Path(args.output)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=120)
+    for label, data in runs.items():
+        last = slice(-100, None)
+        line = (f"{label}: {len(data['r'])} episodes, {int(data['l'].sum()):,} steps, mean return of the last "
+                f"{len(data['r'][last])}: {data['r'][last].mean():.3f}")
+        success = data["is_success"][~np.isnan(data["is_success"])]
+        if len(success):
+            line += f", success rate of the last {len(success[last])}: {success[last].mean():.3f}"
+        print(line)
+    print(f"wrote {out}")
+    return 0
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# inspect
+
+
+def cmd_inspect(args: argparse.Namespace, argv: Sequence[str]) -> int:
+    import torch
+
+    from .envs.tmaze import TMazeCueEnv
+    from .monitoring import record_episode
+
+    info, env_id = _resolve_model_args(args)
+    torch.set_num_threads(args.torch_threads)
+    model = load_model(info, args.device)
+    if not hasattr(model.policy, "snn"):
+        raise UsageError(f"{str(info.model_path)!r} is not a SpikePlasticPolicy model")
+    obs_transform = None
+    if info.vecnormalize is not None:
+        from stable_baselines3.common.vec_env import VecNormalize
+
+        stats = VecNormalize.load(str(info.vecnormalize), make_eval_env(env_id, 1, 0, info.env_kwargs))
+        obs_transform = stats.normalize_obs
+    kwargs = info.env_kwargs
+    try:
+        probe = gymnasium.make(env_id, **kwargs)
+    except Exception as exc:
+        raise UsageError(f"cannot make {env_id}: {exc}") from None
+    episodes: dict[str, Callable[[], gymnasium.Env]] = {"typical": lambda: gymnasium.make(env_id, **kwargs)}
+    if isinstance(probe.unwrapped, TMazeCueEnv):
+        n_cues, rest = probe.unwrapped.n_cues, probe.unwrapped.p_cue_rest
+        episodes["all_left"] = lambda: gymnasium.make(env_id, **{**kwargs, "cues": [0] * n_cues})
+        episodes["all_right"] = lambda: gymnasium.make(env_id, **{**kwargs, "cues": [1] * n_cues})
+        # No cue: every cue population (the decision cue's too) fires at its rest rate throughout.
+        episodes["no_cue"] = lambda: gymnasium.make(env_id, **{**kwargs, "p_cue_event": rest})
+    try:
+        _check_spaces(model, probe, env_id, info.model_path)
+    finally:
+        probe.close()
+    out = Path(args.output) if args.output else (info.run_dir / "figures" if info.run_dir else Path("figures"))
+    _use_agg()
+    from .figures import activity_figure
+
+    out.mkdir(parents=True, exist_ok=True)
+    for name, make in episodes.items():
+        env = make()
+        try:
+            activity = record_episode(model.policy, env, seed=args.seed, deterministic=args.deterministic,
+                                      max_steps=args.max_steps, obs_transform=obs_transform)
+        finally:
+            env.close()
+        if name == "no_cue":  # the decision is made on the decision cue alone
+            activity.info.pop("correct_action", None)
+        fig = activity_figure(activity, title=f"{env_id} · {name.replace('_', ' ')}")
+        path = out / f"activity_{name}.png"
+        fig.savefig(path, dpi=110)
+        print(f"{name:>9}: return {activity.episode_return:.3g} over {activity.n_steps} steps -> {path}")
+    return 0
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# parser
+
+
+def _count(text: str) -> int:
+    """An integer that may be written 2e5 or 200_000."""
+    try:
+        value = float(text.replace("_", ""))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid integer {text!r}") from None
+    if not math.isfinite(value) or value != int(value):
+        raise argparse.ArgumentTypeError(f"invalid integer {text!r}")
+    return int(value)
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):  # one line, like every other bad-input error (argparse adds the usage line)
+        self.print_usage(sys.stderr)
+        self.exit(2, f"{PROG}: error: {message}\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog=PROG, description="Train and study spiking neural network policies with differentiable "
+                     "plasticity (SpikePropamine) with Stable-Baselines3's PPO.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
+
+    def common(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--device", default="cpu", help="torch device (default: cpu; tiny SNN ops are fastest there)")
+        p.add_argument("--torch-threads", type=int, default=1, help="torch.set_num_threads (default: 1)")
+
+    def model_source(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--run", help="run folder written by `train` (uses its <EnvId>.zip, config, VecNormalize)")
+        p.add_argument("--model", help="a model .zip (with --env); VecNormalize statistics beside it are found")
+        p.add_argument("--env", help="environment id (default: the run's)")
+        p.add_argument("--vecnormalize", help="VecNormalize statistics for --model (default: found beside it)")
+        p.add_argument("--best", action="store_true", help="with --run: use best_model.zip")
+        p.add_argument("--env-kwargs", nargs="+", metavar="KEY=VALUE", help="gymnasium.make arguments, values as "
+                       "YAML (default: the run's env_kwargs), e.g. max_episode_steps=200")
+
+    t = sub.add_parser("train", help="train a policy (rl-zoo style hyperparameters and log folder)",
+                       description="Train sb3_spikeplastic.PPO with hyperparameters from hyperparams/ppo.yml.")
+    t.add_argument("--env", required=True, help="Gymnasium id, e.g. TMazeCue-v0, HalfCheetah-v5")
+    t.add_argument("--rule", help="plasticity rule (sets policy_kwargs.rule)")
+    t.add_argument("-n", "--n-timesteps", type=_count, help="total environment steps (default: the file's)")
+    t.add_argument("--seed", type=int, help="random seed (default: random, recorded in <EnvId>/args.yml)")
+    t.add_argument("-f", "--log-folder", default="logs", help="log folder (default: logs); runs go to "
+                   "<folder>/ppo/<EnvId>_<n>")
+    t.add_argument("--tensorboard-log", help="TensorBoard root (default: events in the run folder)")
+    t.add_argument("--hyperparams", nargs="+", metavar="KEY=VALUE", help="overrides, values as YAML: "
+                   "n_steps=128 policy_kwargs.rule=dp-bcm policy_kwargs.hidden_sizes=[32]")
+    t.add_argument("--conf", help="hyperparameter file (default: the packaged hyperparams/ppo.yml)")
+    t.add_argument("--n-envs", type=int, help="number of environments (default: the file's)")
+    t.add_argument("--eval-freq", type=int, default=0, help="evaluate every N environment steps (0: never)")
+    t.add_argument("--eval-episodes", type=int, default=20, help="episodes per evaluation (default: 20)")
+    t.add_argument("--save-freq", type=int, default=0, help="checkpoint every N environment steps (0: never)")
+    t.add_argument("--figure-freq", type=int, default=0, help="TensorBoard activity figure every N rollouts "
+                   "(0: never)")
+    t.add_argument("-v", "--verbose", type=int, default=1, help="0: quiet, 1: SB3's table every rollout (default)")
+    t.add_argument("--no-progress", action="store_true", help="no progress bar")
+    common(t)
+    t.set_defaults(func=cmd_train)
+
+    e = sub.add_parser("evaluate", help="mean return (and success rate) of a trained model")
+    model_source(e)
+    e.add_argument("--episodes", type=int, default=100, help="episodes (default: 100)")
+    e.add_argument("--deterministic", dest="deterministic", action="store_true", default=True,
+                   help="mean / arg-max actions (default)")
+    e.add_argument("--stochastic", dest="deterministic", action="store_false", help="sampled actions")
+    e.add_argument("--seed", type=int, default=0, help="environment seed (default: 0)")
+    e.add_argument("--n-envs", type=int, default=1, help="environments side by side (default: 1)")
+    common(e)
+    e.set_defaults(func=cmd_evaluate)
+
+    r = sub.add_parser("robustness", help="return ratio under noise for several models (paper Fig. 4 F-H)")
+    r.add_argument("--models", nargs="+", required=True, metavar="NAME=RUN_OR_ZIP", help="models to compare")
+    r.add_argument("--env", help="noise-free environment id (default: the runs')")
+    r.add_argument("--noise", required=True, help="obs, action or friction")
+    r.add_argument("--sigmas", nargs="+", type=float, default=[0.0, 0.1, 0.2, 0.3, 0.4, 0.5],
+                   help="noise standard deviations (default: 0 0.1 0.2 0.3 0.4 0.5)")
+    r.add_argument("--episodes", type=int, default=100, help="episodes per model and sigma (default: 100)")
+    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--n-envs", type=int, default=1, help="environments side by side (default: 1)")
+    r.add_argument("--env-kwargs", nargs="+", metavar="KEY=VALUE", help="gymnasium.make arguments of the "
+                   "noise-free environment, values as YAML (e.g. max_episode_steps=200)")
+    r.add_argument("--friction-target", default="damping", help="damping (default) or geom_friction")
+    r.add_argument("--deterministic", dest="deterministic", action="store_true", default=True)
+    r.add_argument("--stochastic", dest="deterministic", action="store_false")
+    r.add_argument("-o", "--output", default="robustness", help="output folder (default: robustness)")
+    r.add_argument("--no-progress", action="store_true", help="no progress bar")
+    common(r)
+    r.set_defaults(func=cmd_robustness)
+
+    p = sub.add_parser("plot", help="training curves from the Monitor files of run folders")
+    p.add_argument("runs", nargs="+", metavar="RUN_FOLDER")
+    p.add_argument("-o", "--output", default="training_curves.png", help="PNG file (default: training_curves.png)")
+    p.add_argument("--x", default="timesteps", help="timesteps (default), episodes or walltime")
+    p.add_argument("--smooth", type=int, default=20, help="moving average over N episodes (default: 20)")
+    p.add_argument("--title")
+    p.set_defaults(func=cmd_plot)
+
+    i = sub.add_parser("inspect", help="figures of one episode's network activity (T-maze: typical, all-left, "
+                       "all-right and no-cue episodes)")
+    model_source(i)
+    i.add_argument("-o", "--output", help="output folder (default: <run>/figures)")
+    i.add_argument("--seed", type=int, default=0, help="episode seed (default: 0)")
+    i.add_argument("--max-steps", type=int, help="environment steps shown (default: about 1 s of network time)")
+    i.add_argument("--deterministic", dest="deterministic", action="store_true", default=True)
+    i.add_argument("--stochastic", dest="deterministic", action="store_false")
+    common(i)
+    i.set_defaults(func=cmd_inspect)
+    return parser
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """Entry point of the ``sb3-spikeplastic`` console script; returns the exit status."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # argparse: --help (0) or a usage error (2)
+        return int(exc.code or 0)
+    try:
+        return int(args.func(args, argv) or 0)
+    except UsageError as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"\n{PROG}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,258 @@
+"""Matplotlib figures: one episode's network activity, training curves, robustness to noise.
+
+Every function returns a ``matplotlib.figure.Figure`` built without ``pyplot`` (no GUI backend, no global figure
+registry): save it with ``fig.savefig(path)`` (Agg renderer) or log it with SB3's ``Figure`` logger type.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Optional, Union
+
+import numpy as np
+from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .monitoring import EpisodeActivity
+    from .robustness import RobustnessRow
+
+_GROUP_COLOURS = ("tab:blue", "tab:red", "tab:green", "0.55", "tab:purple", "tab:orange")
+_LAYER_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple")
+
+
+def _raster(ax, spikes: np.ndarray, colour="k", groups=None, max_points: int = 400_000) -> None:
+    """Spike raster of ``(time, n)`` on ``ax`` (time in ms on x, neuron on y)."""
+    t, n = np.nonzero(spikes > 0)
+    if len(t) > max_points:  # keep the figure light: thin uniformly
+        keep = np.linspace(0, len(t) - 1, max_points).astype(int)
+        t, n = t[keep], n[keep]
+    size = 4.0 if spikes.shape[1] <= 80 else 1.0
+    if groups:
+        for k, (label, first, stop) in enumerate(groups):
+            sel = (n >= first) & (n < stop)
+            ax.scatter(t[sel], n[sel], s=size, marker="|" if spikes.shape[1] <= 80 else ".", linewidths=0.8,
+                       color=_GROUP_COLOURS[k % len(_GROUP_COLOURS)], label=label, rasterized=True)
+        ax.legend(loc="upper right", fontsize=7, markerscale=3, ncol=len(groups), frameon=True)
+    else:
+        ax.scatter(t, n, s=size, marker="|" if spikes.shape[1] <= 80 else ".", linewidths=0.8, color=colour,
+                   rasterized=True)
+    ax.set_ylim(spikes.shape[1] - 0.5, -0.5)
+    ax.yaxis.set_major_locator(MaxNLocator(nbins=4, integer=True))
+
+
+def _step_lines(ax, n_steps: int, T: int) -> None:
+    if 1 < n_steps <= 60:
+        ax.vlines(np.arange(1, n_steps) * T, 0, 1, transform=ax.get_xaxis_transform(), colors="0.85",
+                  linewidth=0.6, zorder=0)
+
+
+def activity_figure(activity: "EpisodeActivity", title: Optional[str] = None, n_synapses: int = 5,
+                    n_membrane: int = 4, max_trace_layers: int = 3) -> Figure:
+    """One episode's activity: input, hidden and output spike rasters, the membrane potential of a few output
+    neurons, the traces ``E`` of the ``n_synapses`` synapses of each plastic layer that moved most, and the
+    neuromodulatory signals (mean and range over neurons) of modulated layers. Faint vertical lines separate
+    environment steps.
+
+    :param activity: from :func:`sb3_spikeplastic.monitoring.record_episode`.
+    :param title: the figure's title (the episode's return, actions and outcome are appended).
+    :param n_synapses: synapses shown per plastic layer.
+    :param n_membrane: output neurons whose membrane potential is shown.
+    :param max_trace_layers: plastic layers shown (the first ones).
+    """
+    T, n_steps = activity.steps_per_env_step, activity.n_steps
+    total = activity.input_spikes.shape[0]
+    n_layers = len(activity.spikes)
+    trace_layers = [i for i, tr in enumerate(activity.traces) if tr is not None][:max_trace_layers]
+    modulated = [i for i, m in enumerate(activity.modulation) if m is not None]
+    heights = [2.0] + [1.6] * (n_layers - 1) + [1.3, 1.3] + [1.2] * len(trace_layers) + ([1.1] if modulated else [])
+    height = sum(heights) + 0.3 * len(heights) + 0.9
+    fig = Figure(figsize=(11, height))
+    # Fixed margins (in inches) instead of a layout engine: drawing this figure is on the training path.
+    fig.subplots_adjust(left=0.085, right=0.985, top=1 - 0.45 / height, bottom=0.5 / height, hspace=0.3)
+    axes = fig.subplots(len(heights), 1, sharex=True, gridspec_kw={"height_ratios": heights})
+    axes = np.atleast_1d(axes)
+    row = 0
+
+    ax = axes[row]
+    _raster(ax, activity.input_spikes, groups=activity.input_groups)
+    ax.set_ylabel(f"input\n({activity.input_spikes.shape[1]})")
+    row += 1
+    for i in range(n_layers - 1):
+        ax = axes[row]
+        _raster(ax, activity.spikes[i], colour=_LAYER_COLOURS[i % len(_LAYER_COLOURS)])
+        rate = activity.spikes[i].mean() if activity.spikes[i].size else 0.0
+        ax.set_ylabel(f"hidden {i + 1}\n({activity.spikes[i].shape[1]})")
+        ax.text(1.0, 1.0, f"{rate:.3f} spikes/ms", transform=ax.transAxes, ha="right", va="bottom", fontsize=7)
+        row += 1
+    out_spikes = activity.spikes[-1]
+    ax = axes[row]
+    _raster(ax, out_spikes, colour="tab:purple")
+    ax.set_ylabel(f"output\n({out_spikes.shape[1]})")
+    row += 1
+
+    ax = axes[row]
+    membrane = activity.membrane[-1]
+    counts = out_spikes.sum(0)
+    shown = np.argsort(-counts, kind="stable")[:n_membrane]
+    time = np.arange(total)
+    for k, j in enumerate(sorted(shown)):
+        ax.plot(time, membrane[:, j], linewidth=0.7, label=f"out {j}")
+    ax.axhline(activity.theta, color="k", linestyle="--", linewidth=0.7, label="θ")
+    ax.set_ylabel("output\nmembrane u")
+    ax.legend(loc="upper right", fontsize=7, ncol=min(len(shown) + 1, 6))
+    row += 1
+
+    interval_ends = (np.arange(total // activity.interval) + 1) * activity.interval
+    for i in trace_layers:
+        ax = axes[row]
+        trace = activity.traces[i]  # (n_intervals, n_out, n_in)
+        flat = trace.reshape(trace.shape[0], -1)
+        moved = np.abs(flat).max(0)
+        top = np.argsort(-moved, kind="stable")[:n_synapses]
+        for s in top:
+            post, pre = divmod(int(s), trace.shape[2])
+            ax.step(np.concatenate([[0], interval_ends]), np.concatenate([[0.0], flat[:, s]]), where="post",
+                    linewidth=0.9, label=f"{post}←{pre}")
+        ax.set_ylabel(f"E layer {i}\n(top {len(top)})")
+        ax.legend(loc="upper left", fontsize=6, ncol=len(top), title="post←pre", title_fontsize=6)
+        row += 1
+
+    if modulated:
+        ax = axes[row]
+        for i in modulated:
+            m = activity.modulation[i]  # (n_intervals, n)
+            colour = _LAYER_COLOURS[i % len(_LAYER_COLOURS)]
+            ax.step(interval_ends, m.mean(1), where="pre", color=colour, linewidth=1.0, label=f"layer {i} mean")
+            ax.fill_between(interval_ends, m.min(1), m.max(1), step="pre", color=colour, alpha=0.2)
+        ax.set_ylabel("modulation\nM = W_m r")
+        ax.legend(loc="upper left", fontsize=7)
+        row += 1
+
+    for ax in axes:
+        _step_lines(ax, n_steps, T)
+    axes[-1].set_xlabel(f"time (ms; {n_steps} environment steps of T = {T} ms)")
+    axes[-1].set_xlim(0, total)
+
+    parts = [title] if title else []
+    if activity.rule:
+        parts.append(f"rule {activity.rule}")
+    parts.append(f"return {activity.episode_return:.3g} over {n_steps} steps" + ("" if activity.done else " (cut)"))
+    if activity.info.get("is_success") is not None:
+        decided = activity.actions[-1]
+        correct = activity.info.get("correct_action")
+        side = {0: "left", 1: "right"}
+        text = f"decision {side.get(decided, decided)}"
+        if correct is not None:
+            text += f" (correct: {side.get(correct, correct)})"
+        parts.append(text)
+    fig.suptitle("  ·  ".join(parts), fontsize=10)
+    return fig
+
+
+def _moving_average(y: np.ndarray, window: int) -> np.ndarray:
+    if window <= 1 or len(y) == 0:
+        return y
+    window = min(window, len(y))
+    kernel = np.ones(window)
+    # Mean over the available samples at the start (no zero padding bias).
+    return np.convolve(y, kernel, "full")[: len(y)] / np.convolve(np.ones(len(y)), kernel, "full")[: len(y)]
+
+
+def read_monitor_files(folder: Union[str, os.PathLike]) -> dict[str, np.ndarray]:
+    """The episodes of all SB3 Monitor files (``*.monitor.csv``) in ``folder``, merged in order of completion.
+
+    :return: ``r`` (returns), ``l`` (lengths), ``t`` (seconds since the earliest file's start) and
+        ``is_success`` (1, 0, or NaN where not reported) arrays; empty arrays if no episode finished.
+    """
+    rows: list[tuple[float, float, float, float]] = []
+    files = sorted(Path(folder).glob("*monitor.csv"))
+    starts = []
+    for path in files:
+        with open(path, newline="") as f:
+            first = f.readline()
+            t_start = float(json.loads(first[1:]).get("t_start", 0.0)) if first.startswith("#") else 0.0
+            starts.append(t_start)
+            for row in csv.DictReader(f):
+                success = (row.get("is_success") or "").strip()
+                rows.append((float(row["t"]) + t_start, float(row["r"]), float(row["l"]),
+                             {"true": 1.0, "1": 1.0, "1.0": 1.0, "false": 0.0, "0": 0.0, "0.0": 0.0}.get(
+                                 success.lower(), math.nan)))
+    rows.sort(key=lambda r: r[0])
+    data = np.array(rows, dtype=float).reshape(-1, 4)
+    origin = min(starts) if starts else 0.0
+    return {"t": data[:, 0] - origin, "r": data[:, 1], "l": data[:, 2], "is_success": data[:, 3]}
+
+
+def training_curves_figure(runs: Mapping[str, Mapping[str, np.ndarray]], x: str = "timesteps", smooth: int = 10,
+                           title: Optional[str] = None) -> Figure:
+    """Episode return (and success rate, when any run's Monitor files have ``is_success``) of several runs.
+
+    :param runs: label -> Monitor data (:func:`read_monitor_files`: arrays ``r``, ``l``, ``t`` and optionally
+        ``is_success``, in order of completion).
+    :param x: ``"timesteps"`` (cumulative episode lengths), ``"episodes"`` or ``"walltime"`` (hours).
+    :param smooth: moving-average window in episodes (1: raw only).
+    :param title: the figure's title.
+    """
+    has_success = any("is_success" in df and not np.isnan(df["is_success"]).all() for df in runs.values())
+    fig = Figure(figsize=(9, 6.5 if has_success else 4), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(2 if has_success else 1, 1, sharex=True))
+    for k, (label, df) in enumerate(runs.items()):
+        colour = f"C{k % 10}"
+        if x == "timesteps":
+            xs = np.cumsum(df["l"])
+        elif x == "episodes":
+            xs = np.arange(1, len(df["r"]) + 1)
+        else:
+            xs = np.asarray(df["t"]) / 3600.0
+        returns = np.asarray(df["r"], dtype=float)
+        if smooth > 1:
+            axes[0].plot(xs, returns, color=colour, alpha=0.15, linewidth=0.6)
+        axes[0].plot(xs, _moving_average(returns, smooth), color=colour, linewidth=1.4, label=label)
+        if has_success and "is_success" in df:
+            success = np.asarray(df["is_success"], dtype=float)
+            valid = ~np.isnan(success)
+            if valid.any():
+                axes[1].plot(xs[valid], _moving_average(success[valid], smooth), color=colour, linewidth=1.4,
+                             label=label)
+    axes[0].set_ylabel("episode return" + (f"\n(moving average of {smooth})" if smooth > 1 else ""))
+    axes[0].legend(loc="best", fontsize=8)
+    axes[0].grid(alpha=0.3)
+    if has_success:
+        axes[1].set_ylabel("success rate" + (f"\n(moving average of {smooth})" if smooth > 1 else ""))
+        axes[1].set_ylim(-0.02, 1.02)
+        axes[1].axhline(0.5, color="0.6", linestyle=":", linewidth=0.8)
+        axes[1].grid(alpha=0.3)
+    axes[-1].set_xlabel({"timesteps": "environment steps", "episodes": "episodes", "walltime": "wall time (h)"}[x])
+    if title:
+        fig.suptitle(title)
+    return fig
+
+
+def robustness_figure(rows: Sequence["RobustnessRow"], title: Optional[str] = None) -> Figure:
+    """Return ratio (mean return over the mean return at ``sigma = 0``) against ``sigma``, one line per model
+    (paper Fig. 4 F-H). Error bars: one standard deviation of the episode returns over ``|mean return at 0|``."""
+    fig = Figure(figsize=(6.5, 4.5), layout="constrained")
+    ax = fig.subplots()
+    models = list(dict.fromkeys(r.model for r in rows))
+    for k, name in enumerate(models):
+        mine = sorted((r for r in rows if r.model == name), key=lambda r: r.sigma)
+        base = next((r.mean_return for r in mine if r.sigma == 0.0), math.nan)
+        sigmas = [r.sigma for r in mine]
+        ratios = [r.ratio for r in mine]
+        errors = [r.std_return / abs(base) if base not in (0.0,) and math.isfinite(base) else math.nan for r in mine]
+        ax.errorbar(sigmas, ratios, yerr=errors, marker="o", capsize=3, linewidth=1.4, label=name, color=f"C{k % 10}")
+    ax.axhline(1.0, color="0.6", linestyle=":", linewidth=0.8)
+    noise = rows[0].noise_type if rows else ""
+    ax.set_xlabel(f"{noise} noise σ")
+    ax.set_ylabel("return / return at σ = 0")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize=8)
+    if title:
+        ax.set_title(title)
+    return fig

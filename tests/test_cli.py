@@ -1,0 +1,276 @@
+"""The ``sb3-spikeplastic`` command line: train / evaluate / robustness / plot / inspect, and bad input."""
+
+import io
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import matplotlib.image
+import numpy as np
+import pytest
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from sb3_spikeplastic import PPO, cli
+from sb3_spikeplastic.config import load_hyperparams_file
+
+TINY_TMAZE = ["n_envs=2", "n_steps=32", "batch_size=32", "bptt_steps=16", "n_epochs=1",
+              "policy_kwargs.hidden_sizes=[16]"]
+TINY_CHEETAH = ["n_envs=1", "n_steps=32", "batch_size=32", "bptt_steps=16", "n_epochs=1",
+                "policy_kwargs.hidden_sizes=[16]", "policy_kwargs.steps=10", "policy_kwargs.encoder_pop_size=8",
+                "policy_kwargs.action_pop_size=4", "env_kwargs.max_episode_steps=20"]
+
+
+def run_cli(capsys, *argv):
+    code = cli.main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def assert_png(path: Path):
+    assert path.is_file() and path.stat().st_size > 5_000, path
+    image = matplotlib.image.imread(str(path))
+    pixels = image.reshape(-1, image.shape[-1])
+    assert image.ndim == 3 and (pixels != pixels[0]).any()  # more than one colour
+
+
+def event_accumulator(folder: Path) -> EventAccumulator:
+    ea = EventAccumulator(str(folder), size_guidance={"images": 0, "tensors": 0, "scalars": 0})
+    ea.Reload()
+    return ea
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory):
+    return tmp_path_factory.mktemp("cli")
+
+
+@pytest.fixture(scope="module")
+def tmaze_run(workdir):
+    argv = ["train", "--env", "TMazeCue-v0", "--rule", "ndp-oja", "-n", "128", "--seed", "3",
+            "-f", workdir / "logs", "--tensorboard-log", workdir / "tb", "--hyperparams", *TINY_TMAZE,
+            "--eval-freq", "64", "--eval-episodes", "2", "--save-freq", "64", "--figure-freq", "1", "-v", "0",
+            "--no-progress"]
+    assert cli.main([str(a) for a in argv]) == 0
+    return workdir / "logs" / "ppo" / "TMazeCue-v0_1"
+
+
+@pytest.fixture(scope="module")
+def cheetah_run(workdir):
+    argv = ["train", "--env", "HalfCheetah-v5", "-n", "64", "--seed", "0", "-f", workdir / "logs",
+            "--hyperparams", *TINY_CHEETAH, "--figure-freq", "1", "-v", "0", "--no-progress"]
+    assert cli.main([str(a) for a in argv]) == 0
+    return workdir / "logs" / "ppo" / "HalfCheetah-v5_1"
+
+
+def test_train_tmaze_run_folder(tmaze_run, workdir):
+    names = {p.name for p in tmaze_run.iterdir()}
+    assert {"TMazeCue-v0.zip", "best_model.zip", "evaluations.npz", "command.txt", "progress.csv",
+            "rl_model_64_steps.zip", "rl_model_128_steps.zip", "0.monitor.csv", "1.monitor.csv", "TMazeCue-v0"} <= names
+    assert not [n for n in names if ".tmp" in n]  # no temporary files left behind
+    assert not (tmaze_run / "TMazeCue-v0" / "vecnormalize.pkl").exists()  # normalize: false
+    command = (tmaze_run / "command.txt").read_text()
+    assert command.startswith("sb3-spikeplastic train --env TMazeCue-v0 --rule ndp-oja -n 128")
+    config = load_hyperparams_file(tmaze_run / "TMazeCue-v0" / "config.yml")  # itself a hyperparameter file
+    resolved_kwargs = config["TMazeCue-v0"]["policy_kwargs"]
+    assert resolved_kwargs["rule"] == "ndp-oja" and resolved_kwargs["hidden_sizes"] == [16]
+    assert config["TMazeCue-v0"]["n_timesteps"] == 128 and config["TMazeCue-v0"]["n_steps"] == 32
+    assert "seed: 3" in (tmaze_run / "TMazeCue-v0" / "args.yml").read_text()
+    assert (tmaze_run / "0.monitor.csv").read_text().splitlines()[1] == "r,l,t,is_success"
+    model = PPO.load(tmaze_run / "TMazeCue-v0.zip")
+    assert model.policy.snn.rule_name == "ndp-oja" and model.num_timesteps == 128
+    PPO.load(tmaze_run / "best_model.zip")
+    assert np.load(tmaze_run / "evaluations.npz")["timesteps"].tolist() == [64, 128]
+
+
+def test_train_tmaze_tensorboard(tmaze_run, workdir):
+    runs = list((workdir / "tb" / "TMazeCue-v0").iterdir())
+    assert [r.name for r in runs] == ["ppo_ndp-oja_1"]
+    ea = event_accumulator(runs[0])
+    scalars = ea.Tags()["scalars"]
+    for key in ("snn/layer0/spike_rate", "snn/layer1/silent_fraction", "plasticity/layer0/eta",
+                "plasticity/layer0/trace_abs_mean", "plasticity/layer0/modulation_mean", "rollout/success_rate",
+                "eval/mean_reward", "train/grad_norm"):
+        assert key in scalars, key
+    images = ea.Images("snn/activity")
+    assert [i.step for i in images] == [64, 128]  # --figure-freq 1: every rollout (2 envs x 32 steps)
+    image = matplotlib.image.imread(io.BytesIO(images[-1].encoded_image_string), format="png")
+    pixels = image.reshape(-1, image.shape[-1])
+    assert image.shape[0] > 300 and (pixels != pixels[0]).any()
+    text = ea.Tensors("hyperparameters/text_summary")[0].tensor_proto.string_val[0].decode()
+    assert "| policy_kwargs.rule | ndp-oja |" in text and "| bptt_steps | 16 |" in text and "| seed | 3 |" in text
+
+
+def test_train_halfcheetah_normalized(cheetah_run):
+    names = {p.name for p in cheetah_run.iterdir()}
+    assert {"HalfCheetah-v5.zip", "command.txt", "0.monitor.csv", "HalfCheetah-v5"} <= names
+    assert (cheetah_run / "HalfCheetah-v5" / "vecnormalize.pkl").is_file()  # normalize: true in ppo.yml
+    assert not {"best_model.zip", "evaluations.npz"} & names  # no --eval-freq
+    model = PPO.load(cheetah_run / "HalfCheetah-v5.zip")
+    assert model.policy.snn.sizes == [17 * 8, 16, 6 * 4] and hasattr(model.policy, "log_std")
+    ea = event_accumulator(cheetah_run)  # no --tensorboard-log: events in the run folder
+    assert {"snn/action_std", "snn/layer0/spike_rate", "plasticity/layer0/modulation_std"} <= set(ea.Tags()["scalars"])
+    assert len(ea.Images("snn/activity")) == 2
+    assert "hyperparameters/text_summary" in ea.Tags()["tensors"]
+
+
+def test_evaluate(tmaze_run, cheetah_run, capsys):
+    code, out, _ = run_cli(capsys, "evaluate", "--run", tmaze_run, "--episodes", "6")
+    assert code == 0
+    assert "mean return" in out and "over 6 episodes (deterministic)" in out and "success rate" in out
+    code, out, _ = run_cli(capsys, "evaluate", "--model", tmaze_run / "best_model.zip", "--episodes", "2",
+                           "--stochastic", "--n-envs", "2")
+    assert code == 0 and "over 2 episodes (stochastic)" in out
+    code, out, _ = run_cli(capsys, "evaluate", "--run", cheetah_run, "--episodes", "2")
+    assert code == 0 and "VecNormalize: " in out and "mean episode length 20.0" in out
+    assert "success rate" not in out
+
+
+def test_robustness(cheetah_run, workdir, capsys):
+    out_dir = workdir / "robustness"
+    code, out, _ = run_cli(capsys, "robustness", "--models", f"a={cheetah_run}",
+                           f"b={cheetah_run / 'HalfCheetah-v5.zip'}", "--noise", "action", "--sigmas", "0.2", "0.5",
+                           "--episodes", "2", "--env-kwargs", "max_episode_steps=20", "-o", out_dir, "--no-progress")
+    assert code == 0
+    assert "| model | noise | sigma |" in out and "| a | action | 0.5 |" in out and "| b | action | 0 |" in out
+    stem = out_dir / "robustness_HalfCheetah-v5_action"
+    lines = stem.with_suffix(".csv").read_text().splitlines()
+    assert lines[0].startswith("model,noise_type,sigma") and len(lines) == 1 + 2 * 3
+    assert_png(stem.with_suffix(".png"))
+
+
+def test_plot(tmaze_run, cheetah_run, workdir, capsys):
+    out = workdir / "curves" / "curves.png"
+    code, text, _ = run_cli(capsys, "plot", tmaze_run, cheetah_run, "-o", out, "--smooth", "3")
+    assert code == 0 and "TMazeCue-v0_1 (ndp-oja)" in text and "success rate" in text
+    assert_png(out)
+    code, _, _ = run_cli(capsys, "plot", tmaze_run, "-o", workdir / "episodes.png", "--x", "episodes")
+    assert code == 0
+    assert_png(workdir / "episodes.png")
+
+
+def test_inspect(tmaze_run, workdir, capsys):
+    code, out, _ = run_cli(capsys, "inspect", "--run", tmaze_run, "-o", workdir / "inspect")
+    assert code == 0
+    for name in ("typical", "all_left", "all_right", "no_cue"):
+        assert_png(workdir / "inspect" / f"activity_{name}.png")
+
+
+BAD_TRAIN = [
+    (["--env", "TMazeCue-v9"], r"unknown environment id 'TMazeCue-v9'; did you mean TMazeCue-v0"),
+    (["--env", "TMazeCue-v0", "--rule", "hebb"], r"unknown rule 'hebb'; accepted: static, dp-linear, dp-oja"),
+    (["--env", "TMazeCue-v0", "--hyperparams", "n_stepz=64"], r"unknown hyperparameter 'n_stepz'; accepted: .*n_steps"),
+    (["--env", "TMazeCue-v0", "--hyperparams", "n_steps"], r"malformed hyperparameter override 'n_steps'; expected key=value"),
+    (["--env", "TMazeCue-v0", "--hyperparams", "n_steps=many"], r"n_steps='many' must be an integer"),
+    (["--env", "TMazeCue-v0", "--hyperparams", "learning_rate=fast"], r"learning_rate='fast' must be a number"),
+    (["--env", "TMazeCue-v0", "--hyperparams", "policy_kwargs.hidden_sizes=[16]", "bptt_steps=32", "batch_size=48"],
+     r"invalid configuration for TMazeCue-v0: batch_size=48 \(transitions\) must be a multiple of bptt_steps=32"),
+    (["--env", "TMazeCue-v0", "--hyperparams", "env_kwargs.noise=extreme"],
+     r"invalid configuration for TMazeCue-v0: noise='extreme' is not one of \('low', 'high'\)"),
+    (["--env", "TMazeCue-v0", "--conf", "missing.yml"], r"cannot read hyperparameter file 'missing.yml'"),
+    (["--env", "TMazeCue-v0", "--eval-freq", "-1"], r"--eval-freq=-1 must be >= 0"),
+]
+
+
+@pytest.mark.filterwarnings("ignore:You have specified a mini-batch size")
+@pytest.mark.parametrize("args, message", BAD_TRAIN)
+def test_bad_train_input_exits_2_and_writes_nothing(args, message, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    code, out, err = run_cli(capsys, "train", *args, "-f", tmp_path / "logs", "--tensorboard-log", tmp_path / "tb")
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("sb3-spikeplastic: error: ")
+    assert __import__("re").search(message, lines[0]), lines[0]
+    assert not (tmp_path / "logs").exists() and not (tmp_path / "tb").exists()
+
+
+def test_bad_robustness_evaluate_and_plot_input(tmaze_run, tmp_path, capsys):
+    cases = [
+        (["robustness", "--models", f"a={tmaze_run}", "--noise", "wind", "-o", tmp_path / "r"],
+         "unknown noise type 'wind'; accepted: obs, action, friction"),
+        (["robustness", "--models", f"a={tmaze_run}", "--noise", "friction", "-o", tmp_path / "r"],
+         "friction noise cannot be applied to TMazeCue-v0"),
+        (["robustness", "--models", f"a={tmp_path / 'nowhere'}", "--noise", "obs", "-o", tmp_path / "r"],
+         "no run folder or model file"),
+        (["robustness", "--models", f"a={tmaze_run}", "--env", "HalfCheetah-v5", "--noise", "obs", "-o", tmp_path / "r"],
+         "does not fit HalfCheetah-v5: Observation spaces do not match"),
+        (["evaluate", "--run", tmp_path], "is not a run folder of `sb3-spikeplastic train`"),
+        (["evaluate", "--model", tmaze_run / "TMazeCue-v0.zip", "--env", "Nope-v0"], "unknown environment id 'Nope-v0'"),
+        (["plot", tmp_path, "-o", tmp_path / "p.png"], "no Monitor files"),
+        (["plot", tmaze_run, "--x", "hours", "-o", tmp_path / "p.png"], "unknown --x 'hours'; accepted: timesteps"),
+    ]
+    for argv, message in cases:
+        code, _, err = run_cli(capsys, *argv)
+        assert code == 2, argv
+        assert err.strip().splitlines() == [f"sb3-spikeplastic: error: {err.split('error: ', 1)[1].strip()}"]
+        assert message in err, (argv, err)
+    assert not (tmp_path / "r").exists() and not (tmp_path / "p.png").exists()
+
+
+def _train_argv(tmp_path, n="128"):
+    return ["train", "--env", "TMazeCue-v0", "-n", n, "--seed", "0", "-f", str(tmp_path / "logs"), "-v", "0",
+            "--no-progress", "--hyperparams", *TINY_TMAZE]
+
+
+def test_ctrl_c_saves_the_model(tmp_path, capsys, monkeypatch):
+    def interrupted(self):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(PPO, "train", interrupted)
+    code, out, _ = run_cli(capsys, *_train_argv(tmp_path))
+    assert code == 130 and "Interrupted after 64 steps" in out
+    run = tmp_path / "logs" / "ppo" / "TMazeCue-v0_1"
+    assert PPO.load(run / "TMazeCue-v0.zip").num_timesteps == 64
+
+
+def test_crash_before_the_first_rollout_removes_the_run_folder(tmp_path, capsys, monkeypatch):
+    def broken(self, *args, **kwargs):
+        raise RuntimeError("simulated crash")
+
+    monkeypatch.setattr(PPO, "collect_rollouts", broken)
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        cli.main(_train_argv(tmp_path))
+    assert list((tmp_path / "logs" / "ppo").iterdir()) == []
+    assert "removed" in capsys.readouterr().err
+
+
+def test_crash_later_keeps_the_logs_and_marks_the_run(tmp_path, capsys, monkeypatch):
+    def broken(self):
+        raise RuntimeError("simulated divergence")
+
+    monkeypatch.setattr(PPO, "train", broken)
+    with pytest.raises(RuntimeError, match="simulated divergence"):
+        cli.main(_train_argv(tmp_path))
+    run = tmp_path / "logs" / "ppo" / "TMazeCue-v0_1"
+    assert "simulated divergence" in (run / "FAILED.txt").read_text()
+    assert not (run / "TMazeCue-v0.zip").exists()  # no half-trained final model
+    code, _, err = run_cli(capsys, "evaluate", "--run", run)
+    assert code == 2 and "has no TMazeCue-v0.zip (training failed: see FAILED.txt)" in err
+
+
+def test_run_folders_are_numbered(tmp_path, capsys):
+    for expected in ("TMazeCue-v0_1", "TMazeCue-v0_2"):
+        assert cli.main(_train_argv(tmp_path, n="64")) == 0
+        assert (tmp_path / "logs" / "ppo" / expected / "TMazeCue-v0.zip").is_file()
+
+
+def test_help_and_argparse_errors(capsys):
+    assert cli.main(["--help"]) == 0
+    assert "train" in capsys.readouterr().out
+    assert cli.main(["train"]) == 2  # --env is required
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == "sb3-spikeplastic: error: the following arguments are required: --env"
+
+
+def test_console_script_smoke(tmp_path):
+    """One real run of the installed console script."""
+    script = Path(sys.executable).parent / "sb3-spikeplastic"
+    command = [str(script)] if script.exists() else [sys.executable, "-m", "sb3_spikeplastic.cli"]
+    command += ["train", "--env", "TMazeCue-v0", "-n", "64", "--seed", "0", "-f", "logs", "-v", "0", "--no-progress",
+                "--hyperparams", *TINY_TMAZE]
+    result = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300,
+                            env={**os.environ, "MPLBACKEND": "Agg"})
+    assert result.returncode == 0, result.stderr
+    assert (tmp_path / "logs" / "ppo" / "TMazeCue-v0_1" / "TMazeCue-v0.zip").is_file()
+    assert "Run folder:  logs/ppo/TMazeCue-v0_1" in result.stdout
+    assert "sb3-spikeplastic evaluate --run logs/ppo/TMazeCue-v0_1" in result.stdout

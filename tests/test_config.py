@@ -1,0 +1,193 @@
+"""Hyperparameter files: the packaged ppo.yml, overrides, validation, the safe string parser, model construction."""
+
+import gymnasium as gym
+import pytest
+import torch
+from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+import sb3_spikeplastic
+from sb3_spikeplastic import PPO, config
+from sb3_spikeplastic.config import (
+    default_hyperparams_path,
+    load_hyperparams_file,
+    model_arguments,
+    normalize_arguments,
+    parse_override,
+    parse_python_literal,
+    resolve_hyperparams,
+    yaml_load,
+)
+
+ENTRIES = ("TMazeCue-v0", "TMazeCueNoisy-v0", "HalfCheetah-v5", "NoisyHalfCheetah-v5")
+
+
+def test_packaged_file_is_found_and_has_the_entries():
+    path = default_hyperparams_path()
+    assert path.is_file() and path.name == "ppo.yml"
+    data = load_hyperparams_file()
+    assert {"default", *ENTRIES} <= set(data)
+    for env_id in ENTRIES:
+        entry = data[env_id]
+        for key in ("n_timesteps", "n_envs", "policy", "policy_kwargs", "normalize", "n_steps", "batch_size",
+                    "bptt_steps", "learning_rate", "n_epochs", "gamma", "gae_lambda", "ent_coef", "max_grad_norm"):
+            assert key in entry, (env_id, key)
+        assert entry["policy"] == "SpikePlasticPolicy"
+
+
+@pytest.mark.parametrize("env_id", ["CartPole-v1", *ENTRIES])
+def test_entries_are_consistent(env_id):
+    """Chunking fits every entry, and HalfCheetah uses the paper's network and GAE lambda (appendix 5.2-5.5)."""
+    entry = resolve_hyperparams(env_id)
+    assert entry["n_steps"] % entry["bptt_steps"] == 0 and entry["batch_size"] % entry["bptt_steps"] == 0
+    assert entry["batch_size"] <= entry["n_steps"] * entry["n_envs"]
+    if "HalfCheetah" in env_id:
+        kwargs = entry["policy_kwargs"]
+        assert (kwargs["hidden_sizes"], kwargs["steps"], kwargs["encoder_pop_size"], kwargs["action_pop_size"]) == (
+            [64, 64], 50, 50, 100)
+        assert entry["normalize"] is True and entry["gae_lambda"] == 0.97
+    # an id without an entry trains with `default`
+    assert resolve_hyperparams("CartPole-v1")["policy_kwargs"] == {"rule": "dp-oja"}
+
+
+def _env_for(env_id, n_envs):
+    make = (lambda: gym.make("CartPole-v1")) if env_id == "default" else (lambda: gym.make(env_id))
+    return DummyVecEnv([make for _ in range(n_envs)])
+
+
+@pytest.mark.parametrize("env_id", ["default", *ENTRIES])
+def test_every_entry_constructs_a_model(env_id):
+    """Construction only (no learning), with the full paper network for HalfCheetah."""
+    resolved = resolve_hyperparams("CartPole-v1" if env_id == "default" else env_id)
+    policy, ppo_kwargs, policy_kwargs = model_arguments(resolved)
+    env = _env_for(env_id, resolved["n_envs"])
+    norm = normalize_arguments(resolved)
+    if norm is not None:
+        env = VecNormalize(env, **norm)
+    model = PPO(policy, env, **ppo_kwargs, policy_kwargs=policy_kwargs, device="cpu")
+    assert model.n_steps == resolved["n_steps"] and model.bptt_steps == resolved["bptt_steps"]
+    if env_id.endswith("HalfCheetah-v5"):
+        assert model.policy.snn.sizes == [17 * 50, 64, 64, 6 * 100]
+    env.close()
+
+
+def test_yaml_floats_without_a_dot():
+    assert yaml_load("a: 1e-3\nb: 2e5\nc: 3.0\nd: 1_000\ne: .5") == {"a": 1e-3, "b": 2e5, "c": 3.0, "d": 1000, "e": 0.5}
+
+
+def test_overrides_nested_and_precedence():
+    resolved = resolve_hyperparams(
+        "TMazeCue-v0",
+        overrides=["n_steps=32", "policy_kwargs.hidden_sizes=[16]", "policy_kwargs.rule=dp-bcm", "learning_rate=1e-4",
+                   "policy_kwargs.rule_kwargs.eta_init=0.1", "policy_kwargs.neuron.theta=12", "normalize=true",
+                   "normalize.norm_reward=false", "env_kwargs.noise=high"],
+        rule="static", n_timesteps=1000, n_envs=2)
+    assert resolved["n_steps"] == 32 and resolved["learning_rate"] == 1e-4
+    assert resolved["policy_kwargs"]["hidden_sizes"] == [16]
+    assert resolved["policy_kwargs"]["rule"] == "static"  # --rule wins over the override
+    assert resolved["policy_kwargs"]["rule_kwargs"] == {"eta_init": 0.1}
+    assert resolved["policy_kwargs"]["neuron"] == {"theta": 12.0}
+    assert resolved["normalize"] == {"norm_reward": False}
+    assert normalize_arguments(resolved) == {"norm_reward": False, "gamma": 0.99}
+    assert resolved["env_kwargs"] == {"noise": "high"}
+    assert (resolved["n_timesteps"], resolved["n_envs"]) == (1000, 2)
+
+
+def test_default_is_merged_under_the_entry(tmp_path):
+    conf = tmp_path / "my.yml"
+    conf.write_text("default:\n  n_epochs: 3\n  policy_kwargs: {rule: dp-bcm, steps: 20}\n"
+                    "CartPole-v1:\n  n_steps: 64\n  policy_kwargs: {hidden_sizes: [8]}\n")
+    resolved = resolve_hyperparams("CartPole-v1", conf=conf)
+    assert resolved["n_epochs"] == 3 and resolved["n_steps"] == 64
+    assert resolved["policy_kwargs"] == {"rule": "dp-bcm", "steps": 20, "hidden_sizes": [8]}
+
+
+def test_parse_override():
+    assert parse_override("n_steps=128") == (("n_steps",), 128)
+    assert parse_override("policy_kwargs.hidden_sizes=[32, 32]") == (("policy_kwargs", "hidden_sizes"), [32, 32])
+    assert parse_override("policy_kwargs.rule=dp-bcm") == (("policy_kwargs", "rule"), "dp-bcm")
+    for bad in ("n_steps", "=3", "a..b=1", "1x=2"):
+        with pytest.raises(ValueError, match="malformed hyperparameter override"):
+            parse_override(bad)
+
+
+@pytest.mark.parametrize("override, message", [
+    ("n_stepz=3", r"unknown hyperparameter 'n_stepz'; accepted: .*bptt_steps.*n_steps"),
+    ("n_steps=abc", r"n_steps='abc' must be an integer"),
+    ("gamma=high", r"gamma='high' must be a number"),
+    ("n_timesteps=1.5", r"n_timesteps=1.5 must be an integer"),
+    ("policy_kwargs.hidden_sizez=[3]", r"unknown policy_kwargs key 'hidden_sizez'; accepted: .*hidden_sizes"),
+    ("policy_kwargs.hidden_sizes=16", r"policy_kwargs.hidden_sizes=16 must be a list of integers"),
+    ("policy_kwargs.rule=hebb", r"unknown rule 'hebb'; accepted: static, .*dp-oja"),
+    ("policy_kwargs.rule_kwargs.foo=1", r"unknown policy_kwargs.rule_kwargs key 'foo' for rule 'dp-oja'; accepted: eta_init"),
+    ("policy_kwargs.neuron.thet=1", r"unknown policy_kwargs.neuron key 'thet'; accepted: .*theta"),
+    ("normalize.clip_obs=5", r"normalize is False, not a mapping \(set normalize=true first\)"),
+    ("normalize={clip_obz: 5}", r"unknown normalize \(VecNormalize\) key 'clip_obz'; accepted: clip_obs"),
+    ("learning_rate=lin_x", r"learning_rate='lin_x' must be a number or lin_<number>"),
+    ("policy=TransformerPolicy", r"unknown policy 'TransformerPolicy'; accepted: .*SpikePlasticPolicy"),
+    ("policy_kwargs.optimizer_class=os.system", r"'os.system' is not a class of torch.optim; accepted: .*Adam"),
+])
+def test_bad_values_name_the_key_and_the_accepted_ones(override, message):
+    with pytest.raises(ValueError, match=message):
+        resolve_hyperparams("TMazeCue-v0", overrides=[override])
+
+
+def test_rule_flag_is_validated():
+    with pytest.raises(ValueError, match=r"unknown rule 'hebb'; accepted: static, dp-linear, dp-oja"):
+        resolve_hyperparams("TMazeCue-v0", rule="hebb")
+    for rule in sb3_spikeplastic.available_rules():
+        assert resolve_hyperparams("TMazeCue-v0", rule=rule)["policy_kwargs"]["rule"] == rule
+
+
+def test_lin_schedules_and_class_names():
+    resolved = resolve_hyperparams("TMazeCue-v0", overrides=["learning_rate=lin_1e-3", "clip_range=lin_0.2",
+                                                             "policy_kwargs.optimizer_class=th.optim.AdamW",
+                                                             "policy_kwargs.optimizer_kwargs={eps: 1.0e-5}"])
+    policy, ppo_kwargs, policy_kwargs = model_arguments(resolved)
+    assert ppo_kwargs["learning_rate"](1.0) == pytest.approx(1e-3) and ppo_kwargs["learning_rate"](0.5) == pytest.approx(5e-4)
+    assert ppo_kwargs["clip_range"](0.0) == 0.0
+    assert policy_kwargs["optimizer_class"] is torch.optim.AdamW
+    assert "n_timesteps" not in ppo_kwargs and "policy_kwargs" not in ppo_kwargs and "normalize" not in ppo_kwargs
+
+
+def test_safe_policy_kwargs_string():
+    assert parse_python_literal("dict(rule='dp-oja', hidden_sizes=[64])") == {"rule": "dp-oja", "hidden_sizes": [64]}
+    assert parse_python_literal("dict(log_std_init=-2, net_arch=dict(pi=[64], vf=[64]), activation_fn=nn.ReLU)") == {
+        "log_std_init": -2, "net_arch": {"pi": [64], "vf": [64]}, "activation_fn": "nn.ReLU"}
+    assert parse_python_literal("{'a': (1, 2.5), 'b': None, 'c': True}") == {"a": (1, 2.5), "b": None, "c": True}
+    for evil in ("__import__('os').system('x')", "open('/etc/passwd')", "dict(**x)", "[x for x in ()]",
+                 "os.system", "1 + 1", "lambda: 0", "dict(a=print(1))"):
+        with pytest.raises(ValueError, match="unsafe or unsupported expression|not a valid Python expression"):
+            parse_python_literal(evil, "policy_kwargs")
+
+
+def test_rl_zoo_string_form_in_a_file_and_an_override(tmp_path):
+    conf = tmp_path / "zoo.yml"
+    conf.write_text("TMazeCue-v0:\n  n_steps: 32\n  batch_size: 32\n  bptt_steps: 16\n"
+                    "  policy_kwargs: \"dict(rule='dp-bcm', hidden_sizes=[8])\"\n"
+                    "  normalize: \"dict(norm_obs=False, norm_reward=True)\"\n")
+    resolved = resolve_hyperparams("TMazeCue-v0", conf=conf, overrides=["policy_kwargs.hidden_sizes=[4]"])
+    assert resolved["policy_kwargs"] == {"rule": "dp-bcm", "hidden_sizes": [4]}
+    assert resolved["normalize"] == {"norm_obs": False, "norm_reward": True}
+    with pytest.raises(ValueError, match="unsafe or unsupported expression"):
+        resolve_hyperparams("TMazeCue-v0", overrides=["policy_kwargs=__import__('os').system('x')"])
+
+
+def test_bad_files(tmp_path):
+    with pytest.raises(ValueError, match="cannot read hyperparameter file"):
+        load_hyperparams_file(tmp_path / "missing.yml")
+    (tmp_path / "bad.yml").write_text("a: [1\n")
+    with pytest.raises(ValueError, match="is not valid YAML"):
+        load_hyperparams_file(tmp_path / "bad.yml")
+    (tmp_path / "flat.yml").write_text("n_steps: 3\n")
+    with pytest.raises(ValueError, match="must map environment ids"):
+        load_hyperparams_file(tmp_path / "flat.yml")
+    (tmp_path / "other.yml").write_text("Pendulum-v1: {n_steps: 32}\n")
+    with pytest.raises(ValueError, match="no hyperparameters for 'CartPole-v1'.*entries: Pendulum-v1"):
+        resolve_hyperparams("CartPole-v1", conf=tmp_path / "other.yml")
+
+
+def test_accepted_keys_follow_the_signatures():
+    keys = config.accepted_keys()
+    assert {"bptt_steps", "n_steps", "batch_size", "learning_rate", "n_timesteps", "policy_kwargs", "normalize"} <= set(keys)
+    assert "tensorboard_log" not in keys and "seed" not in keys
+    assert {"rule", "hidden_sizes", "steps", "encoder_pop_size", "action_pop_size"} <= set(config.policy_kwarg_hints())

@@ -1,0 +1,146 @@
+"""TensorBoard monitoring: rollout scalars, one episode's activity, the activity figure, hyperparameter text."""
+
+import io
+
+import gymnasium as gym
+import matplotlib.image
+import numpy as np
+import pytest
+import torch
+from stable_baselines3.common.logger import Logger, make_output_format
+from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.vec_env import DummyVecEnv
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from sb3_spikeplastic import PPO
+from sb3_spikeplastic.envs.tmaze import TMazeCueEnv
+from sb3_spikeplastic.figures import activity_figure
+from sb3_spikeplastic.monitoring import (
+    ActivityFigureCallback,
+    hyperparameter_markdown,
+    record_episode,
+    write_hyperparameters,
+)
+
+SMALL = dict(hidden_sizes=(16,), steps=10, encoder_pop_size=8, action_pop_size=4)
+
+
+def tmaze_model(rule="ndp-oja", n_envs=2, **kwargs):
+    env = DummyVecEnv([lambda: Monitor(TMazeCueEnv()) for _ in range(n_envs)])
+    return PPO("SpikePlasticPolicy", env, n_steps=32, batch_size=32, bptt_steps=16, n_epochs=1, seed=0,
+               policy_kwargs=dict(rule=rule, hidden_sizes=(16,)), **kwargs)
+
+
+def assert_png_nontrivial(data: bytes):
+    assert len(data) > 5_000
+    image = matplotlib.image.imread(io.BytesIO(data), format="png")
+    pixels = image.reshape(-1, image.shape[-1])
+    assert image.ndim == 3 and (pixels != pixels[0]).any()  # more than one colour
+
+
+class Capture:
+    """Stands in for SB3's logger: keeps what is recorded."""
+
+    def __init__(self):
+        self.values = {}
+
+    def record(self, key, value, exclude=None):
+        self.values[key] = value
+
+
+def test_rollout_scalars_discrete():
+    model = tmaze_model("ndp-oja")
+    model.learn(64)
+    capture = Capture()
+    model.rollout_activity.record(capture, model._last_network_state)  # the last rollout's statistics
+    values = capture.values
+    assert 0.0 <= values["snn/layer0/spike_rate"] <= 1.0 and 0.0 <= values["snn/layer0/silent_fraction"] <= 1.0
+    for key in ("snn/layer0/spike_rate", "snn/layer0/silent_fraction", "snn/layer1/spike_rate",
+                "plasticity/layer0/eta", "plasticity/layer0/trace_abs_mean", "plasticity/layer0/trace_clip_fraction",
+                "plasticity/layer0/alpha_abs_mean", "plasticity/layer0/modulation_mean",
+                "plasticity/layer0/modulation_std"):
+        assert key in values, key
+    assert "snn/action_std" not in values  # discrete actions: no Gaussian
+
+
+def test_rollout_scalars_action_std_for_continuous_actions():
+    env = DummyVecEnv([lambda: gym.make("Pendulum-v1", max_episode_steps=20)])
+    model = PPO("SpikePlasticPolicy", env, n_steps=16, batch_size=16, bptt_steps=8, n_epochs=1, seed=0,
+                policy_kwargs=dict(rule="dp-oja", log_std_init=-0.5, **SMALL))
+    model.rollout_activity.add(model.policy.step(torch.zeros(1, 3), model.policy.initial_state(1),
+                                                 torch.ones(1))[-1])
+    capture = Capture()
+    model.rollout_activity.record(capture, model.policy.initial_state(1))
+    assert capture.values["snn/action_std"] == pytest.approx(np.exp(-0.5), rel=1e-6)
+
+
+def test_record_episode_tmaze_is_complete_and_leaves_global_rng_alone():
+    model = tmaze_model("dp-bcm", n_envs=1)
+    env = TMazeCueEnv()
+    rng = torch.random.get_rng_state()
+    activity = record_episode(model.policy, env, seed=3)
+    assert torch.equal(rng, torch.random.get_rng_state())
+    assert activity.done and activity.n_steps == env.n_frames
+    total = activity.n_steps * 25
+    assert activity.input_spikes.shape == (total, 40)
+    assert [s.shape for s in activity.spikes] == [(total, 16), (total, 2)]
+    assert [m.shape for m in activity.membrane] == [(total, 16), (total, 2)]
+    assert activity.traces[0].shape == (activity.n_steps, 16, 40)
+    assert activity.modulation == [None, None]  # dp-bcm is not neuromodulated
+    assert activity.info["is_success"] in (True, False)
+    assert [g[0] for g in activity.input_groups] == ["left cue", "right cue", "decision", "noise"]
+    # the recorded raster is the environment's: same seed, same spikes
+    first, _ = TMazeCueEnv().reset(seed=3)
+    assert np.array_equal(activity.input_spikes[:25], first)
+    # replayable: the same seed gives the same episode
+    again = record_episode(model.policy, TMazeCueEnv(), seed=3)
+    assert np.array_equal(again.spikes[0], activity.spikes[0]) and again.actions == activity.actions
+
+
+def test_activity_figure_png(tmp_path):
+    model = tmaze_model("ndp-oja", n_envs=1)
+    activity = record_episode(model.policy, TMazeCueEnv(), seed=0)
+    assert activity.modulation[0] is not None
+    fig = activity_figure(activity, title="test")
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=60)
+    assert_png_nontrivial(buffer.getvalue())
+    # continuous actions, several hidden layers, cut episode
+    env = gym.make("Pendulum-v1")
+    model = PPO("SpikePlasticPolicy", DummyVecEnv([lambda: gym.make("Pendulum-v1")]), n_steps=16, batch_size=16,
+                bptt_steps=8, policy_kwargs=dict(rule="ndp-bcm", hidden_sizes=(8, 8), steps=10, encoder_pop_size=8,
+                                                 action_pop_size=4))
+    activity = record_episode(model.policy, env, max_steps=7)
+    assert activity.n_steps == 7 and not activity.done and len(activity.spikes) == 3
+    fig = activity_figure(activity)
+    fig.savefig(tmp_path / "pendulum.png", dpi=60)
+    assert_png_nontrivial((tmp_path / "pendulum.png").read_bytes())
+
+
+def test_figure_callback_and_hyperparameter_text_reach_tensorboard(tmp_path):
+    model = tmaze_model("dp-oja")
+    model.set_logger(Logger(str(tmp_path), [make_output_format("tensorboard", str(tmp_path))]))
+    config = {"n_steps": 32, "policy_kwargs": {"rule": "dp-oja", "hidden_sizes": [16]}, "normalize": False}
+    assert write_hyperparameters(model.logger, config)
+    model.learn(192, callback=ActivityFigureCallback("TMazeCue-v0", every=2))
+    model.logger.close()
+    ea = EventAccumulator(str(tmp_path), size_guidance={"images": 0, "tensors": 0})
+    ea.Reload()
+    tags = ea.Tags()
+    assert "snn/layer0/spike_rate" in tags["scalars"] and "plasticity/layer0/eta" in tags["scalars"]
+    images = ea.Images("snn/activity")
+    assert [i.step for i in images] == [128]  # rollout 2 of 3, 64 steps each
+    assert_png_nontrivial(images[0].encoded_image_string)
+    text = ea.Tensors("hyperparameters/text_summary")[0].tensor_proto.string_val[0].decode()
+    assert "| policy_kwargs.rule | dp-oja |" in text and "| n_steps | 32 |" in text
+
+
+def test_hyperparameter_markdown_flattens_and_escapes():
+    table = hyperparameter_markdown({"a": 1, "b": {"c": [1, 2], "d": "x|y"}, "e": {}})
+    assert table.splitlines() == ["| hyperparameter | value |", "|---|---|", "| a | 1 |", "| b.c | [1, 2] |",
+                                  "| b.d | x\\|y |", "| e | {} |"]
+
+
+def test_figure_callback_validates_its_interval():
+    with pytest.raises(ValueError, match="every=0 must be >= 1"):
+        ActivityFigureCallback("TMazeCue-v0", every=0)
