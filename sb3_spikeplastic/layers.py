@@ -101,20 +101,24 @@ class PlasticSRMLayer(nn.Module):
         With ``monitor`` the output also carries the interval's neuromodulatory signal (computed once more, so
         it is off on the training path).
 
-        The synaptic input is computed as ``K @ (S W_eff^T)`` plus the decayed carried PSP mapped through
-        ``W_eff`` — equal to filtering the presynaptic spikes first (the filter is linear and ``W_eff`` is
-        constant within the interval), but the Toeplitz product runs over ``n_out`` instead of ``n_in`` columns.
+        The synaptic input ``K (S W_eff^T)`` (plus the decayed carried PSP) is associated so that the Toeplitz
+        product ``K`` runs over the narrower side: ``(K S) W_eff^T`` when ``n_in <= n_out`` (e.g. the 64 -> 600
+        output layer), ``K (S W_eff^T)`` otherwise (e.g. the 850 -> 64 input layer). Both equal filtering the
+        presynaptic spikes first, because the filter is linear and ``W_eff`` is constant within the interval.
         Then ``E`` is updated from the interval's rates and acts from the next interval on.
         """
         kernel, g1, g2, v1, v2, d_len = self._psp_filter(spikes_in.shape[1], spikes_in.dtype, spikes_in.device)
         w_eff = self.efficacy(state.plastic.trace)
         w_t = w_eff.transpose(-1, -2)
         h1, h2 = state.psp
-        drive = spikes_in @ w_t  # (batch, L, n_out)
-        carried = g1[:, None] * (h1.unsqueeze(1) @ w_t) + g2[:, None] * (h2.unsqueeze(1) @ w_t)
-        synaptic = kernel @ drive + carried
+        if self.n_in <= self.n_out:
+            psp = kernel @ spikes_in + g1[:, None] * h1.unsqueeze(1) + g2[:, None] * h2.unsqueeze(1)
+            synaptic = psp @ w_t
+        else:
+            carried = g1[:, None] * (h1.unsqueeze(1) @ w_t) + g2[:, None] * (h2.unsqueeze(1) @ w_t)
+            synaptic = kernel @ (spikes_in @ w_t) + carried
         length = spikes_in.shape[1]
-        psp = AlphaFilterState(
+        psp_state = AlphaFilterState(
             (v1 @ spikes_in) + d_len * h1,
             (v2 @ spikes_in) + d_len * (h2 + length * h1),
         )
@@ -126,7 +130,7 @@ class PlasticSRMLayer(nn.Module):
             if monitor:
                 modulation = self.rule.modulation(r_post)
             plastic = self.rule.step(r_pre, r_post, plastic)
-        return LayerOutput(spikes, membrane, modulation), LayerState(psp, refractory, plastic)
+        return LayerOutput(spikes, membrane, modulation), LayerState(psp_state, refractory, plastic)
 
 
 def fan_in_std(n_in: int, rms_rate: float, neuron: SRMParameters, gain: float) -> float:
