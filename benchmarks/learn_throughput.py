@@ -16,30 +16,20 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import resource
 import sys
 import time
 from pathlib import Path
 
 import torch
+from machine import describe_machine  # benchmarks/machine.py (the script's folder is on sys.path)
 from stable_baselines3.common.env_util import make_vec_env
 
-import sb3_spikeplastic
+import sb3_spikeplastic  # noqa: F401  (registers the environments)
 from sb3_spikeplastic import PPO
 
 RESULTS = Path(__file__).parent / "results" / "learn_throughput.json"
 PAPER_NET = dict(hidden_sizes=[64, 64], steps=50, encoder_pop_size=50, action_pop_size=100)
-
-
-def machine() -> dict:
-    cpuinfo = Path("/proc/cpuinfo")
-    lines = cpuinfo.read_text().splitlines() if cpuinfo.exists() else []
-    cpu = next((line.split(":", 1)[1].strip() for line in lines if line.startswith("model name")), platform.processor())
-    return dict(platform=platform.platform(), cpu=cpu, logical_cpus=os.cpu_count(),
-                python=sys.version.split()[0], torch=torch.__version__, sb3_spikeplastic=sb3_spikeplastic.__version__,
-                cuda=torch.cuda.get_device_name(0) if torch.cuda.is_available() else None)
 
 
 def peak_rss_mb() -> float:
@@ -103,7 +93,7 @@ def main(argv=None) -> int:
     if labels["recurrent"] in by_name and labels["ndp-oja"] in by_name:
         ratio = by_name[labels["ndp-oja"]]["env_steps_per_s"] / by_name[labels["recurrent"]]["env_steps_per_s"]
         print(f"ndp-oja / RecurrentPPO throughput ratio: {ratio:.2f}")
-    result = dict(machine=machine(), settings=dict(vars(args), output=str(args.output)), rows=rows,
+    result = dict(machine=describe_machine(args.threads), settings=dict(vars(args), output=str(args.output)), rows=rows,
                   ratio_ndp_oja_vs_recurrent=ratio)
     if args.check:
         baseline = json.loads(RESULTS.read_text())["ratio_ndp_oja_vs_recurrent"]

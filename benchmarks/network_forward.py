@@ -21,29 +21,18 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import statistics
-import sys
 import time
 from pathlib import Path
 
 import torch
+from machine import describe_machine  # benchmarks/machine.py (the script's folder is on sys.path)
 
 from sb3_spikeplastic.coding import ContinuousDecoder, PopulationEncoder
 from sb3_spikeplastic.network import SpikingPlasticNetwork
 
 RESULTS = Path(__file__).parent / "results" / "network_forward.json"
 OBS_DIMS, ACT_DIMS = 12, 6
-
-
-def machine(threads: int) -> dict:
-    cpuinfo = Path("/proc/cpuinfo")
-    lines = cpuinfo.read_text().splitlines() if cpuinfo.exists() else []
-    cpu = next((line.split(":", 1)[1].strip() for line in lines if line.startswith("model name")), platform.processor())
-    return dict(platform=platform.platform(), cpu=cpu, logical_cpus=os.cpu_count(), python=sys.version.split()[0],
-                torch=torch.__version__, threads=threads,
-                load_average=os.getloadavg() if hasattr(os, "getloadavg") else None)
 
 
 def paper_network(rule: str, steps: int) -> SpikingPlasticNetwork:
@@ -119,7 +108,7 @@ def main(argv=None) -> int:
                 rows.append(row)
                 print(f"{rule:8s} {batch:4d} {steps:4d} | {row['forward_ms']:11.3f} {row['forward_us_per_env']:8.1f} | "
                       f"{row['forward_backward_ms']:15.3f} {row['forward_backward_us_per_env']:8.1f}", flush=True)
-    result = dict(machine=machine(args.threads), settings=dict(vars(args), output=str(args.output)),
+    result = dict(machine=describe_machine(args.threads), settings=dict(vars(args), output=str(args.output)),
                   network=dict(inputs=OBS_DIMS * 50, hidden=[64, 64], outputs=ACT_DIMS * 100), rows=rows)
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(json.dumps(result, indent=2))

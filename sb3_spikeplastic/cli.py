@@ -213,18 +213,10 @@ def load_model(info: RunInfo, device: str = "cpu"):
 def make_eval_env(env_id: str, n_envs: int, seed: int, env_kwargs: Optional[dict] = None,
                   vecnormalize: Optional[Path] = None, make: Optional[Callable] = None):
     """Monitored ``DummyVecEnv`` with frozen ``VecNormalize`` statistics (no reward normalisation) if given."""
-    from stable_baselines3.common.monitor import Monitor
-    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+    from .robustness import frozen_eval_env
 
     kwargs = dict(env_kwargs or {})
-    make = make or (lambda: gymnasium.make(env_id, **kwargs))
-    venv = DummyVecEnv([lambda: Monitor(make()) for _ in range(n_envs)])
-    venv.seed(seed)
-    if vecnormalize is not None:
-        venv = VecNormalize.load(str(vecnormalize), venv)
-        venv.training = False
-        venv.norm_reward = False
-    return venv
+    return frozen_eval_env(make or (lambda: gymnasium.make(env_id, **kwargs)), n_envs, seed, vecnormalize)
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -15,10 +15,11 @@ import csv
 import dataclasses
 import math
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import gymnasium
 import numpy as np
 import torch
 from stable_baselines3.common.evaluation import evaluate_policy
@@ -52,21 +53,13 @@ class RobustnessRow:
     ratio: float
 
 
-def _make_eval_env(
-    env_id: str,
-    noise: Mapping[str, Any],
-    env_kwargs: Mapping[str, Any],
-    n_envs: int,
-    seed: int,
-    vec_normalize_path: str | os.PathLike | None,
-) -> VecEnv:
-    """Seeded ``DummyVecEnv`` of monitored noisy environments, with frozen ``VecNormalize`` statistics if given."""
+def frozen_eval_env(make: Callable[[], gymnasium.Env], n_envs: int, seed: int,
+                    vec_normalize_path: str | os.PathLike | None = None) -> VecEnv:
+    """Seeded ``DummyVecEnv`` of ``Monitor(make())``, with frozen ``VecNormalize`` statistics if given.
 
-    def make_one() -> Monitor:
-        # The Monitor is outermost so that it records the returns of the noisy environment.
-        return Monitor(make_noisy_env(env_id, **noise, **env_kwargs))
-
-    venv: VecEnv = DummyVecEnv([make_one] * n_envs)
+    The Monitor is outermost so that it records the returns of the (possibly noisy) environment.
+    """
+    venv: VecEnv = DummyVecEnv([lambda: Monitor(make()) for _ in range(n_envs)])
     venv.seed(seed)
     if vec_normalize_path is not None:
         venv = VecNormalize.load(str(vec_normalize_path), venv)
@@ -74,6 +67,12 @@ def _make_eval_env(
         venv.training = False
         venv.norm_reward = False
     return venv
+
+
+def _make_eval_env(env_id: str, noise: Mapping[str, Any], env_kwargs: Mapping[str, Any], n_envs: int, seed: int,
+                   vec_normalize_path: str | os.PathLike | None) -> VecEnv:
+    """:func:`frozen_eval_env` of the noise-wrapped ``env_id``."""
+    return frozen_eval_env(lambda: make_noisy_env(env_id, **noise, **env_kwargs), n_envs, seed, vec_normalize_path)
 
 
 def evaluate_robustness(

@@ -7,7 +7,6 @@ outlasts the delay — here the plastic trace E — can tell the sides apart. Ru
 """
 
 import numpy as np
-import pytest
 import torch
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv
@@ -43,14 +42,6 @@ def train(rule, timesteps=12_288):
                 learning_rate=3e-3, max_grad_norm=1.0, seed=0, policy_kwargs=dict(rule=rule, **POLICY_KWARGS))
     model.learn(timesteps)
     return model
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def test_plastic_policy_solves_cue_delay_decision_and_static_does_not():

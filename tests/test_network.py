@@ -19,16 +19,6 @@ from sb3_spikeplastic.plasticity import (
 )
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """One intra-op thread: small ops gain nothing from more, and on a loaded machine OpenMP spinning makes
-    them 10x+ slower (measured here: 2 threads next to a busy process, 0.5 s -> 9 s per test)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 BUILTIN_RULES = ["static", "dp-linear", "dp-oja", "dp-bcm", "ndp-oja", "ndp-bcm"]
 
 

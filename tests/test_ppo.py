@@ -10,7 +10,6 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-import sb3_spikeplastic
 from sb3_spikeplastic import PPO, SpikePlasticPolicy
 from sb3_spikeplastic.envs.tmaze import TMazeCueEnv
 from sb3_spikeplastic.network import map_tensors
