@@ -68,7 +68,8 @@ def load_run(folder: Path) -> dict | None:
     evaluations = np.load(run / "evaluations.npz")
     progress = read_progress(run)
     steps = evaluations["timesteps"]
-    minutes = np.interp(steps, progress["time/total_timesteps"], progress["time/time_elapsed"]) / 60
+    known = ~np.isnan(progress["time/total_timesteps"]) & ~np.isnan(progress["time/time_elapsed"])
+    minutes = np.interp(steps, progress["time/total_timesteps"][known], progress["time/time_elapsed"][known]) / 60
     return dict(env=env_id, rule=meta["rule"], seed=meta["seed"], steps=steps, minutes=minutes,
                 success=evaluations["successes"].mean(axis=1), progress=progress)
 
