@@ -23,6 +23,7 @@ from pathlib import Path
 
 import torch
 from machine import describe_machine  # benchmarks/machine.py (the script's folder is on sys.path)
+from sb3_spikeplastic._fast.allocator import keep_freed_memory
 from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_spikeplastic  # noqa: F401  (registers the environments)
@@ -66,6 +67,7 @@ def main(argv=None) -> int:
                         help="exit 1 if the spiking/RecurrentPPO ratio falls > 30%% below the committed baseline")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
+    keep_freed_memory()  # as `sb3-spikeplastic train` does
     per_rollout = args.n_envs * args.n_steps
     common = dict(n_steps=args.n_steps, batch_size=2048, n_epochs=10, learning_rate=5e-4, gamma=0.99,
                   gae_lambda=0.97, max_grad_norm=1.0, seed=0, device=args.device)

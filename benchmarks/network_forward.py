@@ -27,6 +27,7 @@ from pathlib import Path
 
 import torch
 from machine import describe_machine  # benchmarks/machine.py (the script's folder is on sys.path)
+from sb3_spikeplastic._fast.allocator import keep_freed_memory
 
 from sb3_spikeplastic.coding import ContinuousDecoder, PopulationEncoder
 from sb3_spikeplastic.network import SpikingPlasticNetwork
@@ -96,6 +97,7 @@ def main(argv=None) -> int:
     parser.add_argument("--output", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
+    keep_freed_memory()  # as `sb3-spikeplastic train` does
 
     rows = []
     header = f"{'rule':8s} {'B':>4s} {'T':>4s} | {'fwd ms/step':>11s} {'us/env':>8s} | {'fwd+bwd ms/step':>15s} {'us/env':>8s}"

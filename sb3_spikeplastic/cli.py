@@ -296,6 +296,7 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
     import torch
 
     from . import config as cfg
+    from ._fast.allocator import keep_freed_memory
     from .ppo import PPO
 
     # ---- validation: nothing is written before all of this passed ----
@@ -319,6 +320,7 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
     if args.figure_freq and config["policy"] != "SpikePlasticPolicy":
         raise UsageError(f"--figure-freq needs policy SpikePlasticPolicy, not {config['policy']!r}")
     torch.set_num_threads(args.torch_threads)
+    keep_freed_memory()
     seed = args.seed if args.seed is not None else random.SystemRandom().randrange(2**31 - 1)
     policy, ppo_kwargs, policy_kwargs = cfg.model_arguments(config)
     norm_kwargs = cfg.normalize_arguments(config)

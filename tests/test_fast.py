@@ -277,3 +277,14 @@ def test_stale_build_lock_is_removed(tmp_path):
     with pytest.warns(RuntimeWarning, match="stale build lock"):
         _fast._clear_stale_lock(tmp_path)
     assert not lock.exists()
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc mallopt")
+def test_allocator_settings_take_effect_on_glibc():
+    import platform
+
+    from sb3_spikeplastic._fast.allocator import keep_freed_memory
+
+    if platform.libc_ver()[0] != "glibc":
+        pytest.skip("not glibc")
+    assert keep_freed_memory() is True
