@@ -6,7 +6,7 @@ the decision the cue's PSP has decayed to ~1 % of its peak (alpha kernel, tau_s 
 outlasts the delay — here the plastic trace E — can tell the sides apart. Runtime ~1 min on one core.
 """
 
-import numpy as np
+import helpers
 import torch
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv
@@ -26,12 +26,7 @@ def make_env():
 def deterministic_success(model, n_episodes=200, n_envs=20, seed=123):
     env = DummyVecEnv([make_env for _ in range(n_envs)])
     env.seed(seed)
-    obs, state, starts, successes = env.reset(), None, np.ones(n_envs, bool), []
-    while len(successes) < n_episodes:
-        actions, state = model.predict(obs, state=state, episode_start=starts, deterministic=True)
-        obs, _, starts, infos = env.step(actions)
-        successes += [infos[i]["is_success"] for i in np.flatnonzero(starts)]
-    return float(np.mean(successes[:n_episodes]))
+    return helpers.deterministic_success(model, env, n_episodes)
 
 
 def train(rule, timesteps=12_288):

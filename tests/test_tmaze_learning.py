@@ -5,7 +5,7 @@ The full check is ``slow`` (run with ``pytest -m slow``; ~4 min on one core): dp
 The default suite keeps a short smoke version that only checks the pipeline with the shipped settings.
 """
 
-import numpy as np
+import helpers
 import pytest
 import torch
 from stable_baselines3.common.env_util import make_vec_env
@@ -25,13 +25,7 @@ def train(rule, timesteps):
 
 
 def deterministic_success(model, n_episodes=100, n_envs=20, seed=123):
-    env = make_vec_env("TMazeCue-v0", n_envs=n_envs, seed=seed)
-    obs, state, starts, successes = env.reset(), None, np.ones(n_envs, bool), []
-    while len(successes) < n_episodes:
-        actions, state = model.predict(obs, state=state, episode_start=starts, deterministic=True)
-        obs, _, starts, infos = env.step(actions)
-        successes += [infos[i]["is_success"] for i in np.flatnonzero(starts)]
-    return float(np.mean(successes[:n_episodes]))
+    return helpers.deterministic_success(model, make_vec_env("TMazeCue-v0", n_envs=n_envs, seed=seed), n_episodes)
 
 
 @pytest.mark.slow
