@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 
 import torch
-from machine import describe_machine  # benchmarks/machine.py (the script's folder is on sys.path)
+from machine import describe_machine, write_result  # benchmarks/machine.py (the script's folder is on sys.path)
 from sb3_spikeplastic._fast.allocator import keep_freed_memory
 from stable_baselines3.common.env_util import make_vec_env
 
@@ -104,9 +104,7 @@ def main(argv=None) -> int:
             return 1
         print(f"ok: ratio {ratio:.2f} vs committed baseline {baseline:.2f}")
         return 0
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(result, indent=2))
-    print(f"wrote {args.output}")
+    write_result(result, args.output)
     return 0
 
 

@@ -1,7 +1,8 @@
-"""The machine description recorded next to every benchmark result."""
+"""The machine description recorded next to every benchmark result, and writing the result."""
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import sys
@@ -22,3 +23,10 @@ def describe_machine(threads: int) -> dict:
                 torch=torch.__version__, sb3_spikeplastic=sb3_spikeplastic.__version__, threads=threads,
                 load_average=os.getloadavg() if hasattr(os, "getloadavg") else None,
                 cuda=torch.cuda.get_device_name(0) if torch.cuda.is_available() else None)
+
+
+def write_result(result: dict, path: Path) -> None:
+    """Write a benchmark's result (with its machine description) as JSON and say where."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(result, indent=2))
+    print(f"wrote {path}")

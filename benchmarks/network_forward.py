@@ -20,13 +20,12 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import time
 from pathlib import Path
 
 import torch
-from machine import describe_machine  # benchmarks/machine.py (the script's folder is on sys.path)
+from machine import describe_machine, write_result  # benchmarks/machine.py (the script's folder is on sys.path)
 from sb3_spikeplastic._fast.allocator import keep_freed_memory
 
 from sb3_spikeplastic.coding import ContinuousDecoder, PopulationEncoder
@@ -112,9 +111,7 @@ def main(argv=None) -> int:
                       f"{row['forward_backward_ms']:15.3f} {row['forward_backward_us_per_env']:8.1f}", flush=True)
     result = dict(machine=describe_machine(args.threads), settings=dict(vars(args), output=str(args.output)),
                   network=dict(inputs=OBS_DIMS * 50, hidden=[64, 64], outputs=ACT_DIMS * 100), rows=rows)
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(result, indent=2))
-    print(f"wrote {args.output}")
+    write_result(result, args.output)
     return 0
 
 
