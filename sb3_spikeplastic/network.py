@@ -33,7 +33,11 @@ class NetworkState(NamedTuple):
     def reset(self, episode_start: Tensor) -> "NetworkState":
         """The state with every environment where ``episode_start`` is 1 set back to its initial value (zeros):
         ``state * (1 - episode_start)``."""
-        keep = 1.0 - episode_start.to(self.noise_key.device).float()
+        episode_start = episode_start.to(self.noise_key.device)
+        if not bool(episode_start.any()):
+            # Most steps start no episode: skip a pass over every trace-sized tensor (and its autograd node).
+            return self
+        keep = 1.0 - episode_start.float()
 
         def zero_where_started(x: Tensor) -> Tensor:
             return x * keep.to(x.dtype).view(-1, *([1] * (x.dim() - 1)))
