@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import csv
 import os
+import shutil
 import subprocess
 import sys
 from concurrent.futures import ThreadPoolExecutor
@@ -30,15 +31,25 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-RULES = ("static", "dp-linear", "dp-oja", "dp-bcm", "ndp-oja", "ndp-bcm")
+#: The neuromodulation stabiliser (bounded modulation, see plasticity.modulatory_signal) with W_m starting at
+#: 5 I, so that M = tanh(W_m r_post) ~ 0.6-0.8 at the initial hidden rates (with the paper's W_m ~ I, M ~ r_post
+#: ~ 0.2 makes the Hebbian term 5x weaker than the DP rules' at initialisation).
+STABILISED = ["policy_kwargs.rule_kwargs.modulation=tanh", "policy_kwargs.rule_kwargs.wm_init_gain=5"]
+#: Grid entries: a rule name, or ``<rule>+tanh`` for that rule with the stabiliser's overrides.
+VARIANTS = {"static": [], "dp-linear": [], "dp-oja": [], "dp-bcm": [], "ndp-oja": [], "ndp-bcm": [],
+            "ndp-oja+tanh": STABILISED, "ndp-bcm+tanh": STABILISED}
+RULES = tuple(VARIANTS)
 ENVS = ("TMazeCue-v0", "TMazeCueNoisy-v0")
 
 
-def train_command(env: str, rule: str, seed: int, args: argparse.Namespace) -> list[str]:
-    return ["sb3-spikeplastic", "train", "--env", env, "--rule", rule, "--seed", str(seed),
-            "-n", str(args.n_timesteps), "-f", str(args.out / "runs" / f"{env}_{rule}_{seed}"),
+def train_command(env: str, variant: str, seed: int, args: argparse.Namespace) -> list[str]:
+    overrides = [*VARIANTS[variant], *args.hyperparams]
+    # The console script of the running interpreter's environment (works without activating it).
+    cli = shutil.which("sb3-spikeplastic", path=str(Path(sys.executable).parent)) or "sb3-spikeplastic"
+    return [cli, "train", "--env", env, "--rule", variant.split("+")[0], "--seed", str(seed),
+            "-n", str(args.n_timesteps), "-f", str(args.out / "runs" / f"{env}_{variant}_{seed}"),
             "--eval-freq", str(args.eval_freq), "--eval-episodes", "100", "--torch-threads", "1",
-            "--no-progress", "-v", "0", *(["--hyperparams", *args.hyperparams] if args.hyperparams else [])]
+            "--no-progress", "-v", "0", *(["--hyperparams", *overrides] if overrides else [])]
 
 
 def run_one(command: list[str], log: Path) -> int:
@@ -65,12 +76,13 @@ def load_run(folder: Path) -> dict | None:
     run = runs[-1]
     env_id = run.name.rsplit("_", 1)[0]
     meta = yaml.safe_load((run / env_id / "args.yml").read_text())
+    variant = folder.name[len(env_id) + 1:].rsplit("_", 1)[0]  # folder: <env>_<variant>_<seed>
     evaluations = np.load(run / "evaluations.npz")
     progress = read_progress(run)
     steps = evaluations["timesteps"]
     known = ~np.isnan(progress["time/total_timesteps"]) & ~np.isnan(progress["time/time_elapsed"])
     minutes = np.interp(steps, progress["time/total_timesteps"][known], progress["time/time_elapsed"][known]) / 60
-    return dict(env=env_id, rule=meta["rule"], seed=meta["seed"], steps=steps, minutes=minutes,
+    return dict(env=env_id, rule=variant, seed=meta["seed"], steps=steps, minutes=minutes,
                 success=evaluations["successes"].mean(axis=1), progress=progress)
 
 
@@ -156,7 +168,8 @@ def main(argv=None) -> int:
     parser.add_argument("--aggregate-only", action="store_true")
     args = parser.parse_args(argv)
     if not args.aggregate_only:
-        jobs = [(e, r, s) for e in args.envs for r in args.rules for s in args.seeds]
+        # Seed-major order: a grid stopped early still has every rule on both mazes for the first seeds.
+        jobs = [(e, r, s) for s in args.seeds for e in args.envs for r in args.rules]
         print(f"{len(jobs)} runs, {args.jobs} at a time; logs under {args.out / 'logs'}")
         def launch(job):
             env, rule, seed = job

@@ -508,6 +508,12 @@ def validate_entry(entry: Mapping[str, Any]) -> dict:
             out[key] = _check_value(key, {} if kwargs is None else kwargs, dict)
         elif key in SCHEDULE_KEYS:
             out[key] = _validate_schedule(key, value, allow_none=key == "clip_range_vf")
+        elif key == "grad_clip":
+            from .ppo import GRAD_CLIP_MODES
+
+            if value not in GRAD_CLIP_MODES:
+                raise ValueError(f"grad_clip={value!r} is not accepted; accepted: {', '.join(GRAD_CLIP_MODES)}")
+            out[key] = value
         else:
             out[key] = _check_value(key, value, ppo_hints[key])
             if ppo_hints[key] is int and key in ("n_steps", "batch_size", "n_epochs", "bptt_steps") and out[key] < 1:

@@ -21,6 +21,23 @@ from typing import Callable, ClassVar, NamedTuple, Optional
 import torch
 from torch import Tensor, nn
 
+from . import _fast
+
+
+class HebbianTerms(NamedTuple):
+    r"""The factors of a rule's trace update :math:`E' = (1-\eta)E + \eta\,(post - [E\,pre]) \otimes pre`.
+
+    :param post: postsynaptic factor ``(B, n_out)`` (``r_post``, or ``M * r_post`` for the modulated rules).
+    :param pre: presynaptic factor ``(B, n_in)`` (``r_pre``, or ``r_beta`` for the BCM rules).
+    :param subtract_prediction: the Oja forms: subtract the trace's prediction ``E pre`` from ``post``.
+    :param extra: the rule's new extra state (BCM: ``(phi',)``).
+    """
+
+    post: Tensor
+    pre: Tensor
+    subtract_prediction: bool
+    extra: tuple[Tensor, ...] = ()
+
 
 class PlasticState(NamedTuple):
     """Per-environment plastic state of one layer.
@@ -38,12 +55,31 @@ class PlasticState(NamedTuple):
 
 
 def decay_and_add_outer(E: Tensor, eta: Tensor, post: Tensor, pre: Tensor) -> Tensor:
-    """:math:`(1-\eta)E + \eta\, post \otimes pre`, the shape every rule's update takes.
+    r""":math:`(1-\eta)E + \eta\, post \otimes pre`, the shape every rule's update takes.
 
     One ``addcmul`` with ``eta`` folded into the (small) postsynaptic vector: the trace-sized arrays are the
     training step's main cost, and this makes two passes over them instead of four.
     """
     return torch.addcmul(E * (1 - eta), (eta * post).unsqueeze(-1), pre.unsqueeze(-2))
+
+
+def hebbian_update(E: Tensor, eta: Tensor, terms: HebbianTerms) -> Tensor:
+    """The update every built-in rule shares, from its :class:`HebbianTerms` (no clipping)."""
+    post = oja_postsynaptic_term(E, terms.pre, terms.post) if terms.subtract_prediction else terms.post
+    return decay_and_add_outer(E, eta, post, terms.pre)
+
+
+def hebbian_trace_step(E: Tensor, eta: Tensor, terms: HebbianTerms, e_max: float) -> Tensor:
+    """:func:`hebbian_update` followed by the clip to :math:`[-E_{max}, E_{max}]`.
+
+    On CPU this runs the fused, compiled op of :mod:`sb3_spikeplastic._fast` (one pass over the trace forward and
+    one backward instead of ~20 eager ones); elsewhere, or when it is unavailable, the eager ops, which give the
+    same values to float rounding.
+    """
+    fused = _fast.trace_step(E, terms.post, terms.pre, eta, e_max, terms.subtract_prediction)
+    if fused is not None:
+        return fused
+    return hebbian_update(E, eta, terms).clamp(-e_max, e_max)
 
 
 def dp_linear_update(E: Tensor, r_pre: Tensor, r_post: Tensor, eta: Tensor) -> Tensor:
@@ -152,15 +188,17 @@ def _logit(p: float) -> float:
 
 
 class PlasticityRule(nn.Module):
-    """Base class of a plasticity rule for one layer: its learned local parameters and its update.
+    r"""Base class of a plasticity rule for one layer: its learned local parameters and its update.
 
-    Subclasses implement :meth:`update` (the rule's equation, without clipping) and, if they keep state besides
-    ``E``, :meth:`initial_extra_state`. :meth:`step` applies one update and the clip to ``±e_max``.
+    Subclasses implement either :meth:`hebbian_terms` (rules of the form
+    :math:`(1-\eta)E + \eta\,(post - [E\,pre]) \otimes pre`, as all built-in rules are; :meth:`step` then runs the
+    fused update) or :meth:`update` (any equation, without clipping), and, if they keep state besides ``E``,
+    :meth:`initial_extra_state`. :meth:`step` applies one update and the clip to ``±e_max``.
 
     :param n_in: presynaptic neurons.
     :param n_out: postsynaptic neurons.
     :param e_max: trace clip bound :math:`E_{max}` (applied after every update).
-    :param eta_init: initial plasticity rate :math:`\\eta \\in (0, 1)`; learned as ``sigmoid(eta_logit)``.
+    :param eta_init: initial plasticity rate :math:`\eta \in (0, 1)`; learned as ``sigmoid(eta_logit)``.
     """
 
     name: ClassVar[str] = ""
@@ -195,9 +233,16 @@ class PlasticityRule(nn.Module):
         shape = (batch, self.n_out, self.n_in) if self.has_trace else (batch, 0)
         return PlasticState(torch.zeros(shape, dtype=dtype, device=device), self.initial_extra_state(batch, dtype, device))
 
+    def hebbian_terms(self, r_pre: Tensor, r_post: Tensor, state: PlasticState) -> HebbianTerms:
+        """The factors of the update for rules of the shared Hebbian form (see the class docstring)."""
+        raise NotImplementedError(f"{type(self).__name__} implements neither hebbian_terms nor update")
+
     def update(self, r_pre: Tensor, r_post: Tensor, state: PlasticState) -> PlasticState:
-        """The rule's equation: the state after one interval with rates ``r_pre``, ``r_post`` (no clipping)."""
-        raise NotImplementedError
+        """The rule's equation: the state after one interval with rates ``r_pre``, ``r_post`` (no clipping).
+
+        The default evaluates :meth:`hebbian_terms` with the eager ops (:func:`hebbian_update`)."""
+        terms = self.hebbian_terms(r_pre, r_post, state)
+        return PlasticState(hebbian_update(state.trace, self.eta, terms), terms.extra)
 
     def modulation(self, r_post: Tensor) -> Optional[Tensor]:
         """The neuromodulatory signal for these rates (``None`` for unmodulated rules)."""
@@ -207,6 +252,9 @@ class PlasticityRule(nn.Module):
         """One plasticity update followed by the clip of ``E`` to ``[-e_max, e_max]``."""
         if not self.has_trace:
             return state
+        if type(self).update is PlasticityRule.update:
+            terms = self.hebbian_terms(r_pre, r_post, state)
+            return PlasticState(hebbian_trace_step(state.trace, self.eta, terms, self.e_max), terms.extra)
         new = self.update(r_pre, r_post, state)
         return PlasticState(new.trace.clamp(-self.e_max, self.e_max), new.extra)
 
@@ -226,16 +274,16 @@ class StaticRule(PlasticityRule):
 class DPLinearRule(PlasticityRule):
     """Linear-decay differentiable plasticity, :func:`dp_linear_update`. Learned: :math:`\\eta`."""
 
-    def update(self, r_pre, r_post, state):
-        return PlasticState(dp_linear_update(state.trace, r_pre, r_post, self.eta))
+    def hebbian_terms(self, r_pre, r_post, state):
+        return HebbianTerms(r_post, r_pre, False)
 
 
 @register_rule("dp-oja")
 class DPOjaRule(PlasticityRule):
     """Differentiable Oja's rule as written in the paper, :func:`dp_oja_update`. Learned: :math:`\\eta`."""
 
-    def update(self, r_pre, r_post, state):
-        return PlasticState(dp_oja_update(state.trace, r_pre, r_post, self.eta))
+    def hebbian_terms(self, r_pre, r_post, state):
+        return HebbianTerms(r_post, r_pre, True)
 
 
 class _BCMRule(PlasticityRule):
@@ -270,9 +318,9 @@ class _BCMRule(PlasticityRule):
 class DPBCMRule(_BCMRule):
     """Differentiable BCM as written in the paper, :func:`dp_bcm_update`. Learned: :math:`\\eta, \\eta_\\phi, \\psi`."""
 
-    def update(self, r_pre, r_post, state):
+    def hebbian_terms(self, r_pre, r_post, state):
         r_beta, phi = self.presynaptic(r_pre, state)
-        return PlasticState(dp_bcm_update(state.trace, r_beta, r_post, self.eta), (phi,))
+        return HebbianTerms(r_post, r_beta, False, (phi,))
 
 
 class _ModulatedMixin:
@@ -304,9 +352,8 @@ class NDPOjaRule(_ModulatedMixin, PlasticityRule):
         super().__init__(n_in, n_out, e_max, eta_init)
         self._init_modulation(n_out, wm_init_gain, wm_init_std, modulation)
 
-    def update(self, r_pre, r_post, state):
-        m = self.modulation(r_post)
-        return PlasticState(ndp_oja_update(state.trace, r_pre, r_post, m, self.eta))
+    def hebbian_terms(self, r_pre, r_post, state):
+        return HebbianTerms(self.modulation(r_post) * r_post, r_pre, True)
 
 
 @register_rule("ndp-bcm")
@@ -321,7 +368,6 @@ class NDPBCMRule(_ModulatedMixin, _BCMRule):
         super().__init__(n_in, n_out, e_max, eta_init, eta_phi_init)
         self._init_modulation(n_out, wm_init_gain, wm_init_std, modulation)
 
-    def update(self, r_pre, r_post, state):
+    def hebbian_terms(self, r_pre, r_post, state):
         r_beta, phi = self.presynaptic(r_pre, state)
-        m = self.modulation(r_post)
-        return PlasticState(ndp_bcm_update(state.trace, r_beta, r_post, m, self.eta), (phi,))
+        return HebbianTerms(self.modulation(r_post) * r_post, r_beta, False, (phi,))

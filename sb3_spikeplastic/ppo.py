@@ -98,6 +98,10 @@ class ChunkRolloutBuffer(RolloutBuffer):
             )
 
 
+#: Accepted values of ``PPO(grad_clip=...)``.
+GRAD_CLIP_MODES = ("global", "per-parameter")
+
+
 class PPO(SB3PPO):
     """Proximal Policy Optimization (``stable_baselines3.PPO``) extended to recurrent spiking plastic policies.
 
@@ -107,6 +111,13 @@ class PPO(SB3PPO):
 
     :param bptt_steps: environment steps per training chunk (truncated-BPTT length) for recurrent policies;
         must divide ``n_steps`` and ``batch_size``.
+    :param grad_clip: how ``max_grad_norm`` applies: ``"global"`` (SB3: one norm over all parameters) or
+        ``"per-parameter"`` (each parameter tensor's gradient clipped to ``max_grad_norm`` on its own).
+        Backpropagation through plastic traces gives the input layer gradient norms of 1e8..1e10 while the
+        readout and the critic have norms below 1: a global clip then scales their gradients far below Adam's
+        ``eps`` and they stop learning. Per-parameter clipping keeps each tensor's update at its own scale
+        (in the spirit of the unit-wise clipping of Brock et al., 2021, "High-Performance Large-Scale Image
+        Recognition Without Normalization"). ``train/grad_norm`` logs the global pre-clip norm either way.
     Other parameters as :class:`stable_baselines3.PPO`; ``batch_size`` keeps its meaning (transitions per
     minibatch), so a minibatch holds ``batch_size // bptt_steps`` chunks.
     """
@@ -144,9 +155,13 @@ class PPO(SB3PPO):
         seed: Optional[int] = None,
         device: Union[torch.device, str] = "auto",
         bptt_steps: int = 32,
+        grad_clip: str = "global",
         _init_setup_model: bool = True,
     ):
         self.bptt_steps = int(bptt_steps)
+        if grad_clip not in GRAD_CLIP_MODES:
+            raise ValueError(f"unknown grad_clip {grad_clip!r}; accepted: {', '.join(GRAD_CLIP_MODES)}")
+        self.grad_clip = grad_clip
         policy_class = self.policy_aliases.get(policy, policy) if isinstance(policy, str) else policy
         if getattr(policy_class, "recurrent", False):
             # Before SB3's own checks, whose warnings about mini-batches do not apply to chunks.
@@ -250,6 +265,16 @@ class PPO(SB3PPO):
         callback.on_rollout_end()
         return True
 
+    def _clip_gradients(self) -> float:
+        """Clip as ``self.grad_clip`` says; returns the global gradient norm before clipping."""
+        params = [p for p in self.policy.parameters() if p.grad is not None]
+        if self.grad_clip == "global":
+            return torch.nn.utils.clip_grad_norm_(params, self.max_grad_norm).item()
+        norms = torch.stack([torch.linalg.vector_norm(p.grad) for p in params])
+        for p, norm in zip(params, norms):
+            p.grad.mul_(torch.clamp(self.max_grad_norm / (norm + 1e-6), max=1.0))
+        return torch.linalg.vector_norm(norms).item()
+
     def train(self) -> None:
         if not self.recurrent:
             return super().train()
@@ -298,7 +323,7 @@ class PPO(SB3PPO):
                 self.policy.optimizer.zero_grad()
                 loss.backward()
                 # Plastic traces make raw gradient norms span 1e1..1e12 across rules: clipping is essential.
-                grad_norms.append(torch.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm).item())
+                grad_norms.append(self._clip_gradients())
                 self.policy.optimizer.step()
             self._n_updates += 1
             if not continue_training:

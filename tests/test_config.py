@@ -123,6 +123,7 @@ def test_parse_override():
     ("normalize.clip_obs=5", r"normalize is False, not a mapping \(set normalize=true first\)"),
     ("normalize={clip_obz: 5}", r"unknown normalize \(VecNormalize\) key 'clip_obz'; accepted: clip_obs"),
     ("learning_rate=lin_x", r"learning_rate='lin_x' must be a number or lin_<number>"),
+    ("grad_clip=layer", r"grad_clip='layer' is not accepted; accepted: global, per-parameter"),
     ("policy=TransformerPolicy", r"unknown policy 'TransformerPolicy'; accepted: .*SpikePlasticPolicy"),
     ("policy_kwargs.optimizer_class=os.system", r"'os.system' is not a class of torch.optim; accepted: .*Adam"),
 ])

@@ -44,10 +44,10 @@ def compiled(monkeypatch):
     monkeypatch.delenv(_fast.NO_COMPILE_ENV, raising=False)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        op = _fast.load_srm_loop()
-    if op is None:
-        pytest.skip(f"compiled SRM loop unavailable: {_fast._error}")
-    return op
+        ops = _fast.load_ops()
+    if ops is None:
+        pytest.skip(f"compiled ops unavailable: {_fast._error}")
+    return ops.srm_loop
 
 
 def constants(p: SRMParameters) -> tuple[float, float]:
@@ -171,7 +171,8 @@ def test_env_var_forces_fallback(monkeypatch):
     def forbidden():
         raise AssertionError("compiled loop requested although disabled")
 
-    monkeypatch.setattr(_fast, "load_srm_loop", forbidden)
+    monkeypatch.setattr(_fast, "load_ops", forbidden)
+    monkeypatch.setattr(_fast, "_tried", False)
     d, kappa = constants(p)
     assert _fast.srm_loop(syn, state.h1, state.h2, d, kappa, p.theta) is None
     assert_identical(srm_spike_loop(syn, state, p), _srm_spike_loop_reference(syn, state, p))
@@ -182,7 +183,7 @@ def test_env_var_forces_fallback(monkeypatch):
 def test_build_failure_warns_once_and_falls_back(monkeypatch):
     monkeypatch.delenv(_fast.NO_COMPILE_ENV, raising=False)
     monkeypatch.setattr(_fast, "_tried", False)
-    monkeypatch.setattr(_fast, "_op", None)
+    monkeypatch.setattr(_fast, "_ops", None)
     monkeypatch.setattr(_fast, "_error", None)
 
     def no_compiler():
@@ -191,7 +192,7 @@ def test_build_failure_warns_once_and_falls_back(monkeypatch):
     monkeypatch.setattr(_fast, "_build", no_compiler)
     p = PARAMS[0]
     syn, state = random_case(2, 10, 5, torch.float32, p)
-    with pytest.warns(RuntimeWarning, match="identical results but is slower") as record:
+    with pytest.warns(RuntimeWarning, match="same results but is slower") as record:
         a = srm_spike_loop(syn, state, p)
         b = srm_spike_loop(syn, state, p)
     assert len([w for w in record if issubclass(w.category, RuntimeWarning)]) == 1

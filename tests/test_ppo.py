@@ -174,3 +174,31 @@ def test_unknown_rule_is_a_clear_error():
     with pytest.raises(ValueError, match="unknown plasticity rule 'hebb'.*dp-oja"):
         PPO("SpikePlasticPolicy", tmaze(1), n_steps=16, batch_size=16, bptt_steps=16,
             policy_kwargs=dict(rule="hebb"))
+
+
+def test_unknown_grad_clip_is_a_clear_error():
+    with pytest.raises(ValueError, match="unknown grad_clip 'layer'; accepted: global, per-parameter"):
+        PPO("SpikePlasticPolicy", tmaze(1), n_steps=16, batch_size=16, bptt_steps=16, grad_clip="layer")
+
+
+@pytest.mark.parametrize("mode", ["global", "per-parameter"])
+def test_grad_clip_modes(mode):
+    """Global: one factor for all tensors (SB3). Per-parameter: each tensor's norm capped on its own, small
+    gradients untouched. Both return the global pre-clip norm (logged as train/grad_norm)."""
+    model = PPO("SpikePlasticPolicy", tmaze(1), n_steps=16, batch_size=16, bptt_steps=16, max_grad_norm=1.0,
+                grad_clip=mode, policy_kwargs=dict(hidden_sizes=[8]))
+    params = [p for p in model.policy.parameters()]
+    g = torch.Generator().manual_seed(0)
+    for i, p in enumerate(params):
+        p.grad = torch.randn(p.shape, generator=g) * (1e6 if i == 0 else 1e-3)
+    before = [p.grad.clone() for p in params]
+    total = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(b) for b in before])).item()
+    assert model._clip_gradients() == pytest.approx(total, rel=1e-5)
+    norms = [torch.linalg.vector_norm(p.grad).item() for p in params]
+    if mode == "global":
+        assert sum(n * n for n in norms) ** 0.5 == pytest.approx(1.0, rel=1e-4)
+        torch.testing.assert_close(params[1].grad, before[1] / total)
+    else:
+        assert norms[0] == pytest.approx(1.0, rel=1e-4)
+        for p, b in zip(params[1:], before[1:]):
+            torch.testing.assert_close(p.grad, b)  # below the bound: unchanged

@@ -1,16 +1,22 @@
-"""Compiled CPU fast path for :func:`sb3_spikeplastic.neurons.srm_spike_loop`.
+"""Compiled CPU fast paths of the two inner loops that eager PyTorch runs slowest.
 
-The SRM threshold/refractory recursion is sequential in time and element-wise across neurons, so eager PyTorch
-spends its time launching ~7 tiny kernels per step. ``srm_loop.cpp`` runs the same recursion in one pass; it is
-compiled with :func:`torch.utils.cpp_extension.load` the first time it is needed (never at import), cached on
-disk, and gives **bit-identical** spikes, membrane and state: it performs the same IEEE operations in the same
-order and dtype as the eager loop, and is compiled with ``-ffp-contract=off`` and without fast-math.
+* :func:`srm_loop` (``srm_loop.cpp``), for :func:`sb3_spikeplastic.neurons.srm_spike_loop`: the SRM
+  threshold/refractory recursion is sequential in time and element-wise across neurons, so eager PyTorch spends
+  its time launching ~7 tiny kernels per step; the compiled loop runs it in one pass and gives **bit-identical**
+  spikes, membrane and state (the same IEEE operations in the same order and dtype, compiled with
+  ``-ffp-contract=off`` and without fast-math).
+* :func:`trace_step` (``trace_step.cpp``), for :func:`sb3_spikeplastic.plasticity.hebbian_trace_step`: the
+  trace update and clip of every built-in rule, forward and backward, in one pass over the trace each instead of
+  ~20 eager passes; equal to the eager ops to float rounding (a dot product is summed in another order).
+
+Both are compiled together with :func:`torch.utils.cpp_extension.load` the first time one is needed (never at
+import) and cached on disk.
 
 * Build directory: ``$SB3_SPIKEPLASTIC_BUILD_DIR`` if set, else
   ``${XDG_CACHE_HOME:-~/.cache}/sb3_spikeplastic/<python>_<torch>_<cpu-flags>``. Building needs a C++ compiler
   and ``ninja`` and takes ~10-30 s once; later processes only load the cached library (~0.3 s).
 * ``SB3_SPIKEPLASTIC_NO_COMPILE=1`` disables the compiled path (read at every call), for tests and debugging.
-* If the build fails, a single :class:`RuntimeWarning` is issued and the pure-PyTorch loop is used instead; it
+* If the build fails, a single :class:`RuntimeWarning` is issued and the pure-PyTorch code is used instead; it
   gives the same results, only slower.
 """
 
@@ -24,21 +30,21 @@ import threading
 import time
 import warnings
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Any, Optional
 
 import torch
 from torch import Tensor
 
-__all__ = ["NO_COMPILE_ENV", "build_directory", "compiled_disabled", "load_srm_loop", "srm_loop"]
+__all__ = ["NO_COMPILE_ENV", "build_directory", "compiled_disabled", "load_ops", "srm_loop", "trace_step"]
 
 NO_COMPILE_ENV = "SB3_SPIKEPLASTIC_NO_COMPILE"
 BUILD_DIR_ENV = "SB3_SPIKEPLASTIC_BUILD_DIR"
 _EXTENSION = "sb3_spikeplastic_fast"
-_SOURCE = Path(__file__).with_name("srm_loop.cpp")
+_SOURCES = [Path(__file__).with_name(name) for name in ("srm_loop.cpp", "trace_step.cpp")]
 
 _lock = threading.Lock()
 _tried = False
-_op: Optional[Callable] = None
+_ops: Optional[Any] = None
 _error: Optional[str] = None
 
 
@@ -112,7 +118,7 @@ def _clear_stale_lock(directory: Path, max_age_s: float = 600.0) -> None:
             pass
 
 
-def _build() -> Callable:
+def _build() -> Any:
     from torch.utils import cpp_extension
 
     directory = build_directory()
@@ -125,7 +131,7 @@ def _build() -> Callable:
     try:
         cpp_extension.load(
             name=_EXTENSION,
-            sources=[str(_SOURCE)],
+            sources=[str(source) for source in _SOURCES],
             extra_cflags=_cflags(),
             extra_ldflags=["-fopenmp"],
             build_directory=str(directory),
@@ -136,29 +142,36 @@ def _build() -> Callable:
     finally:
         if extra:
             os.environ["PATH"] = path
-    return torch.ops.sb3_spikeplastic_fast.srm_loop
+    return torch.ops.sb3_spikeplastic_fast
 
 
-def load_srm_loop() -> Optional[Callable]:
-    """The compiled op, building it on the first call; ``None`` if the build failed (after one warning)."""
-    global _tried, _op, _error
+def load_ops() -> Optional[Any]:
+    """The compiled ops' namespace, building them on the first call; ``None`` if the build failed (after one
+    warning)."""
+    global _tried, _ops, _error
     if _tried:
-        return _op
+        return _ops
     with _lock:
         if not _tried:
             try:
-                _op = _build()
+                _ops = _build()
             except Exception as exc:  # no compiler, no ninja, failed build, failed load
                 message = " ".join(str(exc).split())
                 _error = f"{type(exc).__name__}: {message[:200]}{'...' if len(message) > 200 else ''}"
                 warnings.warn(
-                    "sb3_spikeplastic: could not build the compiled SRM spike loop "
-                    f"({_error}); using the pure-PyTorch loop, which gives identical results but is slower.",
+                    "sb3_spikeplastic: could not build the compiled inner loops "
+                    f"({_error}); using pure PyTorch, which gives the same results but is slower.",
                     RuntimeWarning,
                     stacklevel=3,
                 )
             _tried = True
-    return _op
+    return _ops
+
+
+def _enabled_ops() -> Optional[Any]:
+    if NO_COMPILE_ENV in os.environ and compiled_disabled():
+        return None
+    return _ops if _tried else load_ops()
 
 
 def srm_loop(
@@ -183,12 +196,61 @@ def srm_loop(
         and h1.shape == h2.shape == (synaptic.shape[0], synaptic.shape[2])
     ):
         return None
-    if NO_COMPILE_ENV in os.environ and compiled_disabled():
-        return None
-    op = _op if _tried else load_srm_loop()
-    if op is None:
+    ops = _enabled_ops()
+    if ops is None:
         return None
     if torch.is_grad_enabled() and (synaptic.requires_grad or h1.requires_grad or h2.requires_grad):
         with torch.no_grad():
-            return op(synaptic, h1, h2, d, kappa, theta)
-    return op(synaptic, h1, h2, d, kappa, theta)
+            return ops.srm_loop(synaptic, h1, h2, d, kappa, theta)
+    return ops.srm_loop(synaptic, h1, h2, d, kappa, theta)
+
+
+class _TraceStep(torch.autograd.Function):
+    """``clamp((1-eta) E + (eta p) (x) pre, +-e_max)`` with ``p = post - [E pre]``, fused (see ``trace_step.cpp``).
+
+    Forward: one pass over ``E``. Backward: one pass over ``E`` and the incoming gradient, recomputing the clip
+    mask instead of storing the pre-clip trace; returns the gradients of ``E``, ``post``, ``pre`` and ``eta``.
+    """
+
+    @staticmethod
+    def forward(ctx, E: Tensor, post: Tensor, pre: Tensor, eta: Tensor, e_max: float, oja: bool) -> Tensor:
+        eta_value = float(eta)
+        new, p = _ops.trace_step_forward(E, post, pre, eta_value, e_max, oja)
+        ctx.save_for_backward(E, p, pre)
+        ctx.constants = (eta_value, e_max, oja, eta.shape, eta.dtype)
+        return new
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad: Tensor):
+        E, p, pre = ctx.saved_tensors
+        eta_value, e_max, oja, eta_shape, eta_dtype = ctx.constants
+        d_e, d_post, d_pre, d_eta = _ops.trace_step_backward(grad, E, p, pre, eta_value, e_max, oja)
+        return d_e, d_post, d_pre, d_eta.to(eta_dtype).reshape(eta_shape), None, None
+
+
+def trace_step(E: Tensor, post: Tensor, pre: Tensor, eta: Tensor, e_max: float, oja: bool) -> Optional[Tensor]:
+    """The fused trace update, or ``None`` when it does not apply (then use the eager ops).
+
+    It applies to CPU float32/float64 ``E (B, n_out, n_in)``, ``post (B, n_out)``, ``pre (B, n_in)`` and a
+    one-element ``eta`` of one dtype, unless disabled by ``SB3_SPIKEPLASTIC_NO_COMPILE`` or the build failed.
+    Differentiable once (no double backward).
+    """
+    dtype = E.dtype
+    if not (
+        (dtype is torch.float32 or dtype is torch.float64)
+        and E.is_cpu
+        and E.dim() == 3
+        and post.dtype is dtype
+        and pre.dtype is dtype
+        and eta.dtype is dtype
+        and eta.numel() == 1
+        and post.shape == E.shape[:2]
+        and pre.shape == (E.shape[0], E.shape[2])
+        and post.is_cpu
+        and pre.is_cpu
+    ):
+        return None
+    if _enabled_ops() is None:
+        return None
+    return _TraceStep.apply(E, post, pre, eta, float(e_max), bool(oja))

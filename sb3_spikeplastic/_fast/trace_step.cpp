@@ -1,0 +1,161 @@
+// Fused Hebbian trace update (the CPU fast path of sb3_spikeplastic.plasticity.hebbian_trace_step).
+//
+// Every built-in rule updates its trace as
+//
+//     p  = post - (oja ? E q : 0)                     (B, n_out)   the Oja forms subtract E's prediction
+//     x  = E * (1 - eta) + (eta * p) (x) q            (B, n_out, n_in)
+//     E' = clamp(x, -e_max, e_max)
+//
+// In eager PyTorch this is ~7 passes over trace-sized arrays forward and ~13 backward (each op reads and writes
+// the whole trace, and autograd keeps x). Here each (batch, row) of the trace is read once forward and E, dE'
+// once backward; the row (n_in values) stays in L1 between the two inner loops that need it.
+//
+// Backward, per row (b, o), with g = dL/dE' and the clip mask recomputed exactly as in the forward pass:
+//
+//     gx_i   = g_i * [-e_max <= x_i <= e_max]
+//     gp     = eta * sum_i gx_i q_i                    dL/dpost[b, o]
+//     dE_i   = (1 - eta) gx_i - (oja ? gp q_i : 0)
+//     dq_i  += eta gx_i p - (oja ? gp E_i : 0)         (accumulated over o: rows of one b are one task)
+//     deta  += sum_i gx_i (p q_i - E_i)
+//
+// Results agree with the eager ops to float rounding (the summation order of E q differs), not bitwise.
+
+#include <ATen/Dispatch.h>
+#include <ATen/Parallel.h>
+#include <ATen/core/Tensor.h>
+#include <ATen/ops/empty.h>
+#include <ATen/ops/empty_like.h>
+#include <ATen/ops/zeros_like.h>
+#include <c10/core/ScalarType.h>
+#include <torch/library.h>
+
+#include <algorithm>
+#include <tuple>
+#include <vector>
+
+namespace {
+
+void check_inputs(const at::Tensor& E, const at::Tensor& post, const at::Tensor& pre) {
+  TORCH_CHECK(E.dim() == 3 && post.dim() == 2 && pre.dim() == 2, "trace_step: E (B, o, i), post (B, o), pre (B, i)");
+  TORCH_CHECK(post.size(0) == E.size(0) && post.size(1) == E.size(1) && pre.size(0) == E.size(0) &&
+                  pre.size(1) == E.size(2),
+              "trace_step: shapes of E, post and pre do not agree");
+  TORCH_CHECK(E.scalar_type() == at::kFloat || E.scalar_type() == at::kDouble, "trace_step: float32 or float64 only");
+  TORCH_CHECK(post.scalar_type() == E.scalar_type() && pre.scalar_type() == E.scalar_type(),
+              "trace_step: dtypes must agree");
+  TORCH_CHECK(E.device().is_cpu() && post.device().is_cpu() && pre.device().is_cpu(), "trace_step: CPU tensors only");
+}
+
+template <typename scalar_t>
+inline scalar_t dot(const scalar_t* __restrict a, const scalar_t* __restrict b, int64_t n) {
+  scalar_t s = 0;
+  for (int64_t i = 0; i < n; ++i) s += a[i] * b[i];
+  return s;
+}
+
+// Returns (E', p); p is kept for the backward pass.
+std::tuple<at::Tensor, at::Tensor> trace_step_forward(const at::Tensor& E_in, const at::Tensor& post_in,
+                                                     const at::Tensor& pre_in, double eta, double e_max, bool oja) {
+  check_inputs(E_in, post_in, pre_in);
+  const at::Tensor E = E_in.contiguous(), post = post_in.contiguous(), pre = pre_in.contiguous();
+  const int64_t B = E.size(0), O = E.size(1), I = E.size(2);
+  at::Tensor out = at::empty_like(E, at::MemoryFormat::Contiguous);
+  at::Tensor p_out = at::empty_like(post, at::MemoryFormat::Contiguous);
+  AT_DISPATCH_FLOATING_TYPES(E.scalar_type(), "trace_step_forward", [&] {
+    const scalar_t eta_s = static_cast<scalar_t>(eta), keep = scalar_t(1) - eta_s;
+    const scalar_t hi = static_cast<scalar_t>(e_max), lo = -hi;
+    const scalar_t *e_p = E.data_ptr<scalar_t>(), *post_p = post.data_ptr<scalar_t>(), *q_p = pre.data_ptr<scalar_t>();
+    scalar_t *o_p = out.data_ptr<scalar_t>(), *pp = p_out.data_ptr<scalar_t>();
+    at::parallel_for(0, B * O, std::max<int64_t>(1, 16384 / std::max<int64_t>(I, 1)), [&](int64_t begin, int64_t end) {
+      for (int64_t r = begin; r < end; ++r) {
+        const scalar_t* __restrict e = e_p + r * I;
+        const scalar_t* __restrict q = q_p + (r / O) * I;
+        scalar_t* __restrict y = o_p + r * I;
+        const scalar_t p = post_p[r] - (oja ? dot(e, q, I) : scalar_t(0));
+        const scalar_t ep = eta_s * p;
+        pp[r] = p;
+        for (int64_t i = 0; i < I; ++i) {
+          const scalar_t x = e[i] * keep + ep * q[i];
+          y[i] = x < lo ? lo : (x > hi ? hi : x);
+        }
+      }
+    });
+  });
+  return std::make_tuple(out, p_out);
+}
+
+// Returns (dE, dpost, dpre, deta).
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> trace_step_backward(
+    const at::Tensor& grad_in, const at::Tensor& E_in, const at::Tensor& p_in, const at::Tensor& pre_in, double eta,
+    double e_max, bool oja) {
+  check_inputs(E_in, p_in, pre_in);
+  const at::Tensor g = grad_in.contiguous(), E = E_in.contiguous(), p = p_in.contiguous(), pre = pre_in.contiguous();
+  TORCH_CHECK(g.sizes() == E.sizes() && g.scalar_type() == E.scalar_type(), "trace_step: grad does not match E");
+  const int64_t B = E.size(0), O = E.size(1), I = E.size(2);
+  at::Tensor dE = at::empty_like(E, at::MemoryFormat::Contiguous);
+  at::Tensor dpost = at::empty_like(p, at::MemoryFormat::Contiguous);
+  at::Tensor dpre = at::zeros_like(pre, at::MemoryFormat::Contiguous);
+  at::Tensor deta_rows = at::empty({B}, E.options().dtype(at::kDouble));
+  AT_DISPATCH_FLOATING_TYPES(E.scalar_type(), "trace_step_backward", [&] {
+    const scalar_t eta_s = static_cast<scalar_t>(eta), keep = scalar_t(1) - eta_s;
+    const scalar_t hi = static_cast<scalar_t>(e_max), lo = -hi;
+    const scalar_t *g_p = g.data_ptr<scalar_t>(), *e_p = E.data_ptr<scalar_t>(), *p_p = p.data_ptr<scalar_t>(),
+                   *q_p = pre.data_ptr<scalar_t>();
+    scalar_t *de_p = dE.data_ptr<scalar_t>(), *dpost_p = dpost.data_ptr<scalar_t>(), *dq_p = dpre.data_ptr<scalar_t>();
+    double* deta_p = deta_rows.data_ptr<double>();
+    // One task per batch row: dq[b] is accumulated over that row's n_out trace rows without races.
+    at::parallel_for(0, B, 1, [&](int64_t begin, int64_t end) {
+      std::vector<scalar_t> gx(I);
+      for (int64_t b = begin; b < end; ++b) {
+        const scalar_t* __restrict q = q_p + b * I;
+        scalar_t* __restrict dq = dq_p + b * I;
+        double deta = 0;
+        for (int64_t o = 0; o < O; ++o) {
+          const int64_t r = b * O + o;
+          const scalar_t* __restrict e = e_p + r * I;
+          const scalar_t* __restrict gr = g_p + r * I;
+          scalar_t* __restrict de = de_p + r * I;
+          const scalar_t pr = p_p[r], ep = eta_s * pr;
+          scalar_t gq = 0, gdiff = 0;
+          for (int64_t i = 0; i < I; ++i) {
+            const scalar_t x = e[i] * keep + ep * q[i];
+            const scalar_t v = (x < lo || x > hi) ? scalar_t(0) : gr[i];
+            gx[i] = v;
+            gq += v * q[i];
+            gdiff += v * (pr * q[i] - e[i]);
+          }
+          const scalar_t gp = eta_s * gq;
+          dpost_p[r] = gp;
+          deta += static_cast<double>(gdiff);
+          if (oja) {
+            for (int64_t i = 0; i < I; ++i) {
+              de[i] = keep * gx[i] - gp * q[i];
+              dq[i] += ep * gx[i] - gp * e[i];
+            }
+          } else {
+            for (int64_t i = 0; i < I; ++i) {
+              de[i] = keep * gx[i];
+              dq[i] += ep * gx[i];
+            }
+          }
+        }
+        deta_p[b] = deta;
+      }
+    });
+  });
+  return std::make_tuple(dE, dpost, dpre, deta_rows.sum().to(E.scalar_type()));
+}
+
+}  // namespace
+
+TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
+  m.def("trace_step_forward(Tensor E, Tensor post, Tensor pre, float eta, float e_max, bool oja) -> (Tensor, Tensor)");
+  m.def(
+      "trace_step_backward(Tensor grad, Tensor E, Tensor p, Tensor pre, float eta, float e_max, bool oja) "
+      "-> (Tensor, Tensor, Tensor, Tensor)");
+}
+
+TORCH_LIBRARY_IMPL(sb3_spikeplastic_fast, CPU, m) {
+  m.impl("trace_step_forward", &trace_step_forward);
+  m.impl("trace_step_backward", &trace_step_backward);
+}

@@ -1,0 +1,137 @@
+"""The fused trace update (``_fast.trace_step``, used by every built-in rule's ``step``) against the eager ops.
+
+Forward values and all four gradients (E, post, pre, eta) are compared with the eager
+``hebbian_update(...).clamp`` on traces where about half the synapses are at the clip bound, and the op is
+gradchecked in float64. The rules themselves are checked against NumPy in ``test_plasticity.py``.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import pytest
+import torch
+
+from sb3_spikeplastic import _fast
+from sb3_spikeplastic.plasticity import (
+    HebbianTerms,
+    PlasticState,
+    dp_bcm_update,
+    dp_linear_update,
+    dp_oja_update,
+    get_rule_class,
+    hebbian_trace_step,
+    hebbian_update,
+    ndp_bcm_update,
+    ndp_oja_update,
+)
+
+TOL = {torch.float32: dict(rtol=1e-5, atol=1e-6), torch.float64: dict(rtol=1e-12, atol=1e-12)}
+
+
+@pytest.fixture
+def fused(monkeypatch):
+    monkeypatch.delenv(_fast.NO_COMPILE_ENV, raising=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        if _fast.load_ops() is None:
+            pytest.skip(f"compiled ops unavailable: {_fast._error}")
+
+
+def case(dtype, B=3, O=5, I=9, seed=0, scale=3.0):
+    g = torch.Generator().manual_seed(seed)
+    E = (torch.rand(B, O, I, generator=g, dtype=dtype) * 1.6 - 0.8).requires_grad_()
+    post = (scale * torch.rand(B, O, generator=g, dtype=dtype) - 1).requires_grad_()
+    pre = (scale * torch.rand(B, I, generator=g, dtype=dtype)).requires_grad_()
+    eta = torch.tensor(0.3, dtype=dtype).requires_grad_()
+    upstream = torch.randn(B, O, I, generator=g, dtype=dtype)
+    return E, post, pre, eta, upstream
+
+
+@pytest.mark.parametrize("oja", [False, True], ids=["hebb", "oja"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["f32", "f64"])
+def test_fused_equals_eager_values_and_gradients(fused, dtype, oja):
+    E, post, pre, eta, upstream = case(dtype)
+    e_max = 0.5
+    out = _fast.trace_step(E, post, pre, eta, e_max, oja)
+    ref = hebbian_update(E, eta, HebbianTerms(post, pre, oja)).clamp(-e_max, e_max)
+    clipped = (ref.abs() == e_max).float().mean()
+    assert 0.2 < clipped < 0.8, "the case must exercise both sides of the clip"
+    torch.testing.assert_close(out, ref, **TOL[dtype])
+    inputs = (E, post, pre, eta)
+    got = torch.autograd.grad((out * upstream).sum(), inputs)
+    want = torch.autograd.grad((ref * upstream).sum(), inputs)
+    for name, a, b in zip(("E", "post", "pre", "eta"), got, want):
+        assert a.shape == b.shape, name
+        torch.testing.assert_close(a, b, **TOL[dtype], msg=lambda m, name=name: f"d/d{name}: {m}")
+
+
+@pytest.mark.parametrize("oja", [False, True], ids=["hebb", "oja"])
+def test_fused_gradcheck(fused, oja):
+    E, post, pre, eta, _ = case(torch.float64, scale=0.5)  # keep x off the clip's kinks
+    assert torch.autograd.gradcheck(lambda *a: _fast.trace_step(*a, 0.9, oja), (E, post, pre, eta))
+
+
+@pytest.mark.parametrize("name", ["dp-linear", "dp-oja", "dp-bcm", "ndp-oja", "ndp-bcm"])
+def test_rule_step_fused_equals_eager_update_and_paper_function(fused, monkeypatch, name):
+    """``step`` (fused) == ``update`` + clamp (eager) == the paper's pure function, values and gradients."""
+    torch.manual_seed(3)
+    rule = get_rule_class(name)(7, 4, e_max=0.3, eta_init=0.5).double()
+    g = torch.Generator().manual_seed(4)
+    E = (0.6 * torch.rand(2, 4, 7, generator=g, dtype=torch.float64) - 0.3).requires_grad_()
+    r_pre = 2 * torch.rand(2, 7, generator=g, dtype=torch.float64)
+    r_post = 2 * torch.rand(2, 4, generator=g, dtype=torch.float64)
+    extra = (torch.rand(2, 7, generator=g, dtype=torch.float64),) if "bcm" in name else ()
+    state = PlasticState(E, extra)
+
+    step = rule.step(r_pre, r_post, state).trace
+    eager = rule.update(r_pre, r_post, state).trace
+    eta = rule.eta
+    if "bcm" in name:
+        r_beta = rule.presynaptic(r_pre, state)[0]
+    m = rule.modulation(r_post)
+    paper = {
+        "dp-linear": lambda: dp_linear_update(E, r_pre, r_post, eta),
+        "dp-oja": lambda: dp_oja_update(E, r_pre, r_post, eta),
+        "dp-bcm": lambda: dp_bcm_update(E, r_beta, r_post, eta),
+        "ndp-oja": lambda: ndp_oja_update(E, r_pre, r_post, m, eta),
+        "ndp-bcm": lambda: ndp_bcm_update(E, r_beta, r_post, m, eta),
+    }[name]()
+    torch.testing.assert_close(eager, paper, rtol=1e-14, atol=1e-15)
+    torch.testing.assert_close(step, eager.clamp(-0.3, 0.3), rtol=1e-12, atol=1e-12)
+    assert (step.abs() == 0.3).any(), "the case must reach the clip"
+    params = [E, *rule.parameters()]
+    upstream = torch.randn(step.shape, generator=g, dtype=torch.float64)
+    # (eta_phi only enters phi', not E')
+    got = torch.autograd.grad((step * upstream).sum(), params, allow_unused=True)
+    want = torch.autograd.grad((eager.clamp(-0.3, 0.3) * upstream).sum(), params, allow_unused=True)
+    for a, b in zip(got, want):
+        assert (a is None) == (b is None)
+        if a is not None:
+            torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+
+
+def test_hebbian_trace_step_falls_back_when_disabled(monkeypatch):
+    monkeypatch.setenv(_fast.NO_COMPILE_ENV, "1")
+    E, post, pre, eta, _ = case(torch.float32)
+    assert _fast.trace_step(E, post, pre, eta, 0.5, True) is None
+    out = hebbian_trace_step(E, eta, HebbianTerms(post, pre, True), 0.5)
+    torch.testing.assert_close(out, hebbian_update(E, eta, HebbianTerms(post, pre, True)).clamp(-0.5, 0.5),
+                               rtol=0, atol=0)
+
+
+def test_unsupported_inputs_are_left_to_eager(fused):
+    E, post, pre, eta, _ = case(torch.float32)
+    assert _fast.trace_step(E.double(), post, pre, eta, 0.5, True) is None  # mixed dtypes
+    assert _fast.trace_step(E.half(), post.half(), pre.half(), eta.half(), 0.5, True) is None
+    assert _fast.trace_step(E, post[:1], pre, eta, 0.5, True) is None  # shapes that would broadcast
+    assert _fast.trace_step(E, post, pre, eta.expand(2), 0.5, True) is None  # eta not a single value
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_uses_eager_and_matches_cpu(fused):
+    E, post, pre, eta, _ = case(torch.float32)
+    terms = HebbianTerms(post.cuda(), pre.cuda(), True)
+    gpu = hebbian_trace_step(E.cuda(), eta.cuda(), terms, 0.5)
+    cpu = hebbian_trace_step(E, eta, HebbianTerms(post, pre, True), 0.5)
+    torch.testing.assert_close(gpu.cpu(), cpu, rtol=1e-5, atol=1e-6)
