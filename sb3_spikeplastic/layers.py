@@ -14,6 +14,7 @@ from typing import NamedTuple, Optional
 import torch
 from torch import Tensor, nn
 
+from . import _fast
 from .neurons import AlphaFilterState, SRMParameters, alpha_filter_matrices, alpha_kernel_sum, srm_spikes
 from .plasticity import PlasticityRule, PlasticState
 
@@ -84,10 +85,13 @@ class PlasticSRMLayer(nn.Module):
         )
 
     def efficacy(self, trace: Tensor) -> Tensor:
-        """:math:`W + \\alpha \\odot E`, per environment ``(batch, n_out, n_in)``; just ``W`` for a static layer."""
+        """:math:`W + \\alpha \\odot E`, per environment ``(batch, n_out, n_in)``; just ``W`` for a static layer.
+
+        On CPU the compiled op of :mod:`sb3_spikeplastic._fast` (a one-pass backward), else ``addcmul``."""
         if self.alpha is None:
             return self.weight
-        return torch.addcmul(self.weight, self.alpha, trace)
+        fused = _fast.efficacy(self.weight, self.alpha, trace)
+        return fused if fused is not None else torch.addcmul(self.weight, self.alpha, trace)
 
     def _psp_filter(self, length: int, dtype, device):
         key = (length, dtype, device)
@@ -115,8 +119,12 @@ class PlasticSRMLayer(nn.Module):
             psp = kernel @ spikes_in + g1[:, None] * h1.unsqueeze(1) + g2[:, None] * h2.unsqueeze(1)
             synaptic = psp @ w_t
         else:
-            carried = g1[:, None] * (h1.unsqueeze(1) @ w_t) + g2[:, None] * (h2.unsqueeze(1) @ w_t)
-            synaptic = kernel @ (spikes_in @ w_t) + carried
+            # The carried PSP state rides along as two extra rows of the same product: projecting h1 and h2 on
+            # their own would cost two trace-sized outer products (and their sum) in the backward pass.
+            length = spikes_in.shape[1]
+            projected = torch.cat([spikes_in, h1.unsqueeze(1), h2.unsqueeze(1)], 1) @ w_t  # (B, L + 2, n_out)
+            synaptic = (kernel @ projected[:, :length] + g1[:, None] * projected[:, length:length + 1]
+                        + g2[:, None] * projected[:, length + 1:])
         length = spikes_in.shape[1]
         psp_state = AlphaFilterState(
             (v1 @ spikes_in) + d_len * h1,

@@ -128,6 +128,55 @@ def test_unsupported_inputs_are_left_to_eager(fused):
     assert _fast.trace_step(E, post, pre, eta.expand(2), 0.5, True) is None  # eta not a single value
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["f32", "f64"])
+def test_fused_efficacy_equals_addcmul(fused, dtype):
+    g = torch.Generator().manual_seed(1)
+    W = torch.randn(5, 9, generator=g, dtype=dtype).requires_grad_()
+    alpha = torch.randn(5, 9, generator=g, dtype=dtype).requires_grad_()
+    E = torch.randn(3, 5, 9, generator=g, dtype=dtype).requires_grad_()
+    upstream = torch.randn(3, 5, 9, generator=g, dtype=dtype)
+    out, ref = _fast.efficacy(W, alpha, E), torch.addcmul(W, alpha, E)
+    torch.testing.assert_close(out, ref, **TOL[dtype])
+    for a, b in zip(torch.autograd.grad((out * upstream).sum(), (W, alpha, E)),
+                    torch.autograd.grad((ref * upstream).sum(), (W, alpha, E))):
+        torch.testing.assert_close(a, b, **TOL[dtype])
+    if dtype is torch.float64:
+        assert torch.autograd.gradcheck(_fast.efficacy, (W, alpha, E))
+    assert _fast.efficacy(W, alpha, E.float() if dtype is torch.float64 else E.double()) is None
+
+
+@pytest.mark.parametrize("rule", ["dp-oja", "ndp-bcm"])
+def test_network_gradients_with_and_without_compiled_ops(fused, monkeypatch, rule):
+    """A 4-step BPTT sequence through a 2-layer plastic network (float64, so that no spike flips on rounding):
+    every parameter's gradient agrees between the compiled path and pure PyTorch."""
+    from sb3_spikeplastic.coding import DiscreteDecoder, RasterInput
+    from sb3_spikeplastic.network import SpikingPlasticNetwork
+
+    torch.manual_seed(0)
+    steps, n_in = 20, 30
+    net = SpikingPlasticNetwork(RasterInput(steps, n_in), DiscreteDecoder(2, 4), hidden_sizes=(16,), steps=steps,
+                                rule=rule, plastic_layers=(0, 1)).double()
+    g = torch.Generator().manual_seed(2)
+    raster = (torch.rand(4, 3, steps, n_in, generator=g) < 0.3).double()
+
+    def gradients():
+        state = net.initial_state(3, dtype=torch.float64)
+        loss = 0.0
+        for k in range(4):
+            out, state = net(raster[k], state)
+            loss = loss + out.action.pow(2).sum() + sum(r.sum() for r in out.rates)
+        return torch.autograd.grad(loss, list(net.parameters()), allow_unused=True)
+
+    compiled = gradients()
+    monkeypatch.setenv(_fast.NO_COMPILE_ENV, "1")
+    eager = gradients()
+    assert sum(float(a.abs().sum()) for a in compiled if a is not None) > 0
+    for (name, _), a, b in zip(net.named_parameters(), compiled, eager):
+        assert (a is None) == (b is None), name
+        if a is not None:
+            torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-12, msg=lambda m, name=name: f"{name}: {m}")
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_cuda_uses_eager_and_matches_cpu(fused):
     E, post, pre, eta, _ = case(torch.float32)

@@ -8,6 +8,8 @@
 * :func:`trace_step` (``trace_step.cpp``), for :func:`sb3_spikeplastic.plasticity.hebbian_trace_step`: the
   trace update and clip of every built-in rule, forward and backward, in one pass over the trace each instead of
   ~20 eager passes; equal to the eager ops to float rounding (a dot product is summed in another order).
+  :func:`efficacy` (same file), for :meth:`sb3_spikeplastic.layers.PlasticSRMLayer.efficacy`: ``W + alpha * E``
+  with a one-pass backward (eager autograd makes ~8 passes over the trace for it).
 
 Both are compiled together with :func:`torch.utils.cpp_extension.load` the first time one is needed (never at
 import) and cached on disk.
@@ -35,7 +37,7 @@ from typing import Any, Optional
 import torch
 from torch import Tensor
 
-__all__ = ["NO_COMPILE_ENV", "build_directory", "compiled_disabled", "load_ops", "srm_loop", "trace_step"]
+__all__ = ["NO_COMPILE_ENV", "build_directory", "compiled_disabled", "efficacy", "load_ops", "srm_loop", "trace_step"]
 
 NO_COMPILE_ENV = "SB3_SPIKEPLASTIC_NO_COMPILE"
 BUILD_DIR_ENV = "SB3_SPIKEPLASTIC_BUILD_DIR"
@@ -254,3 +256,38 @@ def trace_step(E: Tensor, post: Tensor, pre: Tensor, eta: Tensor, e_max: float, 
     if _enabled_ops() is None:
         return None
     return _TraceStep.apply(E, post, pre, eta, float(e_max), bool(oja))
+
+
+class _Efficacy(torch.autograd.Function):
+    """``W + alpha * E`` per environment, with a one-pass backward (see ``trace_step.cpp``)."""
+
+    @staticmethod
+    def forward(ctx, weight: Tensor, alpha: Tensor, E: Tensor) -> Tensor:
+        ctx.save_for_backward(alpha, E)
+        return _ops.efficacy_forward(weight, alpha, E)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad: Tensor):
+        alpha, E = ctx.saved_tensors
+        return _ops.efficacy_backward(grad, alpha, E)
+
+
+def efficacy(weight: Tensor, alpha: Tensor, E: Tensor) -> Optional[Tensor]:
+    """The fused ``W + alpha * E`` for CPU float32/float64 ``W, alpha (n_out, n_in)`` and ``E (B, n_out, n_in)``
+    of one dtype, or ``None`` when it does not apply (then use ``torch.addcmul``). Differentiable once."""
+    dtype = E.dtype
+    if not (
+        (dtype is torch.float32 or dtype is torch.float64)
+        and E.is_cpu
+        and E.dim() == 3
+        and weight.dtype is dtype
+        and alpha.dtype is dtype
+        and weight.shape == alpha.shape == E.shape[1:]
+        and weight.is_cpu
+        and alpha.is_cpu
+    ):
+        return None
+    if _enabled_ops() is None:
+        return None
+    return _Efficacy.apply(weight, alpha, E)

@@ -159,3 +159,82 @@ TORCH_LIBRARY_IMPL(sb3_spikeplastic_fast, CPU, m) {
   m.impl("trace_step_forward", &trace_step_forward);
   m.impl("trace_step_backward", &trace_step_backward);
 }
+
+// Plastic efficacy W_eff = W + alpha * E per environment (sb3_spikeplastic.layers.PlasticSRMLayer.efficacy).
+// Eager autograd makes ~8 trace-sized passes for its backward (g * alpha, g * E, two batch sums); here one pass
+// over g and E per row o of W gives all three gradients:
+//
+//     dE[b, o, :] = g[b, o, :] * alpha[o, :]      dW[o, :] = sum_b g[b, o, :]      dalpha[o, :] = sum_b g[b, o, :] * E[b, o, :]
+
+namespace {
+
+at::Tensor efficacy_forward(const at::Tensor& W_in, const at::Tensor& alpha_in, const at::Tensor& E_in) {
+  TORCH_CHECK(E_in.dim() == 3 && W_in.dim() == 2 && W_in.sizes() == alpha_in.sizes() && E_in.size(1) == W_in.size(0) &&
+                  E_in.size(2) == W_in.size(1),
+              "efficacy: W, alpha (o, i) and E (B, o, i)");
+  TORCH_CHECK(W_in.scalar_type() == E_in.scalar_type() && alpha_in.scalar_type() == E_in.scalar_type() &&
+                  (E_in.scalar_type() == at::kFloat || E_in.scalar_type() == at::kDouble),
+              "efficacy: float32 or float64 tensors of one dtype");
+  const at::Tensor W = W_in.contiguous(), alpha = alpha_in.contiguous(), E = E_in.contiguous();
+  const int64_t B = E.size(0), N = W.numel();
+  at::Tensor out = at::empty_like(E, at::MemoryFormat::Contiguous);
+  AT_DISPATCH_FLOATING_TYPES(E.scalar_type(), "efficacy_forward", [&] {
+    const scalar_t *w = W.data_ptr<scalar_t>(), *a = alpha.data_ptr<scalar_t>(), *e_p = E.data_ptr<scalar_t>();
+    scalar_t* o_p = out.data_ptr<scalar_t>();
+    at::parallel_for(0, B, 1, [&](int64_t begin, int64_t end) {
+      for (int64_t b = begin; b < end; ++b) {
+        const scalar_t* __restrict e = e_p + b * N;
+        scalar_t* __restrict y = o_p + b * N;
+        for (int64_t k = 0; k < N; ++k) y[k] = w[k] + a[k] * e[k];
+      }
+    });
+  });
+  return out;
+}
+
+// Returns (dW, dalpha, dE).
+std::tuple<at::Tensor, at::Tensor, at::Tensor> efficacy_backward(const at::Tensor& grad_in, const at::Tensor& alpha_in,
+                                                                 const at::Tensor& E_in) {
+  const at::Tensor g = grad_in.contiguous(), alpha = alpha_in.contiguous(), E = E_in.contiguous();
+  TORCH_CHECK(g.sizes() == E.sizes() && g.scalar_type() == E.scalar_type(), "efficacy: grad does not match E");
+  const int64_t B = E.size(0), O = E.size(1), I = E.size(2), N = O * I;
+  at::Tensor dE = at::empty_like(E, at::MemoryFormat::Contiguous);
+  at::Tensor dW = at::zeros_like(alpha, at::MemoryFormat::Contiguous);
+  at::Tensor dalpha = at::zeros_like(alpha, at::MemoryFormat::Contiguous);
+  AT_DISPATCH_FLOATING_TYPES(E.scalar_type(), "efficacy_backward", [&] {
+    const scalar_t *g_p = g.data_ptr<scalar_t>(), *a_p = alpha.data_ptr<scalar_t>(), *e_p = E.data_ptr<scalar_t>();
+    scalar_t *de_p = dE.data_ptr<scalar_t>(), *dw_p = dW.data_ptr<scalar_t>(), *da_p = dalpha.data_ptr<scalar_t>();
+    // Rows of W are independent: the batch sums of a row stay in one task.
+    at::parallel_for(0, O, std::max<int64_t>(1, 4096 / std::max<int64_t>(I * B, 1)), [&](int64_t begin, int64_t end) {
+      for (int64_t o = begin; o < end; ++o) {
+        const scalar_t* __restrict a = a_p + o * I;
+        scalar_t* __restrict dw = dw_p + o * I;
+        scalar_t* __restrict da = da_p + o * I;
+        for (int64_t b = 0; b < B; ++b) {
+          const int64_t off = b * N + o * I;
+          const scalar_t* __restrict gr = g_p + off;
+          const scalar_t* __restrict e = e_p + off;
+          scalar_t* __restrict de = de_p + off;
+          for (int64_t i = 0; i < I; ++i) {
+            de[i] = gr[i] * a[i];
+            dw[i] += gr[i];
+            da[i] += gr[i] * e[i];
+          }
+        }
+      }
+    });
+  });
+  return std::make_tuple(dW, dalpha, dE);
+}
+
+}  // namespace
+
+TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
+  m.def("efficacy_forward(Tensor W, Tensor alpha, Tensor E) -> Tensor");
+  m.def("efficacy_backward(Tensor grad, Tensor alpha, Tensor E) -> (Tensor, Tensor, Tensor)");
+}
+
+TORCH_LIBRARY_IMPL(sb3_spikeplastic_fast, CPU, m) {
+  m.impl("efficacy_forward", &efficacy_forward);
+  m.impl("efficacy_backward", &efficacy_backward);
+}
