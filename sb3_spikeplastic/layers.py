@@ -113,19 +113,19 @@ class PlasticSRMLayer(nn.Module):
         """
         kernel, g1, g2, v1, v2, d_len = self._psp_filter(spikes_in.shape[1], spikes_in.dtype, spikes_in.device)
         w_eff = self.efficacy(state.plastic.trace)
-        w_t = w_eff.transpose(-1, -2)
         h1, h2 = state.psp
+        length = spikes_in.shape[1]
         if self.n_in <= self.n_out:
             psp = kernel @ spikes_in + g1[:, None] * h1.unsqueeze(1) + g2[:, None] * h2.unsqueeze(1)
-            synaptic = psp @ w_t
+            synaptic = psp @ w_eff.transpose(-1, -2)
         else:
             # The carried PSP state rides along as two extra rows of the same product: projecting h1 and h2 on
-            # their own would cost two trace-sized outer products (and their sum) in the backward pass.
-            length = spikes_in.shape[1]
-            projected = torch.cat([spikes_in, h1.unsqueeze(1), h2.unsqueeze(1)], 1) @ w_t  # (B, L + 2, n_out)
+            # their own would cost two trace-sized outer products (and their sum) in the backward pass. W_eff
+            # stands on the left so that its gradient comes out in its own (n_out, n_in) layout, not transposed.
+            rows = torch.cat([spikes_in, h1.unsqueeze(1), h2.unsqueeze(1)], 1)  # (B, L + 2, n_in)
+            projected = (w_eff @ rows.transpose(-1, -2)).transpose(-1, -2)  # (B, L + 2, n_out)
             synaptic = (kernel @ projected[:, :length] + g1[:, None] * projected[:, length:length + 1]
                         + g2[:, None] * projected[:, length + 1:])
-        length = spikes_in.shape[1]
         psp_state = AlphaFilterState(
             (v1 @ spikes_in) + d_len * h1,
             (v2 @ spikes_in) + d_len * (h2 + length * h1),

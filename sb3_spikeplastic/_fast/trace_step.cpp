@@ -31,7 +31,7 @@
 
 #include <algorithm>
 #include <tuple>
-#include <vector>
+#include <utility>
 
 namespace {
 
@@ -46,11 +46,59 @@ void check_inputs(const at::Tensor& E, const at::Tensor& post, const at::Tensor&
   TORCH_CHECK(E.device().is_cpu() && post.device().is_cpu() && pre.device().is_cpu(), "trace_step: CPU tensors only");
 }
 
+// Row kernels are plain functions (a #pragma cannot stand inside AT_DISPATCH's macro argument). Reductions are
+// marked `omp simd reduction`: that (and only that) lets the compiler vectorise them by summing in
+// another order, since the file is compiled without fast-math.
 template <typename scalar_t>
 inline scalar_t dot(const scalar_t* __restrict a, const scalar_t* __restrict b, int64_t n) {
   scalar_t s = 0;
+#pragma omp simd reduction(+ : s)
   for (int64_t i = 0; i < n; ++i) s += a[i] * b[i];
   return s;
+}
+
+// One trace row (b, o) forward: y = clamp(e * keep + (eta p) q); returns p.
+template <typename scalar_t>
+scalar_t forward_row(const scalar_t* __restrict e, const scalar_t* __restrict q, scalar_t* __restrict y, int64_t n,
+                     scalar_t post, scalar_t eta, scalar_t keep, scalar_t lo, scalar_t hi, bool oja) {
+  const scalar_t p = post - (oja ? dot(e, q, n) : scalar_t(0));
+  const scalar_t ep = eta * p;
+#pragma omp simd
+  for (int64_t i = 0; i < n; ++i) {
+    const scalar_t x = e[i] * keep + ep * q[i];
+    y[i] = x < lo ? lo : (x > hi ? hi : x);
+  }
+  return p;
+}
+
+// One trace row (b, o) backward (see the top of the file): writes de, adds to dq, returns (dL/dpost, the row's
+// contribution to dL/deta).
+template <typename scalar_t>
+std::pair<scalar_t, scalar_t> backward_row(const scalar_t* __restrict g, const scalar_t* __restrict e,
+                                           const scalar_t* __restrict q, scalar_t* __restrict de,
+                                           scalar_t* __restrict dq, int64_t n, scalar_t p, scalar_t eta,
+                                           scalar_t keep, scalar_t lo, scalar_t hi, bool oja) {
+  const scalar_t ep = eta * p;
+  scalar_t gq = 0, gdiff = 0;
+  // pass 1: the masked gradient (kept in de) and the two row sums
+#pragma omp simd reduction(+ : gq, gdiff)
+  for (int64_t i = 0; i < n; ++i) {
+    const scalar_t x = e[i] * keep + ep * q[i];
+    const scalar_t v = (x < lo || x > hi) ? scalar_t(0) : g[i];
+    de[i] = v;
+    gq += v * q[i];
+    gdiff += v * (p * q[i] - e[i]);
+  }
+  const scalar_t gp = eta * gq;
+  // pass 2 (the row is in L1): the Oja forms also reach E and q through p = post - E q
+  const scalar_t gp_oja = oja ? gp : scalar_t(0);
+#pragma omp simd
+  for (int64_t i = 0; i < n; ++i) {
+    const scalar_t v = de[i];
+    de[i] = keep * v - gp_oja * q[i];
+    dq[i] += ep * v - gp_oja * e[i];
+  }
+  return {gp, gdiff};
 }
 
 // Returns (E', p); p is kept for the backward pass.
@@ -68,16 +116,8 @@ std::tuple<at::Tensor, at::Tensor> trace_step_forward(const at::Tensor& E_in, co
     scalar_t *o_p = out.data_ptr<scalar_t>(), *pp = p_out.data_ptr<scalar_t>();
     at::parallel_for(0, B * O, std::max<int64_t>(1, 16384 / std::max<int64_t>(I, 1)), [&](int64_t begin, int64_t end) {
       for (int64_t r = begin; r < end; ++r) {
-        const scalar_t* __restrict e = e_p + r * I;
-        const scalar_t* __restrict q = q_p + (r / O) * I;
-        scalar_t* __restrict y = o_p + r * I;
-        const scalar_t p = post_p[r] - (oja ? dot(e, q, I) : scalar_t(0));
-        const scalar_t ep = eta_s * p;
-        pp[r] = p;
-        for (int64_t i = 0; i < I; ++i) {
-          const scalar_t x = e[i] * keep + ep * q[i];
-          y[i] = x < lo ? lo : (x > hi ? hi : x);
-        }
+        pp[r] = forward_row<scalar_t>(e_p + r * I, q_p + (r / O) * I, o_p + r * I, I, post_p[r], eta_s, keep, lo, hi,
+                                      oja);
       }
     });
   });
@@ -105,39 +145,14 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> trace_step_backward(
     double* deta_p = deta_rows.data_ptr<double>();
     // One task per batch row: dq[b] is accumulated over that row's n_out trace rows without races.
     at::parallel_for(0, B, 1, [&](int64_t begin, int64_t end) {
-      std::vector<scalar_t> gx(I);
       for (int64_t b = begin; b < end; ++b) {
-        const scalar_t* __restrict q = q_p + b * I;
-        scalar_t* __restrict dq = dq_p + b * I;
         double deta = 0;
         for (int64_t o = 0; o < O; ++o) {
           const int64_t r = b * O + o;
-          const scalar_t* __restrict e = e_p + r * I;
-          const scalar_t* __restrict gr = g_p + r * I;
-          scalar_t* __restrict de = de_p + r * I;
-          const scalar_t pr = p_p[r], ep = eta_s * pr;
-          scalar_t gq = 0, gdiff = 0;
-          for (int64_t i = 0; i < I; ++i) {
-            const scalar_t x = e[i] * keep + ep * q[i];
-            const scalar_t v = (x < lo || x > hi) ? scalar_t(0) : gr[i];
-            gx[i] = v;
-            gq += v * q[i];
-            gdiff += v * (pr * q[i] - e[i]);
-          }
-          const scalar_t gp = eta_s * gq;
+          const auto [gp, gdiff] = backward_row<scalar_t>(g_p + r * I, e_p + r * I, q_p + b * I, de_p + r * I,
+                                                          dq_p + b * I, I, p_p[r], eta_s, keep, lo, hi, oja);
           dpost_p[r] = gp;
           deta += static_cast<double>(gdiff);
-          if (oja) {
-            for (int64_t i = 0; i < I; ++i) {
-              de[i] = keep * gx[i] - gp * q[i];
-              dq[i] += ep * gx[i] - gp * e[i];
-            }
-          } else {
-            for (int64_t i = 0; i < I; ++i) {
-              de[i] = keep * gx[i];
-              dq[i] += ep * gx[i];
-            }
-          }
         }
         deta_p[b] = deta;
       }
@@ -168,6 +183,17 @@ TORCH_LIBRARY_IMPL(sb3_spikeplastic_fast, CPU, m) {
 
 namespace {
 
+template <typename scalar_t>
+void efficacy_backward_row(const scalar_t* __restrict g, const scalar_t* __restrict e, const scalar_t* __restrict a,
+                           scalar_t* __restrict de, scalar_t* __restrict dw, scalar_t* __restrict da, int64_t n) {
+#pragma omp simd
+  for (int64_t i = 0; i < n; ++i) {
+    de[i] = g[i] * a[i];
+    dw[i] += g[i];
+    da[i] += g[i] * e[i];
+  }
+}
+
 at::Tensor efficacy_forward(const at::Tensor& W_in, const at::Tensor& alpha_in, const at::Tensor& E_in) {
   TORCH_CHECK(E_in.dim() == 3 && W_in.dim() == 2 && W_in.sizes() == alpha_in.sizes() && E_in.size(1) == W_in.size(0) &&
                   E_in.size(2) == W_in.size(1),
@@ -184,8 +210,10 @@ at::Tensor efficacy_forward(const at::Tensor& W_in, const at::Tensor& alpha_in, 
     at::parallel_for(0, B, 1, [&](int64_t begin, int64_t end) {
       for (int64_t b = begin; b < end; ++b) {
         const scalar_t* __restrict e = e_p + b * N;
+        const scalar_t* __restrict wl = w;
+        const scalar_t* __restrict al = a;
         scalar_t* __restrict y = o_p + b * N;
-        for (int64_t k = 0; k < N; ++k) y[k] = w[k] + a[k] * e[k];
+        for (int64_t k = 0; k < N; ++k) y[k] = wl[k] + al[k] * e[k];
       }
     });
   });
@@ -212,14 +240,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> efficacy_backward(const at::Tenso
         scalar_t* __restrict da = da_p + o * I;
         for (int64_t b = 0; b < B; ++b) {
           const int64_t off = b * N + o * I;
-          const scalar_t* __restrict gr = g_p + off;
-          const scalar_t* __restrict e = e_p + off;
-          scalar_t* __restrict de = de_p + off;
-          for (int64_t i = 0; i < I; ++i) {
-            de[i] = gr[i] * a[i];
-            dw[i] += gr[i];
-            da[i] += gr[i] * e[i];
-          }
+          efficacy_backward_row<scalar_t>(g_p + off, e_p + off, a, de_p + off, dw, da, I);
         }
       }
     });
