@@ -17,6 +17,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from . import _fast
+
 # Constants as signed int32 (products wrap modulo 2**32, which is what the hash needs).
 _C1 = 0x7FEB352D
 _C2 = 0x846CA68B - (1 << 32)
@@ -63,18 +65,27 @@ class CounterBernoulli:
     def __init__(self) -> None:
         self._index_hash: dict[tuple, Tensor] = {}
 
-    def uniform(self, keys: Tensor, steps: int, n: int) -> Tensor:
-        """Uniform variates of shape ``(batch, steps, n)`` for the given keys."""
-        cache_key = (steps, n, keys.device)
+    def index_hash(self, steps: int, n: int, device) -> Tensor:
+        """``hash32(t * n + i)`` of shape ``(steps, n)`` (cached per shape and device)."""
+        cache_key = (steps, n, device)
         idx = self._index_hash.get(cache_key)
         if idx is None:
-            idx = hash32(torch.arange(steps * n, dtype=torch.int32, device=keys.device)).view(steps, n)
+            idx = hash32(torch.arange(steps * n, dtype=torch.int32, device=device)).view(steps, n)
             self._index_hash[cache_key] = idx
-        h = hash32(idx.unsqueeze(0) ^ hash32(keys).view(-1, 1, 1))
+        return idx
+
+    def uniform(self, keys: Tensor, steps: int, n: int) -> Tensor:
+        """Uniform variates of shape ``(batch, steps, n)`` for the given keys."""
+        h = hash32(self.index_hash(steps, n, keys.device).unsqueeze(0) ^ hash32(keys).view(-1, 1, 1))
         return ((h >> 8) & 0xFFFFFF).to(torch.float32) * (1.0 / (1 << 24))
 
     def sample(self, p: Tensor, keys: Tensor, steps: int) -> Tensor:
-        """Spikes ``(batch, steps, n)`` with per-neuron probability ``p`` of shape ``(batch, n)``."""
+        """Spikes ``(batch, steps, n)`` with per-neuron probability ``p`` of shape ``(batch, n)``.
+
+        On CPU the compiled sampler of :mod:`sb3_spikeplastic._fast` (bit-identical, one pass), else eager."""
+        fast = _fast.bernoulli_spikes(p, keys, self.index_hash(steps, p.shape[-1], keys.device))
+        if fast is not None:
+            return fast
         u = self.uniform(keys, steps, p.shape[-1])
         return (u < p.unsqueeze(1)).to(p.dtype)
 

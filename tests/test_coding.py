@@ -179,3 +179,31 @@ def test_decoder_gradchecks():
         return torch.func.functional_call(disc, {"logit_scale": scale}, (rates,))
 
     assert torch.autograd.gradcheck(f, (rates, scale))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["f32", "f64"])
+def test_compiled_sampler_is_bit_identical_to_the_eager_hash(monkeypatch, dtype):
+    """The compiled sampler (``_fast.bernoulli_spikes``) against the eager int32 hash, including keys with the
+    sign bit set and probabilities 0 and 1; and ``SB3_SPIKEPLASTIC_NO_COMPILE`` gives the eager spikes."""
+    import warnings
+
+    from sb3_spikeplastic import _fast
+
+    monkeypatch.delenv(_fast.NO_COMPILE_ENV, raising=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        if _fast.load_ops() is None:
+            pytest.skip(f"compiled ops unavailable: {_fast._error}")
+    sampler = CounterBernoulli()
+    keys = torch.tensor([0, -1, 2**31 - 1, -(2**31), 12345, -987654], dtype=torch.int32)
+    p = torch.rand(6, 37, generator=torch.Generator().manual_seed(0), dtype=dtype)
+    p[:, 0], p[:, 1] = 0.0, 1.0
+    compiled = _fast.bernoulli_spikes(p, keys, sampler.index_hash(23, 37, keys.device))
+    eager = (sampler.uniform(keys, 23, 37) < p.unsqueeze(1)).to(dtype)
+    assert compiled is not None and compiled.dtype == dtype
+    assert torch.equal(compiled, eager)
+    assert compiled[..., 0].sum() == 0 and compiled[..., 1].min() == 1
+    assert torch.equal(sampler.sample(p, keys, 23), eager)
+    monkeypatch.setenv(_fast.NO_COMPILE_ENV, "1")
+    assert _fast.bernoulli_spikes(p, keys, sampler.index_hash(23, 37, keys.device)) is None
+    assert torch.equal(sampler.sample(p, keys, 23), eager)

@@ -10,8 +10,10 @@
   ~20 eager passes; equal to the eager ops to float rounding (a dot product is summed in another order).
   :func:`efficacy` (same file), for :meth:`sb3_spikeplastic.layers.PlasticSRMLayer.efficacy`: ``W + alpha * E``
   with a one-pass backward (eager autograd makes ~8 passes over the trace for it).
+* :func:`bernoulli_spikes` (``bernoulli.cpp``), for :meth:`sb3_spikeplastic.coding.CounterBernoulli.sample`:
+  the hash sampler in one pass instead of ~12, **bit-identical** (integer hashing, exact comparisons).
 
-Both are compiled together with :func:`torch.utils.cpp_extension.load` the first time one is needed (never at
+They are compiled together with :func:`torch.utils.cpp_extension.load` the first time one is needed (never at
 import) and cached on disk.
 
 * Build directory: ``$SB3_SPIKEPLASTIC_BUILD_DIR`` if set, else
@@ -37,12 +39,13 @@ from typing import Any, Optional
 import torch
 from torch import Tensor
 
-__all__ = ["NO_COMPILE_ENV", "build_directory", "compiled_disabled", "efficacy", "load_ops", "srm_loop", "trace_step"]
+__all__ = ["NO_COMPILE_ENV", "bernoulli_spikes", "build_directory", "compiled_disabled", "efficacy", "load_ops",
+           "srm_loop", "trace_step"]
 
 NO_COMPILE_ENV = "SB3_SPIKEPLASTIC_NO_COMPILE"
 BUILD_DIR_ENV = "SB3_SPIKEPLASTIC_BUILD_DIR"
 _EXTENSION = "sb3_spikeplastic_fast"
-_SOURCES = [Path(__file__).with_name(name) for name in ("srm_loop.cpp", "trace_step.cpp")]
+_SOURCES = [Path(__file__).with_name(name) for name in ("srm_loop.cpp", "trace_step.cpp", "bernoulli.cpp")]
 
 _lock = threading.Lock()
 _tried = False
@@ -291,3 +294,24 @@ def efficacy(weight: Tensor, alpha: Tensor, E: Tensor) -> Optional[Tensor]:
     if _enabled_ops() is None:
         return None
     return _Efficacy.apply(weight, alpha, E)
+
+
+def bernoulli_spikes(p: Tensor, keys: Tensor, index_hash: Tensor) -> Optional[Tensor]:
+    """The compiled counter-based sampler for CPU float32/float64 ``p (B, n)``, int32 ``keys (B,)`` and
+    ``index_hash (T, n)``, or ``None`` when it does not apply (then use the eager hash). No autograd (spikes are
+    samples)."""
+    if not (
+        (p.dtype is torch.float32 or p.dtype is torch.float64)
+        and p.is_cpu
+        and keys.is_cpu
+        and p.dim() == 2
+        and keys.dtype is torch.int32
+        and keys.shape == p.shape[:1]
+        and index_hash.shape[1:] == p.shape[1:]
+    ):
+        return None
+    ops = _enabled_ops()
+    if ops is None:
+        return None
+    with torch.no_grad():
+        return ops.bernoulli_spikes(p, keys, index_hash)
