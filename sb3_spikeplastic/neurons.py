@@ -145,7 +145,9 @@ def slayer_surrogate(u: Tensor, params: SRMParameters) -> Tensor:
         \\exp\\left(-\\frac{|u - \\vartheta|}{\\tau_\\rho \\vartheta}\\right)
     """
     width = params.tau_rho * params.theta
-    return (params.scale_rho / width) * torch.exp(-(u - params.theta).abs() / width)
+    # In place after the first op: one buffer instead of five (each a fresh allocation of the membrane's size).
+    # Dividing by -width rounds exactly as negating and dividing by width.
+    return torch.sub(u, params.theta).abs_().div_(-width).exp_().mul_(params.scale_rho / width)
 
 
 class SLAYERSpike(torch.autograd.Function):
