@@ -8,7 +8,7 @@ every ``--eval-freq`` steps, then aggregates the run folders into ``--out``:
   over seeds, one panel per noise level (paper Fig. 2 A-B);
 * ``firing_rates.png`` — hidden-layer firing rate during training per rule on the high-noise maze (Fig. 2 C-D);
 * ``summary.csv`` / ``summary.md`` — per environment and rule: final and best success, environment steps and
-  minutes to 0.9 and 0.97 (per seed; "-" where never reached).
+  minutes to 0.9 and 0.97 (per seed; "-" where never reached); ``table.md`` the same, one row per rule.
 
 Usage::
 
@@ -91,6 +91,26 @@ def first_reaching(run: dict, level: float) -> tuple[float, float]:
     return (float(run["steps"][hit[0]]), float(run["minutes"][hit[0]])) if hit.size else (np.nan, np.nan)
 
 
+def rule_table(summary: list[dict]) -> str:
+    """One row per (environment, rule): per-seed best / final success and steps to 0.9 / 0.97 (the README's table)."""
+    def k(v):
+        return "-" if v != v else f"{v / 1000:.0f}k"
+
+    lines = ["| env | rule | seeds | best success | final success | seeds reaching 0.97 | steps to 0.9 | steps to 0.97 |",
+             "|---|---|---|---|---|---|---|---|"]
+    groups: dict[tuple, list[dict]] = {}
+    for row in summary:
+        groups.setdefault((row["env"], row["rule"]), []).append(row)
+    for (env, rule), rows in groups.items():
+        hits = sum(r["best_success"] >= 0.97 for r in rows)
+        best = " / ".join(f"{r['best_success']:.2f}" for r in rows)
+        final = " / ".join(f"{r['final_success']:.2f}" for r in rows)
+        to_90 = " / ".join(k(r["steps_to_0_9"]) for r in rows)
+        to_97 = " / ".join(k(r["steps_to_0_97"]) for r in rows)
+        lines.append(f"| {env} | {rule} | {len(rows)} | {best} | {final} | {hits}/{len(rows)} | {to_90} | {to_97} |")
+    return "\n".join(lines) + "\n"
+
+
 def aggregate(out: Path) -> None:
     import matplotlib
 
@@ -151,6 +171,7 @@ def aggregate(out: Path) -> None:
               f"{fmt(r['steps_to_0_9'])} | {fmt(r['minutes_to_0_9'])} | {fmt(r['steps_to_0_97'])} | "
               f"{fmt(r['minutes_to_0_97'])} |" for r in summary]
     (out / "summary.md").write_text("\n".join(lines) + "\n")
+    (out / "table.md").write_text(rule_table(summary))
     print("\n".join(lines))
     print(f"wrote {out}/success_curves.png, firing_rates.png, summary.csv, summary.md, curves.csv")
 
