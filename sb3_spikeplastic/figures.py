@@ -130,7 +130,7 @@ def activity_figure(activity: "EpisodeActivity", title: Optional[str] = None, n_
             colour = _LAYER_COLOURS[i % len(_LAYER_COLOURS)]
             ax.step(interval_ends, m.mean(1), where="pre", color=colour, linewidth=1.0, label=f"layer {i} mean")
             ax.fill_between(interval_ends, m.min(1), m.max(1), step="pre", color=colour, alpha=0.2)
-        ax.set_ylabel("modulation\nM = W_m r")
+        ax.set_ylabel("modulatory\nsignal M")  # W_m r, or tanh(W_m r) with the stabiliser
         ax.legend(loc="upper left", fontsize=7)
         row += 1
 

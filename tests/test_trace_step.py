@@ -184,3 +184,22 @@ def test_cuda_uses_eager_and_matches_cpu(fused):
     gpu = hebbian_trace_step(E.cuda(), eta.cuda(), terms, 0.5)
     cpu = hebbian_trace_step(E, eta, HebbianTerms(post, pre, True), 0.5)
     torch.testing.assert_close(gpu.cpu(), cpu, rtol=1e-5, atol=1e-6)
+
+
+def test_user_rule_with_hebbian_terms_runs_the_fused_update(fused, monkeypatch):
+    from sb3_spikeplastic.plasticity import PlasticityRule
+
+    class Covariance(PlasticityRule):
+        def hebbian_terms(self, r_pre, r_post, state):
+            return HebbianTerms(r_post - r_post.mean(-1, keepdim=True), r_pre, False)
+
+    rule = Covariance(6, 3, e_max=0.2).double()
+    calls = []
+    original = _fast.trace_step
+    monkeypatch.setattr(_fast, "trace_step", lambda *a: calls.append(1) or original(*a))
+    g = torch.Generator().manual_seed(5)
+    state = PlasticState(0.4 * torch.rand(2, 3, 6, generator=g, dtype=torch.float64) - 0.2)
+    r_pre, r_post = torch.rand(2, 6, generator=g, dtype=torch.float64), torch.rand(2, 3, generator=g, dtype=torch.float64)
+    stepped = rule.step(r_pre, r_post, state).trace
+    assert calls == [1]
+    torch.testing.assert_close(stepped, rule.update(r_pre, r_post, state).trace.clamp(-0.2, 0.2), rtol=1e-12, atol=1e-12)
