@@ -179,6 +179,15 @@ def _enabled_ops() -> Optional[Any]:
     return _ops if _tried else load_ops()
 
 
+def _cpu_float_operands(first: Tensor, *others: Tensor) -> bool:
+    """Whether ``first`` is a CPU float32/float64 tensor and ``others`` are CPU tensors of its dtype (what every
+    compiled op needs besides its shapes)."""
+    dtype = first.dtype
+    if not (first.is_cpu and (dtype is torch.float32 or dtype is torch.float64)):
+        return False
+    return all(t.dtype is dtype and t.is_cpu for t in others)
+
+
 def srm_loop(
     synaptic: Tensor, h1: Tensor, h2: Tensor, d: float, kappa: float, theta: float
 ) -> Optional[tuple[Tensor, Tensor, Tensor, Tensor]]:
@@ -188,15 +197,8 @@ def srm_loop(
     unless disabled by ``SB3_SPIKEPLASTIC_NO_COMPILE`` or the build failed. Returns
     ``(spikes, membrane, h1, h2)``, which never carry autograd history.
     """
-    # Cheap checks first: this is called a few hundred times per environment step.
-    dtype = synaptic.dtype
     if not (
-        synaptic.is_cpu
-        and (dtype is torch.float32 or dtype is torch.float64)
-        and h1.dtype is dtype
-        and h2.dtype is dtype
-        and h1.is_cpu
-        and h2.is_cpu
+        _cpu_float_operands(synaptic, h1, h2)
         and synaptic.dim() == 3
         and h1.shape == h2.shape == (synaptic.shape[0], synaptic.shape[2])
     ):
@@ -241,19 +243,13 @@ def trace_step(E: Tensor, post: Tensor, pre: Tensor, eta: Tensor, e_max: float, 
     one-element ``eta`` of one dtype, unless disabled by ``SB3_SPIKEPLASTIC_NO_COMPILE`` or the build failed.
     Differentiable once (no double backward).
     """
-    dtype = E.dtype
     if not (
-        (dtype is torch.float32 or dtype is torch.float64)
-        and E.is_cpu
-        and E.dim() == 3
-        and post.dtype is dtype
-        and pre.dtype is dtype
-        and eta.dtype is dtype
+        _cpu_float_operands(E, post, pre)
+        and eta.dtype is E.dtype
         and eta.numel() == 1
+        and E.dim() == 3
         and post.shape == E.shape[:2]
         and pre.shape == (E.shape[0], E.shape[2])
-        and post.is_cpu
-        and pre.is_cpu
     ):
         return None
     if _enabled_ops() is None:
@@ -279,17 +275,7 @@ class _Efficacy(torch.autograd.Function):
 def efficacy(weight: Tensor, alpha: Tensor, E: Tensor) -> Optional[Tensor]:
     """The fused ``W + alpha * E`` for CPU float32/float64 ``W, alpha (n_out, n_in)`` and ``E (B, n_out, n_in)``
     of one dtype, or ``None`` when it does not apply (then use ``torch.addcmul``). Differentiable once."""
-    dtype = E.dtype
-    if not (
-        (dtype is torch.float32 or dtype is torch.float64)
-        and E.is_cpu
-        and E.dim() == 3
-        and weight.dtype is dtype
-        and alpha.dtype is dtype
-        and weight.shape == alpha.shape == E.shape[1:]
-        and weight.is_cpu
-        and alpha.is_cpu
-    ):
+    if not (_cpu_float_operands(E, weight, alpha) and E.dim() == 3 and weight.shape == alpha.shape == E.shape[1:]):
         return None
     if _enabled_ops() is None:
         return None
@@ -301,8 +287,7 @@ def bernoulli_spikes(p: Tensor, keys: Tensor, index_hash: Tensor) -> Optional[Te
     ``index_hash (T, n)``, or ``None`` when it does not apply (then use the eager hash). No autograd (spikes are
     samples)."""
     if not (
-        (p.dtype is torch.float32 or p.dtype is torch.float64)
-        and p.is_cpu
+        _cpu_float_operands(p)
         and keys.is_cpu
         and p.dim() == 2
         and keys.dtype is torch.int32
