@@ -230,6 +230,19 @@ class TMazeCueEnv(gymnasium.Env):
         pixels = np.kron(frame, np.ones((4, 4), dtype=np.float32))
         return np.repeat((pixels * 255).astype(np.uint8)[..., None], 3, axis=-1)
 
+    def action_masks(self) -> np.ndarray:
+        """Which actions are open on the current frame, in sb3-contrib's ``MaskablePPO`` convention.
+
+        Only the last frame's action is a decision (paper §3.1: the agent acts once, at the end of the decision
+        period); every other frame's action is ignored by :meth:`step`, so there only action 0 is open. A learner
+        that honours the mask (``sb3_spikeplastic.PPO(use_action_masks=True)``) then draws no policy gradient
+        from the ignored actions, whose advantages are pure noise for the policy; the task is unchanged.
+
+        :return: boolean array of shape ``(2,)``: ``[True, True]`` on the decision frame, else ``[True, False]``.
+        """
+        decision = len(self._frames) > 0 and self._frame == len(self._frames) - 1
+        return np.array([True, decision])
+
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
         """Advance one frame; on the last frame the action is the decision and ends the episode.
 

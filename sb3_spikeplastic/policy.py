@@ -204,17 +204,22 @@ class SpikePlasticPolicy(ActorCriticPolicy):
             features = obs.flatten(1).float()
         return self.value_net(features)
 
-    def _distribution(self, out: NetworkOutput):
+    def _distribution(self, out: NetworkOutput, action_masks: Optional[Tensor] = None):
         if isinstance(self.action_dist, DiagGaussianDistribution):
             return self.action_dist.proba_distribution(out.action, self.log_std)
-        return self.action_dist.proba_distribution(action_logits=out.action)
+        logits = out.action
+        if action_masks is not None:
+            # A large finite negative rather than -inf: zero probability, and entropy terms 0 * logit stay 0.
+            logits = torch.where(action_masks.reshape(logits.shape).bool(), logits, torch.full_like(logits, -1e8))
+        return self.action_dist.proba_distribution(action_logits=logits)
 
-    def step(self, obs: Tensor, state: NetworkState, episode_start: Tensor, deterministic: bool = False):
+    def step(self, obs: Tensor, state: NetworkState, episode_start: Tensor, deterministic: bool = False,
+             action_masks: Optional[Tensor] = None):
         """One rollout step: ``(actions, values, log_probs, new_state, network_output)`` after resetting the state
-        where ``episode_start`` is 1."""
+        where ``episode_start`` is 1; ``action_masks`` ``(batch, n_actions)`` (``Discrete`` only) closes actions."""
         obs = self._preprocess(obs)
         out, new_state = self.snn(obs, state.reset(episode_start))
-        distribution = self._distribution(out)
+        distribution = self._distribution(out, action_masks)
         actions = distribution.get_actions(deterministic=deterministic)
         log_prob = distribution.log_prob(actions)
         actions = actions.reshape((-1, *self.action_space.shape))
@@ -228,9 +233,11 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         out, _ = self.snn(obs, state)
         return self._value(obs, out)
 
-    def evaluate_actions_sequence(self, obs: Tensor, actions: Tensor, episode_starts: Tensor, state: NetworkState):
+    def evaluate_actions_sequence(self, obs: Tensor, actions: Tensor, episode_starts: Tensor, state: NetworkState,
+                                  action_masks: Optional[Tensor] = None):
         """Re-run sequences ``(L, batch, ...)`` from chunk-start ``state`` with truncated BPTT through the whole
-        chunk (traces included), resetting where ``episode_starts`` is 1.
+        chunk (traces included), resetting where ``episode_starts`` is 1; ``action_masks`` ``(L, batch,
+        n_actions)`` are the masks the rollout sampled with (``Discrete`` only).
 
         :return: ``(values, log_prob, entropy, outputs)``; the first three flattened over ``L * batch``
             (time-major), ``outputs`` the per-step :class:`~sb3_spikeplastic.network.NetworkOutput`.
@@ -239,7 +246,7 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         outputs, _ = self.snn.forward_sequence(obs, episode_starts, state)
         merged = NetworkOutput(torch.cat([o.action for o in outputs]),
                                tuple(torch.cat(r) for r in zip(*[o.rates for o in outputs])), None)
-        distribution = self._distribution(merged)
+        distribution = self._distribution(merged, None if action_masks is None else action_masks.flatten(0, 1))
         flat_actions = actions.flatten(0, 1)
         if isinstance(self.action_space, spaces.Discrete):
             flat_actions = flat_actions.long().flatten()
@@ -260,7 +267,8 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         raise RuntimeError(MISUSE_MESSAGE)
 
     def predict(self, observation: np.ndarray, state: Optional[NetworkState] = None,
-                episode_start: Optional[np.ndarray] = None, deterministic: bool = False):
+                episode_start: Optional[np.ndarray] = None, deterministic: bool = False,
+                action_masks: Optional[np.ndarray] = None):
         """Actions for ``observation`` and the next network state, as SB3's recurrent policies do.
 
         :param observation: one observation or a batch (vectorised env).
@@ -268,6 +276,7 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         :param episode_start: 1 where an episode starts (the state is reset there); ``None``: no reset.
         :param deterministic: use the mean action (Gaussian) or the arg-max (discrete). Input spikes stay random
             but replayable: the same observations and state give the same actions.
+        :param action_masks: open actions ``(n_envs, n_actions)`` (``Discrete`` only; ``None``: all open).
         :return: ``(actions, new_state)``.
         """
         self.set_training_mode(False)
@@ -277,7 +286,8 @@ class SpikePlasticPolicy(ActorCriticPolicy):
             state = self.initial_state(n_envs)
         starts = torch.zeros(n_envs) if episode_start is None else torch.as_tensor(np.asarray(episode_start, dtype=np.float32).reshape(-1))
         with torch.no_grad():
-            actions, _, _, state, _ = self.step(obs_tensor, state, starts.to(self.device), deterministic)
+            masks = None if action_masks is None else torch.as_tensor(np.asarray(action_masks, dtype=bool), device=self.device)
+            actions, _, _, state, _ = self.step(obs_tensor, state, starts.to(self.device), deterministic, masks)
         actions = actions.cpu().numpy()
         if isinstance(self.action_space, spaces.Box):
             actions = np.clip(actions, self.action_space.low, self.action_space.high)

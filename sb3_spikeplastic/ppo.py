@@ -44,10 +44,12 @@ class ChunkSamples(NamedTuple):
     returns: Tensor
     episode_starts: Tensor
     states: NetworkState
+    action_masks: Optional[Tensor] = None
 
 
 class ChunkRolloutBuffer(RolloutBuffer):
-    """SB3's rollout buffer plus one network-state snapshot per ``chunk_len`` steps and environment.
+    """SB3's rollout buffer plus one network-state snapshot per ``chunk_len`` steps and environment, and (for
+    ``Discrete`` actions) the action masks the rollout used.
 
     :param chunk_len: steps per chunk (``bptt_steps``); must divide ``buffer_size``.
     Other parameters as :class:`~stable_baselines3.common.buffers.RolloutBuffer`.
@@ -58,11 +60,21 @@ class ChunkRolloutBuffer(RolloutBuffer):
         if buffer_size % chunk_len:
             raise ValueError(f"n_steps={buffer_size} must be a multiple of bptt_steps={chunk_len}")
         self.chunk_len = chunk_len
+        self.n_actions = int(action_space.n) if isinstance(action_space, spaces.Discrete) else 0
         super().__init__(buffer_size, observation_space, action_space, device, gae_lambda, gamma, n_envs)
 
     def reset(self) -> None:
         super().reset()
         self.snapshots: list[NetworkState] = []
+        self.action_masks = np.ones((self.buffer_size, self.n_envs, self.n_actions), dtype=bool)
+        self.masked = False
+
+    def add(self, *args, action_masks: Optional[np.ndarray] = None, **kwargs) -> None:
+        """SB3's ``add``, plus the step's action masks ``(n_envs, n_actions)`` (``None``: every action open)."""
+        if action_masks is not None:
+            self.action_masks[self.pos] = action_masks
+            self.masked = True
+        super().add(*args, **kwargs)
 
     def add_snapshot(self, state: NetworkState) -> None:
         """Store the state entering step ``self.pos`` (must be a chunk start)."""
@@ -95,6 +107,7 @@ class ChunkRolloutBuffer(RolloutBuffer):
                 take(self.observations), take(self.actions), take(self.values), take(self.log_probs),
                 take(self.advantages), take(self.returns), take(self.episode_starts),
                 states.select(torch.as_tensor(idx, device=states.noise_key.device)),
+                take(self.action_masks).bool() if self.masked else None,
             )
 
 
@@ -118,6 +131,11 @@ class PPO(SB3PPO):
         ``eps`` and they stop learning. Per-parameter clipping keeps each tensor's update at its own scale
         (in the spirit of the unit-wise clipping of Brock et al., 2021, "High-Performance Large-Scale Image
         Recognition Without Normalization"). ``train/grad_norm`` logs the global pre-clip norm either way.
+    :param use_action_masks: ask the environments for ``action_masks()`` (sb3-contrib ``MaskablePPO``'s
+        convention: a boolean array of open actions) before every rollout step; a recurrent policy with
+        ``Discrete`` actions then samples only open actions and is trained with the same masks. Where one action
+        is open, its log-probability is 0 and the step adds no policy gradient: on tasks that ignore most actions
+        (the cue T-maze acts once per episode, as in the paper) this removes the noise of the ignored ones.
     Other parameters as :class:`stable_baselines3.PPO`; ``batch_size`` keeps its meaning (transitions per
     minibatch), so a minibatch holds ``batch_size // bptt_steps`` chunks.
     """
@@ -156,6 +174,7 @@ class PPO(SB3PPO):
         device: Union[torch.device, str] = "auto",
         bptt_steps: int = 32,
         grad_clip: str = "global",
+        use_action_masks: bool = False,
         _init_setup_model: bool = True,
     ):
         self.bptt_steps = int(bptt_steps)
@@ -176,6 +195,9 @@ class PPO(SB3PPO):
             policy_kwargs=policy_kwargs, verbose=verbose, seed=seed, device=device,
             _init_setup_model=False,
         )
+        self.use_action_masks = bool(use_action_masks)
+        if self.use_action_masks:
+            self._check_action_masks()
         if self.recurrent and self.env is not None and self.batch_size > self.n_steps * self.n_envs:
             raise ValueError(
                 f"batch_size={self.batch_size} exceeds the rollout size n_steps * n_envs = {self.n_steps * self.n_envs}"
@@ -194,6 +216,16 @@ class PPO(SB3PPO):
             raise ValueError(f"n_steps={n_steps} must be a multiple of bptt_steps={self.bptt_steps}")
         if batch_size % self.bptt_steps:
             raise ValueError(f"batch_size={batch_size} (transitions) must be a multiple of bptt_steps={self.bptt_steps}")
+
+    def _check_action_masks(self) -> None:
+        if not self.recurrent:
+            raise ValueError("use_action_masks=True needs a recurrent SpikePlasticPolicy; for feed-forward policies "
+                             "use sb3-contrib's MaskablePPO")
+        if not isinstance(self.action_space, spaces.Discrete):
+            raise ValueError(f"use_action_masks=True needs Discrete actions, got {self.action_space}")
+        if self.env is not None and not self.env.has_attr("action_masks"):
+            raise ValueError("use_action_masks=True but the environment has no action_masks() method "
+                             "(sb3-contrib MaskablePPO's convention)")
 
     def _setup_model(self) -> None:
         if self.recurrent:
@@ -228,7 +260,9 @@ class PPO(SB3PPO):
             with torch.no_grad():
                 obs_tensor = obs_as_tensor(self._last_obs, self.device)
                 starts = torch.as_tensor(self._last_episode_starts, dtype=torch.float32, device=self.device)
-                actions, values, log_probs, state, out = self.policy.step(obs_tensor, state, starts)
+                masks = np.stack(env.env_method("action_masks")) if self.use_action_masks else None
+                actions, values, log_probs, state, out = self.policy.step(
+                    obs_tensor, state, starts, action_masks=None if masks is None else torch.as_tensor(masks, device=self.device))
             self.rollout_activity.add(out)
             actions = actions.cpu().numpy()
             clipped_actions = actions
@@ -251,7 +285,8 @@ class PPO(SB3PPO):
                         # The post-step state of this env, before the reset the next step will apply.
                         terminal_value = self.policy.value_with_state(terminal_obs, state.select([idx]))[0]
                     rewards[idx] += self.gamma * terminal_value.item()
-            rollout_buffer.add(self._last_obs, actions, rewards, self._last_episode_starts, values, log_probs)
+            rollout_buffer.add(self._last_obs, actions, rewards, self._last_episode_starts, values, log_probs,
+                               action_masks=masks)
             self._last_obs = new_obs
             self._last_episode_starts = dones
         self._last_network_state = state
@@ -290,7 +325,7 @@ class PPO(SB3PPO):
             approx_kl_divs = []
             for batch in self.rollout_buffer.get_chunks(self.batch_size // self.bptt_steps):
                 values, log_prob, entropy, _ = self.policy.evaluate_actions_sequence(
-                    batch.observations, batch.actions, batch.episode_starts, batch.states)
+                    batch.observations, batch.actions, batch.episode_starts, batch.states, batch.action_masks)
                 values = values.flatten()
                 advantages = batch.advantages.flatten()
                 old_log_prob = batch.old_log_prob.flatten()

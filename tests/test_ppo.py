@@ -34,7 +34,7 @@ def assert_replay_exact(model):
     with torch.no_grad():
         for batch in buf.get_chunks(model.batch_size // model.bptt_steps):
             values, log_prob, _, _ = policy.evaluate_actions_sequence(
-                batch.observations, batch.actions, batch.episode_starts, batch.states)
+                batch.observations, batch.actions, batch.episode_starts, batch.states, batch.action_masks)
             ratio = torch.exp(log_prob - batch.old_log_prob.flatten())
             assert (ratio - 1).abs().max().item() <= 1e-5
             assert (values.flatten() - batch.old_values.flatten()).abs().max().item() <= 1e-5
@@ -174,6 +174,38 @@ def test_unknown_rule_is_a_clear_error():
     with pytest.raises(ValueError, match="unknown plasticity rule 'hebb'.*dp-oja"):
         PPO("SpikePlasticPolicy", tmaze(1), n_steps=16, batch_size=16, bptt_steps=16,
             policy_kwargs=dict(rule="hebb"))
+
+
+def test_action_masks_force_ignored_actions_and_remove_their_policy_gradient():
+    """T-maze: only the decision frame's action counts; masked steps sample action 0 with log-prob 0, replay
+    exactly from the snapshots, and contribute no gradient; the decision steps still do."""
+    model = PPO("SpikePlasticPolicy", tmaze(3), n_steps=48, batch_size=48, bptt_steps=16, n_epochs=1,
+                learning_rate=0.0, seed=1, use_action_masks=True, policy_kwargs=dict(hidden_sizes=(16,)))
+    model.learn(2 * 48 * 3)
+    buf = model.rollout_buffer
+    open_both = buf.action_masks[:, :, 1]
+    decisions = np.nonzero(buf.episode_starts[1:])  # the step before an episode start is a decision
+    assert open_both[:-1][decisions].all() and 0 < open_both.sum() < open_both.size / 10
+    assert (buf.actions[..., 0][~open_both] == 0).all() and (buf.log_probs[~open_both] == 0).all()
+    assert (buf.log_probs[open_both] < -0.1).any()  # decisions are drawn from both actions
+    assert_replay_exact(model)
+    batch = next(buf.get_chunks(3))
+    _, log_prob, _, _ = model.policy.evaluate_actions_sequence(
+        batch.observations, batch.actions, batch.episode_starts, batch.states, batch.action_masks)
+    opened = batch.action_masks[..., 1].flatten()
+    weight = model.policy.snn.layers[0].weight
+    (masked_grad,) = torch.autograd.grad(log_prob[~opened].sum(), weight, retain_graph=True)
+    (decision_grad,) = torch.autograd.grad(log_prob[opened].sum(), weight)
+    assert masked_grad.abs().max().item() == 0.0 and decision_grad.abs().max().item() > 0.0
+
+
+def test_action_masks_need_an_env_that_provides_them():
+    cartpole = vec(lambda: gym.make("CartPole-v1"), 1)
+    with pytest.raises(ValueError, match="no action_masks\\(\\) method"):
+        PPO("SpikePlasticPolicy", cartpole, n_steps=16, batch_size=16, bptt_steps=16, use_action_masks=True,
+            policy_kwargs=SMALL)
+    with pytest.raises(ValueError, match="needs a recurrent SpikePlasticPolicy.*MaskablePPO"):
+        PPO("MlpPolicy", tmaze(1), n_steps=16, batch_size=16, use_action_masks=True)
 
 
 def test_unknown_grad_clip_is_a_clear_error():

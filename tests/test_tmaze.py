@@ -141,6 +141,19 @@ def test_reward_only_on_the_decision_frame():
     assert env.step(1 - correct)[1:3] == (-1.0, True)
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_action_masks_open_both_actions_only_on_the_decision_frame(seed):
+    env = gymnasium.make("TMazeCueNoisy-v0")
+    env.reset(seed=seed)
+    n_frames = env.unwrapped.n_frames
+    masks = []
+    for _ in range(n_frames):
+        masks.append(env.get_wrapper_attr("action_masks")().tolist())
+        *_, terminated, _, _ = env.step(0)
+    assert terminated
+    assert masks == [[True, False]] * (n_frames - 1) + [[True, True]]
+
+
 def test_seeding():
     env = gymnasium.make("TMazeCue-v0")
     first, _ = episode_raster(env, 7)
