@@ -33,6 +33,7 @@ status 130.
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import random
@@ -552,6 +553,12 @@ def cmd_evaluate(args: argparse.Namespace, argv: Sequence[str]) -> int:
           f"mean episode length {np.mean(lengths):.1f}")
     if successes:
         print(f"success rate {np.mean(successes):.3f} ({int(np.sum(successes))}/{len(successes)})")
+    if args.output:
+        result = dict(env=env_id, model=str(info.model_path), episodes=len(returns), deterministic=args.deterministic,
+                      seed=args.seed, mean_return=float(returns.mean()), std_return=float(returns.std()),
+                      mean_length=float(np.mean(lengths)),
+                      success_rate=float(np.mean(successes)) if successes else None)
+        atomic_write(args.output, lambda f: json.dump(result, f, indent=1), binary=False)
     return 0
 
 
@@ -807,6 +814,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--stochastic", dest="deterministic", action="store_false", help="sampled actions")
     e.add_argument("--seed", type=int, default=0, help="environment seed (default: 0)")
     e.add_argument("--n-envs", type=int, default=1, help="environments side by side (default: 1)")
+    e.add_argument("-o", "--output", help="also write the result as JSON to this file")
     common(e)
     e.set_defaults(func=cmd_evaluate)
 

@@ -1,6 +1,7 @@
 """The ``sb3-spikeplastic`` command line: train / evaluate / robustness / plot / inspect, and bad input."""
 
 import io
+import json
 import os
 import subprocess
 import sys
@@ -114,10 +115,13 @@ def test_train_halfcheetah_normalized(cheetah_run):
     assert "hyperparameters/text_summary" in ea.Tags()["tensors"]
 
 
-def test_evaluate(tmaze_run, cheetah_run, capsys):
-    code, out, _ = run_cli(capsys, "evaluate", "--run", tmaze_run, "--episodes", "6")
+def test_evaluate(tmaze_run, cheetah_run, capsys, tmp_path):
+    code, out, _ = run_cli(capsys, "evaluate", "--run", tmaze_run, "--episodes", "6", "-o", tmp_path / "eval.json")
     assert code == 0
     assert "mean return" in out and "over 6 episodes (deterministic)" in out and "success rate" in out
+    result = json.loads((tmp_path / "eval.json").read_text())
+    assert result["episodes"] == 6 and result["deterministic"] and result["env"] == "TMazeCue-v0"
+    assert f"success rate {result['success_rate']:.3f}" in out and f"mean return {result['mean_return']:.3f}" in out
     code, out, _ = run_cli(capsys, "evaluate", "--model", tmaze_run / "best_model.zip", "--episodes", "2",
                            "--stochastic", "--n-envs", "2")
     assert code == 0 and "over 2 episodes (stochastic)" in out
