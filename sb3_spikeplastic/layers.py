@@ -85,13 +85,27 @@ class PlasticSRMLayer(nn.Module):
         )
 
     def efficacy(self, trace: Tensor) -> Tensor:
-        """:math:`W + \\alpha \\odot E`, per environment ``(batch, n_out, n_in)``; just ``W`` for a static layer.
-
-        On CPU the compiled op of :mod:`sb3_spikeplastic._fast` (a one-pass backward), else ``addcmul``."""
+        """:math:`W + \\alpha \\odot E`, per environment ``(batch, n_out, n_in)``; just ``W`` for a static layer."""
         if self.alpha is None:
             return self.weight
-        fused = _fast.efficacy(self.weight, self.alpha, trace)
-        return fused if fused is not None else torch.addcmul(self.weight, self.alpha, trace)
+        return torch.addcmul(self.weight, self.alpha, trace)
+
+    def project(self, x: Tensor, trace: Tensor, efficacy_left: bool = False) -> Tensor:
+        """The synaptic product :math:`x_b (W + \\alpha \\odot E_b)^T` of presynaptic rows ``x (batch, L, n_in)``.
+
+        On CPU the compiled op of :mod:`sb3_spikeplastic._fast` builds one environment's efficacy at a time (the
+        ``(batch, n_out, n_in)`` efficacy and its gradient are never materialised). The eager path multiplies
+        with the efficacy on the left when ``efficacy_left`` (so that its gradient comes out in its own
+        ``(n_out, n_in)`` layout, not transposed: cheaper when ``n_in > n_out``), else on the right.
+        """
+        if self.alpha is not None:
+            fused = _fast.plastic_linear(x, self.weight, self.alpha, trace)
+            if fused is not None:
+                return fused
+        w_eff = self.efficacy(trace)
+        if efficacy_left:
+            return (w_eff @ x.transpose(-1, -2)).transpose(-1, -2)
+        return x @ w_eff.transpose(-1, -2)
 
     def _psp_filter(self, length: int, dtype, device):
         key = (length, dtype, device)
@@ -112,18 +126,17 @@ class PlasticSRMLayer(nn.Module):
         Then ``E`` is updated from the interval's rates and acts from the next interval on.
         """
         kernel, g1, g2, v1, v2, d_len = self._psp_filter(spikes_in.shape[1], spikes_in.dtype, spikes_in.device)
-        w_eff = self.efficacy(state.plastic.trace)
+        trace = state.plastic.trace
         h1, h2 = state.psp
         length = spikes_in.shape[1]
         if self.n_in <= self.n_out:
             psp = kernel @ spikes_in + g1[:, None] * h1.unsqueeze(1) + g2[:, None] * h2.unsqueeze(1)
-            synaptic = psp @ w_eff.transpose(-1, -2)
+            synaptic = self.project(psp, trace)
         else:
             # The carried PSP state rides along as two extra rows of the same product: projecting h1 and h2 on
-            # their own would cost two trace-sized outer products (and their sum) in the backward pass. W_eff
-            # stands on the left so that its gradient comes out in its own (n_out, n_in) layout, not transposed.
+            # their own would cost two trace-sized outer products (and their sum) in the backward pass.
             rows = torch.cat([spikes_in, h1.unsqueeze(1), h2.unsqueeze(1)], 1)  # (B, L + 2, n_in)
-            projected = (w_eff @ rows.transpose(-1, -2)).transpose(-1, -2)  # (B, L + 2, n_out)
+            projected = self.project(rows, trace, efficacy_left=True)  # (B, L + 2, n_out)
             synaptic = (kernel @ projected[:, :length] + g1[:, None] * projected[:, length:length + 1]
                         + g2[:, None] * projected[:, length + 1:])
         psp_state = AlphaFilterState(

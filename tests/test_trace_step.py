@@ -128,21 +128,27 @@ def test_unsupported_inputs_are_left_to_eager(fused):
     assert _fast.trace_step(E, post, pre, eta.expand(2), 0.5, True) is None  # eta not a single value
 
 
+@pytest.mark.parametrize("x_grad", [True, False], ids=["x-grad", "no-x-grad"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["f32", "f64"])
-def test_fused_efficacy_equals_addcmul(fused, dtype):
+def test_fused_plastic_linear_equals_eager(fused, dtype, x_grad):
+    """``x[b] (W + alpha * E[b])^T`` and its four gradients against ``addcmul`` + ``matmul``; without a
+    gradient for ``x`` (the input layer's spikes) none is computed."""
     g = torch.Generator().manual_seed(1)
+    x = torch.randn(3, 7, 9, generator=g, dtype=dtype).requires_grad_(x_grad)
     W = torch.randn(5, 9, generator=g, dtype=dtype).requires_grad_()
     alpha = torch.randn(5, 9, generator=g, dtype=dtype).requires_grad_()
     E = torch.randn(3, 5, 9, generator=g, dtype=dtype).requires_grad_()
-    upstream = torch.randn(3, 5, 9, generator=g, dtype=dtype)
-    out, ref = _fast.efficacy(W, alpha, E), torch.addcmul(W, alpha, E)
+    upstream = torch.randn(3, 7, 5, generator=g, dtype=dtype)
+    out, ref = _fast.plastic_linear(x, W, alpha, E), x @ torch.addcmul(W, alpha, E).transpose(1, 2)
     torch.testing.assert_close(out, ref, **TOL[dtype])
-    for a, b in zip(torch.autograd.grad((out * upstream).sum(), (W, alpha, E)),
-                    torch.autograd.grad((ref * upstream).sum(), (W, alpha, E))):
+    inputs = (x, W, alpha, E) if x_grad else (W, alpha, E)
+    for a, b in zip(torch.autograd.grad((out * upstream).sum(), inputs),
+                    torch.autograd.grad((ref * upstream).sum(), inputs)):
         torch.testing.assert_close(a, b, **TOL[dtype])
-    if dtype is torch.float64:
-        assert torch.autograd.gradcheck(_fast.efficacy, (W, alpha, E))
-    assert _fast.efficacy(W, alpha, E.float() if dtype is torch.float64 else E.double()) is None
+    if dtype is torch.float64 and x_grad:
+        assert torch.autograd.gradcheck(_fast.plastic_linear, (x, W, alpha, E))
+    assert _fast.plastic_linear(x, W, alpha, E.float() if dtype is torch.float64 else E.double()) is None
+    assert _fast.plastic_linear(x[:1], W, alpha, E) is None  # a batch that would broadcast
 
 
 @pytest.mark.parametrize("rule", ["dp-oja", "ndp-bcm"])

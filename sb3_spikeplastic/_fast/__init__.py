@@ -8,8 +8,10 @@
 * :func:`trace_step` (``trace_step.cpp``), for :func:`sb3_spikeplastic.plasticity.hebbian_trace_step`: the
   trace update and clip of every built-in rule, forward and backward, in one pass over the trace each instead of
   ~20 eager passes; equal to the eager ops to float rounding (a dot product is summed in another order).
-  :func:`efficacy` (same file), for :meth:`sb3_spikeplastic.layers.PlasticSRMLayer.efficacy`: ``W + alpha * E``
-  with a one-pass backward (eager autograd makes ~8 passes over the trace for it).
+* :func:`plastic_linear` (``plastic_linear.cpp``), for :meth:`sb3_spikeplastic.layers.PlasticSRMLayer.project`:
+  the synaptic product ``X[b] (W + alpha * E[b])^T`` with one environment's efficacy at a time in a cache-sized
+  buffer, so that neither the ``(B, n_out, n_in)`` efficacy nor its gradient is ever materialised (eager: four
+  extra passes over trace-sized arrays); equal to the eager ops to float rounding.
 * :func:`bernoulli_spikes` (``bernoulli.cpp``), for :meth:`sb3_spikeplastic.coding.CounterBernoulli.sample`:
   the hash sampler in one pass instead of ~12, **bit-identical** (integer hashing, exact comparisons).
 
@@ -39,13 +41,14 @@ from typing import Any, Optional
 import torch
 from torch import Tensor
 
-__all__ = ["NO_COMPILE_ENV", "bernoulli_spikes", "build_directory", "compiled_disabled", "efficacy", "load_ops",
-           "srm_loop", "trace_step"]
+__all__ = ["NO_COMPILE_ENV", "bernoulli_spikes", "build_directory", "compiled_disabled", "load_ops",
+           "plastic_linear", "srm_loop", "trace_step"]
 
 NO_COMPILE_ENV = "SB3_SPIKEPLASTIC_NO_COMPILE"
 BUILD_DIR_ENV = "SB3_SPIKEPLASTIC_BUILD_DIR"
 _EXTENSION = "sb3_spikeplastic_fast"
-_SOURCES = [Path(__file__).with_name(name) for name in ("srm_loop.cpp", "trace_step.cpp", "bernoulli.cpp")]
+_SOURCES = [Path(__file__).with_name(name) for name in ("srm_loop.cpp", "trace_step.cpp", "plastic_linear.cpp",
+                                                                  "bernoulli.cpp")]
 
 _lock = threading.Lock()
 _tried = False
@@ -257,29 +260,39 @@ def trace_step(E: Tensor, post: Tensor, pre: Tensor, eta: Tensor, e_max: float, 
     return _TraceStep.apply(E, post, pre, eta, float(e_max), bool(oja))
 
 
-class _Efficacy(torch.autograd.Function):
-    """``W + alpha * E`` per environment, with a one-pass backward (see ``trace_step.cpp``)."""
+class _PlasticLinear(torch.autograd.Function):
+    """``X[b] (W + alpha * E[b])^T`` per environment, one environment's efficacy at a time (see
+    ``plastic_linear.cpp``); the gradient of ``X`` is computed only when it is needed."""
 
     @staticmethod
-    def forward(ctx, weight: Tensor, alpha: Tensor, E: Tensor) -> Tensor:
-        ctx.save_for_backward(alpha, E)
-        return _ops.efficacy_forward(weight, alpha, E)
+    def forward(ctx, x: Tensor, weight: Tensor, alpha: Tensor, E: Tensor) -> Tensor:
+        ctx.save_for_backward(x, weight, alpha, E)
+        return _ops.plastic_linear_forward(x, weight, alpha, E)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad: Tensor):
-        alpha, E = ctx.saved_tensors
-        return _ops.efficacy_backward(grad, alpha, E)
+        x, weight, alpha, E = ctx.saved_tensors
+        d_x, d_w, d_alpha, d_e = _ops.plastic_linear_backward(grad, x, weight, alpha, E, ctx.needs_input_grad[0])
+        return d_x if ctx.needs_input_grad[0] else None, d_w, d_alpha, d_e
 
 
-def efficacy(weight: Tensor, alpha: Tensor, E: Tensor) -> Optional[Tensor]:
-    """The fused ``W + alpha * E`` for CPU float32/float64 ``W, alpha (n_out, n_in)`` and ``E (B, n_out, n_in)``
-    of one dtype, or ``None`` when it does not apply (then use ``torch.addcmul``). Differentiable once."""
-    if not (_cpu_float_operands(E, weight, alpha) and E.dim() == 3 and weight.shape == alpha.shape == E.shape[1:]):
+def plastic_linear(x: Tensor, weight: Tensor, alpha: Tensor, E: Tensor) -> Optional[Tensor]:
+    """The fused ``x[b] @ (W + alpha * E[b]).T`` for CPU float32/float64 ``x (B, L, n_in)``, ``W, alpha
+    (n_out, n_in)`` and ``E (B, n_out, n_in)`` of one dtype, or ``None`` when it does not apply (then use the eager
+    ops). Differentiable once."""
+    if not (
+        _cpu_float_operands(E, x, weight, alpha)
+        and E.dim() == 3
+        and x.dim() == 3
+        and weight.shape == alpha.shape == E.shape[1:]
+        and x.shape[0] == E.shape[0]
+        and x.shape[2] == E.shape[2]
+    ):
         return None
     if _enabled_ops() is None:
         return None
-    return _Efficacy.apply(weight, alpha, E)
+    return _PlasticLinear.apply(x, weight, alpha, E)
 
 
 def bernoulli_spikes(p: Tensor, keys: Tensor, index_hash: Tensor) -> Optional[Tensor]:

@@ -1,0 +1,138 @@
+// The plastic layer's synaptic product (CPU fast path of sb3_spikeplastic.layers.PlasticSRMLayer.project):
+//
+//     Y[b] = X[b] (W + alpha * E[b])^T          X (B, L, n_in), W, alpha (n_out, n_in), E (B, n_out, n_in)
+//
+// Eager PyTorch materialises the per-environment efficacy W_eff (B, n_out, n_in) for a batched matmul, and in
+// the backward its gradient dW_eff of the same size, then reads both again for dW, dalpha and dE: four extra
+// passes over trace-sized arrays, which at the paper's sizes do not fit in cache. Here one environment's W_eff[b]
+// (or its gradient) is built in a single (n_out, n_in) buffer that stays in cache, used by one matrix product and
+// overwritten by the next environment's:
+//
+//     forward:   buf = W + alpha * E[b];          Y[b] = X[b] buf^T
+//     backward:  G = dY[b]^T X[b]                 (the gradient of W_eff[b], in W's layout)
+//                dE[b] = alpha * G,   dW += G,   dalpha += E[b] * G       (one pass over G and E[b])
+//                dX[b] = dY[b] (W + alpha * E[b])                         (only when X needs a gradient)
+//
+// Equal to the eager ops to float rounding (the matrix products may sum in another order).
+
+#include <ATen/Dispatch.h>
+#include <ATen/Parallel.h>
+#include <ATen/core/Tensor.h>
+#include <ATen/ops/empty.h>
+#include <ATen/ops/empty_like.h>
+#include <ATen/ops/mm.h>
+#include <ATen/ops/zeros_like.h>
+#include <c10/core/ScalarType.h>
+#include <torch/library.h>
+
+#include <algorithm>
+#include <tuple>
+
+namespace {
+
+void check_operands(const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E) {
+  TORCH_CHECK(X.dim() == 3 && W.dim() == 2 && E.dim() == 3 && W.sizes() == alpha.sizes() && E.size(0) == X.size(0) &&
+                  E.size(1) == W.size(0) && E.size(2) == W.size(1) && X.size(2) == W.size(1),
+              "plastic_linear: X (B, L, i), W and alpha (o, i), E (B, o, i)");
+  const auto dtype = E.scalar_type();
+  TORCH_CHECK((dtype == at::kFloat || dtype == at::kDouble) && X.scalar_type() == dtype && W.scalar_type() == dtype &&
+                  alpha.scalar_type() == dtype,
+              "plastic_linear: float32 or float64 tensors of one dtype");
+}
+
+// buf = W + alpha * E_b over n values, rows split between threads.
+template <typename scalar_t>
+void efficacy_into(const scalar_t* __restrict w, const scalar_t* __restrict a, const scalar_t* __restrict e,
+                   scalar_t* __restrict buf, int64_t n) {
+  at::parallel_for(0, n, 16384, [&](int64_t begin, int64_t end) {
+#pragma omp simd
+    for (int64_t k = begin; k < end; ++k) buf[k] = w[k] + a[k] * e[k];
+  });
+}
+
+// One row of the efficacy's gradient g: dE = g * alpha, and the batch sums dW += g, dalpha += g * E. (A function
+// of its own: a #pragma cannot stand inside AT_DISPATCH's macro argument.)
+template <typename scalar_t>
+void efficacy_grad_row(const scalar_t* __restrict g, const scalar_t* __restrict e, const scalar_t* __restrict a,
+                       scalar_t* __restrict de, scalar_t* __restrict dw, scalar_t* __restrict da, int64_t n) {
+#pragma omp simd
+  for (int64_t i = 0; i < n; ++i) {
+    de[i] = g[i] * a[i];
+    dw[i] += g[i];
+    da[i] += g[i] * e[i];
+  }
+}
+
+at::Tensor plastic_linear_forward(const at::Tensor& X_in, const at::Tensor& W_in, const at::Tensor& alpha_in,
+                                  const at::Tensor& E_in) {
+  check_operands(X_in, W_in, alpha_in, E_in);
+  const at::Tensor X = X_in.contiguous(), W = W_in.contiguous(), alpha = alpha_in.contiguous(), E = E_in.contiguous();
+  const int64_t B = X.size(0), L = X.size(1), O = W.size(0), N = W.numel();
+  at::Tensor Y = at::empty({B, L, O}, X.options());
+  at::Tensor buf = at::empty({O, W.size(1)}, W.options());
+  AT_DISPATCH_FLOATING_TYPES(E.scalar_type(), "plastic_linear_forward", [&] {
+    for (int64_t b = 0; b < B; ++b) {
+      efficacy_into<scalar_t>(W.data_ptr<scalar_t>(), alpha.data_ptr<scalar_t>(), E.data_ptr<scalar_t>() + b * N,
+                              buf.data_ptr<scalar_t>(), N);
+      at::Tensor y = Y.select(0, b);
+      at::mm_out(y, X.select(0, b), buf.t());
+    }
+  });
+  return Y;
+}
+
+// Returns (dX, dW, dalpha, dE); dX is empty unless need_x_grad.
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> plastic_linear_backward(
+    const at::Tensor& grad_in, const at::Tensor& X_in, const at::Tensor& W_in, const at::Tensor& alpha_in,
+    const at::Tensor& E_in, bool need_x_grad) {
+  check_operands(X_in, W_in, alpha_in, E_in);
+  const at::Tensor g = grad_in.contiguous(), X = X_in.contiguous(), W = W_in.contiguous(),
+                   alpha = alpha_in.contiguous(), E = E_in.contiguous();
+  const int64_t B = X.size(0), O = W.size(0), I = W.size(1), N = W.numel();
+  TORCH_CHECK(g.dim() == 3 && g.size(0) == B && g.size(1) == X.size(1) && g.size(2) == O &&
+                  g.scalar_type() == E.scalar_type(),
+              "plastic_linear: the gradient does not match Y (B, L, o)");
+  at::Tensor dE = at::empty_like(E, at::MemoryFormat::Contiguous);
+  at::Tensor dW = at::zeros_like(W, at::MemoryFormat::Contiguous);
+  at::Tensor dalpha = at::zeros_like(W, at::MemoryFormat::Contiguous);
+  at::Tensor dX = need_x_grad ? at::empty_like(X, at::MemoryFormat::Contiguous) : at::empty({0}, X.options());
+  at::Tensor G = at::empty({O, I}, W.options());
+  at::Tensor buf = need_x_grad ? at::empty({O, I}, W.options()) : at::empty({0}, W.options());
+  AT_DISPATCH_FLOATING_TYPES(E.scalar_type(), "plastic_linear_backward", [&] {
+    const scalar_t *a_p = alpha.data_ptr<scalar_t>(), *w_p = W.data_ptr<scalar_t>();
+    scalar_t *g_p = G.data_ptr<scalar_t>(), *dw_p = dW.data_ptr<scalar_t>(), *da_p = dalpha.data_ptr<scalar_t>();
+    for (int64_t b = 0; b < B; ++b) {
+      const at::Tensor g_b = g.select(0, b);
+      at::mm_out(G, g_b.t(), X.select(0, b));
+      const scalar_t* e_b = E.data_ptr<scalar_t>() + b * N;
+      scalar_t* de_b = dE.data_ptr<scalar_t>() + b * N;
+      // Rows of W are independent, so threads split them without sharing an accumulator.
+      at::parallel_for(0, O, std::max<int64_t>(1, 16384 / std::max<int64_t>(I, 1)), [&](int64_t begin, int64_t end) {
+        for (int64_t o = begin; o < end; ++o) {
+          const int64_t off = o * I;
+          efficacy_grad_row<scalar_t>(g_p + off, e_b + off, a_p + off, de_b + off, dw_p + off, da_p + off, I);
+        }
+      });
+      if (need_x_grad) {
+        efficacy_into<scalar_t>(w_p, a_p, e_b, buf.data_ptr<scalar_t>(), N);
+        at::Tensor dx = dX.select(0, b);
+        at::mm_out(dx, g_b, buf);
+      }
+    }
+  });
+  return std::make_tuple(dX, dW, dalpha, dE);
+}
+
+}  // namespace
+
+TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
+  m.def("plastic_linear_forward(Tensor X, Tensor W, Tensor alpha, Tensor E) -> Tensor");
+  m.def(
+      "plastic_linear_backward(Tensor grad, Tensor X, Tensor W, Tensor alpha, Tensor E, bool need_x_grad) "
+      "-> (Tensor, Tensor, Tensor, Tensor)");
+}
+
+TORCH_LIBRARY_IMPL(sb3_spikeplastic_fast, CPU, m) {
+  m.impl("plastic_linear_forward", &plastic_linear_forward);
+  m.impl("plastic_linear_backward", &plastic_linear_backward);
+}
