@@ -8,9 +8,9 @@ every ``--eval-freq`` steps, then aggregates the run folders into ``--out``:
   over seeds, one panel per noise level (paper Fig. 2 A-B);
 * ``firing_rates.png`` — hidden-layer firing rate during training per rule on the high-noise maze (Fig. 2 C-D);
 * ``summary.csv`` / ``summary.md`` — per environment and rule: final and best success, environment steps and
-  minutes to 0.9 and 0.97 (per seed; "-" where never reached), and the final model's success on
-  ``--heldout-episodes`` (1000) episodes of seeds no evaluation during training saw; ``table.md`` the same, one
-  row per rule.
+  minutes to 0.9 and 0.97 (per seed; "-" where never reached), and the success of the final model and of the
+  best evaluated model (``best_model.zip``) on ``--heldout-episodes`` (1000) episodes of seeds no evaluation during
+  training saw; ``table.md`` the same, one row per rule.
 
 Usage::
 
@@ -64,13 +64,14 @@ def train_command(env: str, variant: str, seed: int, args: argparse.Namespace) -
             "--no-progress", "-v", "0", *(["--hyperparams", *overrides] if overrides else [])]
 
 
-def heldout_command(env: str, variant: str, seed: int, args: argparse.Namespace) -> list[str]:
-    """Evaluate the run's final model on ``--heldout-episodes`` episodes from seeds the training's evaluations
-    never used: 100-episode evaluations have a standard error of ~0.02 near 0.95, so the best of several of them
-    overstates a model's success rate."""
+def heldout_command(env: str, variant: str, seed: int, args: argparse.Namespace, best: bool = False) -> list[str]:
+    """Evaluate the run's final model (``best``: its ``best_model.zip``) on ``--heldout-episodes`` episodes from
+    seeds the training's evaluations never used: 100-episode evaluations have a standard error of ~0.02 near
+    0.95, so the best of several of them overstates the selected model's success rate."""
     (run,) = sorted(run_folder(env, variant, seed, args).glob("ppo/*_*"))[-1:]
-    return [cli(), "evaluate", "--run", str(run), "--episodes", str(args.heldout_episodes), "--n-envs", "10",
-            "--seed", str(HELDOUT_SEED), "--torch-threads", "1", "-o", str(run / "heldout.json")]
+    return [cli(), "evaluate", "--run", str(run), *(["--best"] if best else []), "--episodes",
+            str(args.heldout_episodes), "--n-envs", "10", "--seed", str(HELDOUT_SEED), "--torch-threads", "1",
+            "-o", str(run / ("heldout_best.json" if best else "heldout.json"))]
 
 
 def run_one(commands: list, log: Path) -> int:
@@ -109,10 +110,13 @@ def load_run(folder: Path) -> dict | None:
     steps = evaluations["timesteps"]
     known = ~np.isnan(progress["time/total_timesteps"]) & ~np.isnan(progress["time/time_elapsed"])
     minutes = np.interp(steps, progress["time/total_timesteps"][known], progress["time/time_elapsed"][known]) / 60
-    heldout = json.loads((run / "heldout.json").read_text()) if (run / "heldout.json").exists() else {}
+    heldout = {name: json.loads((run / f"{name}.json").read_text()) if (run / f"{name}.json").exists() else {}
+               for name in ("heldout", "heldout_best")}
     return dict(env=env_id, rule=variant, seed=meta["seed"], steps=steps, minutes=minutes,
                 success=evaluations["successes"].mean(axis=1), progress=progress,
-                heldout=heldout.get("success_rate", np.nan), heldout_episodes=heldout.get("episodes", 0))
+                heldout=heldout["heldout"].get("success_rate", np.nan),
+                heldout_best=heldout["heldout_best"].get("success_rate", np.nan),
+                heldout_episodes=heldout["heldout"].get("episodes", 0))
 
 
 def first_reaching(run: dict, level: float) -> tuple[float, float]:
@@ -126,8 +130,8 @@ def rule_table(summary: list[dict]) -> str:
         return "-" if v != v else f"{v / 1000:.0f}k"
 
     lines = ["| env | rule | seeds | best success | final success | seeds reaching 0.97 | steps to 0.9 | steps to 0.97 "
-             "| final model, held-out episodes |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "| held-out: final model | held-out: best model |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     groups: dict[tuple, list[dict]] = {}
     for row in summary:
         groups.setdefault((row["env"], row["rule"]), []).append(row)
@@ -137,10 +141,10 @@ def rule_table(summary: list[dict]) -> str:
         final = " / ".join(f"{r['final_success']:.2f}" for r in rows)
         to_90 = " / ".join(k(r["steps_to_0_9"]) for r in rows)
         to_97 = " / ".join(k(r["steps_to_0_97"]) for r in rows)
-        heldout = " / ".join("-" if r["heldout_success"] != r["heldout_success"] else f"{r['heldout_success']:.2f}"
-                             for r in rows)
+        heldout, heldout_best = (" / ".join("-" if r[key] != r[key] else f"{r[key]:.2f}" for r in rows)
+                                 for key in ("heldout_success", "heldout_best_success"))
         lines.append(f"| {env} | {rule} | {len(rows)} | {best} | {final} | {hits}/{len(rows)} | {to_90} | {to_97} "
-                     f"| {heldout} |")
+                     f"| {heldout} | {heldout_best} |")
     return "\n".join(lines) + "\n"
 
 
@@ -175,7 +179,7 @@ def aggregate(out: Path) -> None:
                                     best_success=float(r["success"].max()), steps_to_0_9=s90, minutes_to_0_9=m90,
                                     steps_to_0_97=s97, minutes_to_0_97=m97, total_steps=int(r["steps"][-1]),
                                     total_minutes=float(r["minutes"][-1]), heldout_success=r["heldout"],
-                                    heldout_episodes=r["heldout_episodes"]))
+                                    heldout_best_success=r["heldout_best"], heldout_episodes=r["heldout_episodes"]))
         ax.axhline(0.97, color="k", ls=":", lw=1)
         ax.set(title=env, xlabel="environment steps", ylabel="success rate (100 deterministic episodes)", ylim=(0, 1.02))
         ax.legend(fontsize=8)
@@ -199,11 +203,13 @@ def aggregate(out: Path) -> None:
             writer.writeheader()
             writer.writerows(rows)
     fmt = lambda v: "-" if v != v else (f"{v:,.0f}" if v >= 100 else f"{v:.2f}")  # noqa: E731  (NaN: never)
-    lines = ["| env | rule | seed | final | best | steps to 0.9 | min to 0.9 | steps to 0.97 | min to 0.97 | held-out |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| env | rule | seed | final | best | steps to 0.9 | min to 0.9 | steps to 0.97 | min to 0.97 "
+             "| held-out final | held-out best |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     lines += [f"| {r['env']} | {r['rule']} | {r['seed']} | {r['final_success']:.2f} | {r['best_success']:.2f} | "
               f"{fmt(r['steps_to_0_9'])} | {fmt(r['minutes_to_0_9'])} | {fmt(r['steps_to_0_97'])} | "
-              f"{fmt(r['minutes_to_0_97'])} | {fmt(r['heldout_success'])} |" for r in summary]
+              f"{fmt(r['minutes_to_0_97'])} | {fmt(r['heldout_success'])} | {fmt(r['heldout_best_success'])} |"
+              for r in summary]
     (out / "summary.md").write_text("\n".join(lines) + "\n")
     (out / "table.md").write_text(rule_table(summary))
     print("\n".join(lines))
@@ -231,7 +237,7 @@ def main(argv=None) -> int:
         def launch(job):
             commands = [lambda: train_command(*job, args)]
             if args.heldout_episodes:
-                commands.append(lambda: heldout_command(*job, args))
+                commands += [lambda: heldout_command(*job, args), lambda: heldout_command(*job, args, best=True)]
             env, rule, seed = job
             return run_one(commands, args.out / "logs" / f"{env}_{rule}_{seed}.log")
 
