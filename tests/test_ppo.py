@@ -176,9 +176,10 @@ def test_unknown_rule_is_a_clear_error():
             policy_kwargs=dict(rule="hebb"))
 
 
-def test_action_masks_force_ignored_actions_and_remove_their_policy_gradient():
+def test_action_masks_force_ignored_actions_and_remove_their_policy_gradient(tmp_path):
     """T-maze: only the decision frame's action counts; masked steps sample action 0 with log-prob 0, replay
-    exactly from the snapshots, and contribute no gradient; the decision steps still do."""
+    exactly from the snapshots, and contribute no gradient; the decision steps still do. The setting survives
+    save/load."""
     model = PPO("SpikePlasticPolicy", tmaze(3), n_steps=48, batch_size=48, bptt_steps=16, n_epochs=1,
                 learning_rate=0.0, seed=1, use_action_masks=True, policy_kwargs=dict(hidden_sizes=(16,)))
     model.learn(2 * 48 * 3)
@@ -197,6 +198,8 @@ def test_action_masks_force_ignored_actions_and_remove_their_policy_gradient():
     (masked_grad,) = torch.autograd.grad(log_prob[~opened].sum(), weight, retain_graph=True)
     (decision_grad,) = torch.autograd.grad(log_prob[opened].sum(), weight)
     assert masked_grad.abs().max().item() == 0.0 and decision_grad.abs().max().item() > 0.0
+    model.save(tmp_path / "masked.zip")
+    assert PPO.load(tmp_path / "masked.zip", env=tmaze(3)).use_action_masks is True
 
 
 def test_action_masks_need_an_env_that_provides_them():
