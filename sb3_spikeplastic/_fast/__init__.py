@@ -47,8 +47,8 @@ __all__ = ["NO_COMPILE_ENV", "bernoulli_spikes", "build_directory", "compiled_di
 NO_COMPILE_ENV = "SB3_SPIKEPLASTIC_NO_COMPILE"
 BUILD_DIR_ENV = "SB3_SPIKEPLASTIC_BUILD_DIR"
 _EXTENSION = "sb3_spikeplastic_fast"
-_SOURCES = [Path(__file__).with_name(name) for name in ("srm_loop.cpp", "trace_step.cpp", "plastic_linear.cpp",
-                                                                  "bernoulli.cpp")]
+_SOURCES = [Path(__file__).with_name(name)
+            for name in ("srm_loop.cpp", "trace_step.cpp", "plastic_linear.cpp", "bernoulli.cpp")]
 
 _lock = threading.Lock()
 _tried = False
