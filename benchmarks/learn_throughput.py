@@ -49,7 +49,7 @@ def run(name: str, make_model, timesteps: int, warmup: int) -> dict:
         n_envs = model.n_envs
         row["state_bytes_per_env"] = model._last_network_state.nbytes() / n_envs
         row["snapshot_bytes_per_rollout"] = model.rollout_buffer.snapshot_nbytes()
-    print(f"{name:28s} {row['env_steps_per_s']:8.1f} env-steps/s  ({seconds:.1f} s)  peak RSS {row['peak_rss_mb']:.0f} MB",
+    print(f"{name:36s} {row['env_steps_per_s']:8.1f} env-steps/s  ({seconds:.1f} s)  peak RSS {row['peak_rss_mb']:.0f} MB",
           flush=True)
     return row
 
@@ -61,7 +61,7 @@ def main(argv=None) -> int:
     parser.add_argument("--n-steps", type=int, default=256)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--only", nargs="*", help="subset of: mlp recurrent static ndp-oja")
+    parser.add_argument("--only", nargs="*", help="subset of: mlp recurrent static ndp-oja ndp-oja-eager (CUDA only)")
     parser.add_argument("--output", type=Path, default=RESULTS)
     parser.add_argument("--check", action="store_true",
                         help="exit 1 if the spiking/RecurrentPPO ratio falls > 30%% below the committed baseline")
@@ -80,6 +80,9 @@ def main(argv=None) -> int:
         "static": lambda: PPO("SpikePlasticPolicy", env(), bptt_steps=32, policy_kwargs=dict(rule="static", **PAPER_NET), **common),
         "ndp-oja": lambda: PPO("SpikePlasticPolicy", env(), bptt_steps=32, policy_kwargs=dict(rule="ndp-oja", **PAPER_NET), **common),
     }
+    if args.device.startswith("cuda"):  # what the CUDA graphs (sb3_spikeplastic.cuda_graphs) buy
+        candidates["ndp-oja-eager"] = lambda: PPO("SpikePlasticPolicy", env(), bptt_steps=32, cuda_graphs=False,
+                                                  policy_kwargs=dict(rule="ndp-oja", **PAPER_NET), **common)
     try:
         from sb3_contrib import RecurrentPPO
 
@@ -87,9 +90,9 @@ def main(argv=None) -> int:
     except ImportError:
         print("sb3-contrib not installed (pip install -e '.[bench]'): RecurrentPPO skipped", file=sys.stderr)
     labels = {"mlp": "SB3 PPO MlpPolicy", "recurrent": "sb3-contrib RecurrentPPO", "static": "SpikePlastic static",
-              "ndp-oja": "SpikePlastic ndp-oja"}
+              "ndp-oja": "SpikePlastic ndp-oja", "ndp-oja-eager": "SpikePlastic ndp-oja, no CUDA graphs"}
     rows = [run(labels[k], candidates[k], args.rollouts * per_rollout, per_rollout)
-            for k in ("mlp", "recurrent", "static", "ndp-oja") if k in candidates and (not args.only or k in args.only)]
+            for k in labels if k in candidates and (not args.only or k in args.only)]
     by_name = {r["name"]: r for r in rows}
     ratio = None
     if labels["recurrent"] in by_name and labels["ndp-oja"] in by_name:

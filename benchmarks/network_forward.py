@@ -15,6 +15,7 @@ Usage::
 
     python benchmarks/network_forward.py                 # table + benchmarks/results/network_forward.json
     python benchmarks/network_forward.py --threads 2 --batch 8 --steps 50 --rules ndp-oja
+    python benchmarks/network_forward.py --profile --device cuda   # where the time goes (torch.profiler table)
 """
 
 from __future__ import annotations
@@ -52,7 +53,8 @@ def median_time(fn, repeats: int, warmup: int) -> float:
     return statistics.median(times)
 
 
-def bench(rule: str, batch: int, steps: int, chunk: int, repeats: int, warmup: int, device: str) -> dict:
+def workload(rule: str, batch: int, steps: int, chunk: int, device: str):
+    """``(forward, forward_backward, sync)`` closures over a paper-size network that has run a few steps."""
     torch.manual_seed(0)
     net = paper_network(rule, steps).to(device)
     g = torch.Generator().manual_seed(1)
@@ -77,10 +79,32 @@ def bench(rule: str, batch: int, steps: int, chunk: int, repeats: int, warmup: i
         loss.backward()
 
     sync = torch.cuda.synchronize if device.startswith("cuda") else (lambda: None)
+    return forward, forward_backward, sync
+
+
+def bench(rule: str, batch: int, steps: int, chunk: int, repeats: int, warmup: int, device: str) -> dict:
+    forward, forward_backward, sync = workload(rule, batch, steps, chunk, device)
     fwd = median_time(lambda: (forward(), sync()), repeats, warmup)
     fb = median_time(lambda: (forward_backward(), sync()), max(3, repeats // 4), 1) / chunk
     return dict(rule=rule, batch=batch, steps=steps, forward_ms=1e3 * fwd, forward_backward_ms=1e3 * fb,
                 forward_us_per_env=1e6 * fwd / batch, forward_backward_us_per_env=1e6 * fb / batch)
+
+
+def profile(args: argparse.Namespace) -> int:
+    from torch.profiler import ProfilerActivity
+    from torch.profiler import profile as torch_profile
+
+    _, forward_backward, sync = workload(args.rules[0], max(args.batch), max(args.steps), args.chunk, args.device)
+    for _ in range(2):
+        forward_backward()
+    sync()
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if args.device.startswith("cuda") else [])
+    with torch_profile(activities=activities) as prof:
+        forward_backward()
+        sync()
+    sort = "self_cuda_time_total" if args.device.startswith("cuda") else "self_cpu_time_total"
+    print(prof.key_averages().table(sort_by=sort, row_limit=30))
+    return 0
 
 
 def main(argv=None) -> int:
@@ -94,9 +118,14 @@ def main(argv=None) -> int:
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--output", type=Path, default=RESULTS)
+    parser.add_argument("--profile", action="store_true",
+                        help="instead of timing, print torch.profiler's op table for forward+backward of the first "
+                             "rule at the largest batch and T")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     keep_freed_memory()  # as `sb3-spikeplastic train` does
+    if args.profile:
+        return profile(args)
 
     rows = []
     header = f"{'rule':8s} {'B':>4s} {'T':>4s} | {'fwd ms/step':>11s} {'us/env':>8s} | {'fwd+bwd ms/step':>15s} {'us/env':>8s}"

@@ -50,36 +50,39 @@ class RolloutActivity:
         self.reset()
 
     def reset(self) -> None:
-        n = len(self.network.layers)
         self.steps = 0
-        self.rate = [0.0] * n
-        self.silent = [0.0] * n
-        self.mod_sum = [0.0] * n
-        self.mod_sq = [0.0] * n
+        # (n_layers, 4) sums on the network's device: rate, silent fraction, modulation, modulation squared. Kept
+        # there until `record`, so that a rollout step never waits for the device (which would stall a GPU).
+        self._sums: Optional[torch.Tensor] = None
 
     @torch.no_grad()
     def add(self, out: NetworkOutput) -> None:
         """Accumulate one rollout step's rates (all environments)."""
         self.steps += 1
-        for i, (layer, r) in enumerate(zip(self.network.layers, out.rates)):
-            self.rate[i] += r.mean().item()
-            self.silent[i] += (r == 0).float().mean().item()
+        rows = []
+        for layer, r in zip(self.network.layers, out.rates):
             if layer.plastic and layer.rule.modulated:
                 m = layer.rule.modulation(r)
-                self.mod_sum[i] += m.mean().item()
-                self.mod_sq[i] += m.pow(2).mean().item()
+                modulation = (m.mean(), m.pow(2).mean())
+            else:
+                modulation = (r.new_zeros(()), r.new_zeros(()))
+            rows.append(torch.stack([r.mean(), (r == 0).float().mean(), *modulation]))
+        stats = torch.stack(rows)
+        self._sums = stats if self._sums is None else self._sums + stats
 
     @torch.no_grad()
     def record(self, logger: Logger, state: NetworkState) -> None:
         """Write the statistics of the rollout and of the final traces to ``logger``."""
         if self.steps == 0:
             return
+        means = (self._sums.double() / self.steps).tolist()
         log_std = getattr(self.policy, "log_std", None)
         if isinstance(log_std, torch.Tensor):
             logger.record("snn/action_std", torch.exp(log_std).mean().item())
         for i, (layer, layer_state) in enumerate(zip(self.network.layers, state.layers)):
-            logger.record(f"snn/layer{i}/spike_rate", self.rate[i] / self.steps)
-            logger.record(f"snn/layer{i}/silent_fraction", self.silent[i] / self.steps)
+            rate, silent, modulation, modulation_sq = means[i]
+            logger.record(f"snn/layer{i}/spike_rate", rate)
+            logger.record(f"snn/layer{i}/silent_fraction", silent)
             if not layer.plastic:
                 continue
             rule, trace = layer.rule, layer_state.plastic.trace
@@ -88,9 +91,8 @@ class RolloutActivity:
             logger.record(f"plasticity/layer{i}/trace_abs_mean", trace.abs().mean().item())
             logger.record(f"plasticity/layer{i}/trace_clip_fraction", (trace.abs() >= 0.99 * rule.e_max).float().mean().item())
             if rule.modulated:
-                mean = self.mod_sum[i] / self.steps
-                logger.record(f"plasticity/layer{i}/modulation_mean", mean)
-                logger.record(f"plasticity/layer{i}/modulation_std", max(self.mod_sq[i] / self.steps - mean**2, 0.0) ** 0.5)
+                logger.record(f"plasticity/layer{i}/modulation_mean", modulation)
+                logger.record(f"plasticity/layer{i}/modulation_std", max(modulation_sq - modulation**2, 0.0) ** 0.5)
 
 
 # --------------------------------------------------------------------------------------------------------------------

@@ -30,11 +30,15 @@ class NetworkState(NamedTuple):
     layers: tuple[LayerState, ...]
     noise_key: Tensor
 
-    def reset(self, episode_start: Tensor) -> "NetworkState":
+    def reset(self, episode_start: Tensor, sync_free: bool = False) -> "NetworkState":
         """The state with every environment where ``episode_start`` is 1 set back to its initial value (zeros):
-        ``state * (1 - episode_start)``."""
+        ``state * (1 - episode_start)``.
+
+        :param sync_free: always multiply, never ask the device whether any episode starts (a host
+            synchronisation, which CUDA-graph capture forbids); the values are the same (``x * 1`` is exact).
+        """
         episode_start = episode_start.to(self.noise_key.device)
-        if not bool(episode_start.any()):
+        if not sync_free and not bool(episode_start.any()):
             # Most steps start no episode: skip a pass over every trace-sized tensor (and its autograd node).
             return self
         keep = 1.0 - episode_start.float()
@@ -248,11 +252,13 @@ class SpikingPlasticNetwork(nn.Module):
             )
         return NetworkOutput(self.decoder(rates[-1]), rates, rec), new_state
 
-    def forward_sequence(self, obs: Tensor, episode_start: Tensor, state: NetworkState) -> tuple[list[NetworkOutput], NetworkState]:
+    def forward_sequence(self, obs: Tensor, episode_start: Tensor, state: NetworkState,
+                         sync_free: bool = False) -> tuple[list[NetworkOutput], NetworkState]:
         """Run a sequence ``obs`` of shape ``(L, batch, ...)`` from ``state``, resetting where ``episode_start``
-        ``(L, batch)`` is 1 (truncated BPTT through the whole sequence, traces included)."""
+        ``(L, batch)`` is 1 (truncated BPTT through the whole sequence, traces included); ``sync_free`` as in
+        :meth:`NetworkState.reset`."""
         outputs = []
         for k in range(obs.shape[0]):
-            out, state = self(obs[k], state.reset(episode_start[k]))
+            out, state = self(obs[k], state.reset(episode_start[k], sync_free))
             outputs.append(out)
         return outputs, state

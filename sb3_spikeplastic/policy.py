@@ -217,8 +217,12 @@ class SpikePlasticPolicy(ActorCriticPolicy):
              action_masks: Optional[Tensor] = None):
         """One rollout step: ``(actions, values, log_probs, new_state, network_output)`` after resetting the state
         where ``episode_start`` is 1; ``action_masks`` ``(batch, n_actions)`` (``Discrete`` only) closes actions."""
-        obs = self._preprocess(obs)
-        out, new_state = self.snn(obs, state.reset(episode_start))
+        return self._step(self._preprocess(obs), state, episode_start, deterministic, action_masks)
+
+    def _step(self, obs: Tensor, state: NetworkState, episode_start: Tensor, deterministic: bool = False,
+              action_masks: Optional[Tensor] = None, sync_free: bool = False):
+        """:meth:`step` of already preprocessed ``obs``; ``sync_free`` as in :meth:`_evaluate_sequence`."""
+        out, new_state = self.snn(obs, state.reset(episode_start, sync_free))
         distribution = self._distribution(out, action_masks)
         actions = distribution.get_actions(deterministic=deterministic)
         log_prob = distribution.log_prob(actions)
@@ -243,7 +247,13 @@ class SpikePlasticPolicy(ActorCriticPolicy):
             (time-major), ``outputs`` the per-step :class:`~sb3_spikeplastic.network.NetworkOutput`.
         """
         obs = self._preprocess(obs.flatten(0, 1)).view(obs.shape[0], obs.shape[1], *self.observation_space.shape)
-        outputs, _ = self.snn.forward_sequence(obs, episode_starts, state)
+        return self._evaluate_sequence(obs, actions, episode_starts, state, action_masks)
+
+    def _evaluate_sequence(self, obs: Tensor, actions: Tensor, episode_starts: Tensor, state: NetworkState,
+                           action_masks: Optional[Tensor], sync_free: bool = False):
+        """:meth:`evaluate_actions_sequence` of already preprocessed ``obs``; with ``sync_free`` no operation
+        waits for the device (for CUDA-graph capture, :mod:`sb3_spikeplastic.cuda_graphs`)."""
+        outputs, _ = self.snn.forward_sequence(obs, episode_starts, state, sync_free)
         merged = NetworkOutput(torch.cat([o.action for o in outputs]),
                                tuple(torch.cat(r) for r in zip(*[o.rates for o in outputs])), None)
         distribution = self._distribution(merged, None if action_masks is None else action_masks.flatten(0, 1))

@@ -28,6 +28,7 @@ from stable_baselines3.common.vec_env import VecEnv
 from torch import Tensor
 from torch.nn import functional as F
 
+from .cuda_graphs import GraphedRolloutStep, GraphedSequenceEvaluation
 from .monitoring import RolloutActivity
 from .network import NetworkState, map_tensors
 from .policy import SpikePlasticPolicy
@@ -136,6 +137,11 @@ class PPO(SB3PPO):
         ``Discrete`` actions then samples only open actions and is trained with the same masks. Where one action
         is open, its log-probability is 0 and the step adds no policy gradient: on tasks that ignore most actions
         (the cue T-maze acts once per episode, as in the paper) this removes the noise of the ignored ones.
+    :param cuda_graphs: on a CUDA device, replay each rollout step and each minibatch's forward and backward
+        pass as CUDA graphs (:mod:`sb3_spikeplastic.cuda_graphs`): the same values and gradients as eager
+        PyTorch (the rollout's action samples use other random numbers of the same distribution), without the
+        hundreds of kernel launches per environment step that otherwise bound the GPU by the host. Ignored on
+        the CPU.
     Other parameters as :class:`stable_baselines3.PPO`; ``batch_size`` keeps its meaning (transitions per
     minibatch), so a minibatch holds ``batch_size // bptt_steps`` chunks.
     """
@@ -175,9 +181,11 @@ class PPO(SB3PPO):
         bptt_steps: int = 32,
         grad_clip: str = "global",
         use_action_masks: bool = False,
+        cuda_graphs: bool = True,
         _init_setup_model: bool = True,
     ):
         self.bptt_steps = int(bptt_steps)
+        self.cuda_graphs = bool(cuda_graphs)
         if grad_clip not in GRAD_CLIP_MODES:
             raise ValueError(f"unknown grad_clip {grad_clip!r}; accepted: {', '.join(GRAD_CLIP_MODES)}")
         self.grad_clip = grad_clip
@@ -233,13 +241,44 @@ class PPO(SB3PPO):
             self.rollout_buffer_kwargs = {**(self.rollout_buffer_kwargs or {}), "chunk_len": self.bptt_steps}
         super()._setup_model()
         self._last_network_state: Optional[NetworkState] = None
+        self._graphed_evaluation: Optional[GraphedSequenceEvaluation] = None
+        self._graphed_step: Optional[GraphedRolloutStep] = None
         if self.recurrent:
             self._last_network_state = self.policy.initial_state(self.n_envs, seed=self.seed or 0)
             self.rollout_activity = RolloutActivity(self.policy.snn, self.policy)
 
     def _excluded_save_params(self) -> list[str]:
         # The rollout state belongs to the running environments, not to the model.
-        return [*super()._excluded_save_params(), "_last_network_state", "rollout_activity"]
+        return [*super()._excluded_save_params(), "_last_network_state", "rollout_activity", "_graphed_evaluation",
+                "_graphed_step"]
+
+    def _training_evaluation(self):
+        """``(obs, actions, starts, states, masks) -> (values, log_prob, entropy)`` for the update: CUDA graphs
+        where enabled and on a CUDA device, else the policy's eager ``evaluate_actions_sequence``."""
+        if self.cuda_graphs and self.device.type == "cuda":
+            if self._graphed_evaluation is None:
+                self._graphed_evaluation = GraphedSequenceEvaluation(self.policy)
+            return self._graphed_evaluation
+        return lambda *batch: self.policy.evaluate_actions_sequence(*batch)[:3]
+
+    def _rollout_step(self):
+        """``policy.step`` for rollouts: a replayed CUDA graph where enabled and on a CUDA device."""
+        if self.cuda_graphs and self.device.type == "cuda":
+            if self._graphed_step is None:
+                self._graphed_step = GraphedRolloutStep(self.policy)
+            return self._graphed_step
+        return self.policy.step
+
+    def predict(self, observation, state=None, episode_start=None, deterministic: bool = False,
+                action_masks: Optional[np.ndarray] = None):
+        """SB3's ``predict``, plus ``action_masks`` ``(n_envs, n_actions)`` as in sb3-contrib's ``MaskablePPO``
+        (recurrent :class:`SpikePlasticPolicy` and ``Discrete`` actions only)."""
+        if action_masks is None:
+            return super().predict(observation, state, episode_start, deterministic)
+        if not self.recurrent:
+            raise ValueError("action_masks needs a recurrent SpikePlasticPolicy; for feed-forward policies use "
+                             "sb3-contrib's MaskablePPO")
+        return self.policy.predict(observation, state, episode_start, deterministic, action_masks=action_masks)
 
     # --------------------------------------------------------------------------------------------------------------
 
@@ -254,6 +293,7 @@ class PPO(SB3PPO):
         self.rollout_activity.reset()
         callback.on_rollout_start()
         state = self._last_network_state
+        step = self._rollout_step()
         while n_steps < n_rollout_steps:
             if n_steps % self.bptt_steps == 0:
                 rollout_buffer.add_snapshot(state)
@@ -261,7 +301,7 @@ class PPO(SB3PPO):
                 obs_tensor = obs_as_tensor(self._last_obs, self.device)
                 starts = torch.as_tensor(self._last_episode_starts, dtype=torch.float32, device=self.device)
                 masks = np.stack(env.env_method("action_masks")) if self.use_action_masks else None
-                actions, values, log_probs, state, out = self.policy.step(
+                actions, values, log_probs, state, out = step(
                     obs_tensor, state, starts, action_masks=None if masks is None else torch.as_tensor(masks, device=self.device))
             self.rollout_activity.add(out)
             actions = actions.cpu().numpy()
@@ -321,10 +361,11 @@ class PPO(SB3PPO):
         approx_kl_divs: list[float] = []
         continue_training = True
         loss = torch.zeros(())
+        evaluate = self._training_evaluation()
         for epoch in range(self.n_epochs):
             approx_kl_divs = []
             for batch in self.rollout_buffer.get_chunks(self.batch_size // self.bptt_steps):
-                values, log_prob, entropy, _ = self.policy.evaluate_actions_sequence(
+                values, log_prob, entropy = evaluate(
                     batch.observations, batch.actions, batch.episode_starts, batch.states, batch.action_masks)
                 values = values.flatten()
                 advantages = batch.advantages.flatten()

@@ -234,16 +234,78 @@ def test_no_compile_at_import():
     subprocess.run([sys.executable, "-c", code], check=True, env=env, timeout=120)
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.fixture
+def compiled_cuda(monkeypatch):
+    """The CUDA op (built on first use); skips without a CUDA device or, naming the error, where it cannot be built."""
+    if not torch.cuda.is_available():
+        pytest.skip("needs a CUDA device")
+    monkeypatch.delenv(_fast.NO_COMPILE_ENV, raising=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        ops = _fast.load_cuda_ops()
+    if ops is None:
+        pytest.skip(f"CUDA op unavailable: {_fast._cuda_error}")
+    return ops.srm_loop
+
+
+def to_cuda(syn, state):
+    return syn.cuda(), AlphaFilterState(state.h1.cuda(), state.h2.cuda())
+
+
+def to_cpu(result):
+    spikes, membrane, state = result
+    return spikes.cpu(), membrane.cpu(), AlphaFilterState(state.h1.cpu(), state.h2.cpu())
+
+
+@pytest.mark.parametrize("p", PARAMS, ids=PARAM_IDS)
 @pytest.mark.parametrize("dtype", DTYPES, ids=["f32", "f64"])
-def test_fallback_on_cuda_matches_cpu(dtype):
+@pytest.mark.parametrize("shape", [(1, 1, 1), (3, 50, 129), (64, 50, 600), (2, 7, 1000)])
+def test_cuda_kernel_is_bit_identical_to_eager_cuda(compiled_cuda, p, dtype, shape):
+    """The CUDA kernel against the eager loop on the same GPU (odd sizes: partial blocks, one neuron)."""
+    syn, state = to_cuda(*random_case(*shape, dtype, p, seed=sum(shape)))
+    d, kappa = constants(p)
+    out = compiled_cuda(syn, state.h1, state.h2, d, kappa, p.theta)
+    spikes, membrane, ref_state = _srm_spike_loop_reference(syn, state, p)
+    assert out[0].is_cuda
+    if out[0].numel() > 100:
+        assert 0 < out[0].mean() < 1  # spikes and silence both occur
+    assert_identical((out[0], out[1], AlphaFilterState(out[2], out[3])), (spikes, membrane, ref_state))
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=["f32", "f64"])
+def test_cuda_matches_cpu(compiled_cuda, dtype):
+    """CUDA kernel, CPU compiled loop and CPU eager loop all agree bit for bit (no contracted multiply-adds)."""
     p = PARAMS[1]
     syn, state = random_case(8, 50, 64, dtype, p, seed=11)
     cpu = srm_spike_loop(syn, state, p)
-    cuda_state = AlphaFilterState(state.h1.cuda(), state.h2.cuda())
-    gpu = srm_spike_loop(syn.cuda(), cuda_state, p)
+    gpu = srm_spike_loop(*to_cuda(syn, state), p)
     assert gpu[0].device.type == "cuda"
-    assert_identical(tuple(x.cpu() for x in gpu[:2]) + (AlphaFilterState(gpu[2].h1.cpu(), gpu[2].h2.cpu()),), cpu)
+    assert_identical(to_cpu(gpu), cpu)
+
+
+def test_cuda_env_var_and_build_failure_fall_back(monkeypatch):
+    if not torch.cuda.is_available():
+        pytest.skip("needs a CUDA device")
+    p = PARAMS[0]
+    syn, state = to_cuda(*random_case(4, 20, 33, torch.float32, p, seed=5))
+    reference = _srm_spike_loop_reference(syn, state, p)
+    monkeypatch.setenv(_fast.NO_COMPILE_ENV, "1")
+    d, kappa = constants(p)
+    assert _fast.srm_loop(syn, state.h1, state.h2, d, kappa, p.theta) is None
+    monkeypatch.delenv(_fast.NO_COMPILE_ENV)
+    monkeypatch.setattr(_fast, "_cuda_tried", False)
+    monkeypatch.setattr(_fast, "_cuda_ops", None)
+
+    def no_nvcc():
+        raise RuntimeError("nvcc not found")
+
+    monkeypatch.setattr(_fast, "_build_cuda", no_nvcc)
+    with pytest.warns(RuntimeWarning, match="CUDA spike loop.*same results but is slower") as record:
+        a = srm_spike_loop(syn, state, p)
+        b = srm_spike_loop(syn, state, p)
+    assert len([w for w in record if issubclass(w.category, RuntimeWarning)]) == 1
+    assert_identical(a, reference)
+    assert_identical(b, reference)
 
 
 def test_numpy_oracle_float32():

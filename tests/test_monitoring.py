@@ -67,8 +67,8 @@ def test_rollout_scalars_action_std_for_continuous_actions():
     env = DummyVecEnv([lambda: gym.make("Pendulum-v1", max_episode_steps=20)])
     model = PPO("SpikePlasticPolicy", env, n_steps=16, batch_size=16, bptt_steps=8, n_epochs=1, seed=0,
                 policy_kwargs=dict(rule="dp-oja", log_std_init=-0.5, **SMALL))
-    model.rollout_activity.add(model.policy.step(torch.zeros(1, 3), model.policy.initial_state(1),
-                                                 torch.ones(1))[-1])
+    model.rollout_activity.add(model.policy.step(torch.zeros(1, 3, device=model.device), model.policy.initial_state(1),
+                                                 torch.ones(1, device=model.device))[-1])
     capture = Capture()
     model.rollout_activity.record(capture, model.policy.initial_state(1))
     assert capture.values["snn/action_std"] == pytest.approx(np.exp(-0.5), rel=1e-6)

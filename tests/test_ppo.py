@@ -74,12 +74,12 @@ def test_rollout_state_reset_exactly_at_episode_starts():
     model = PPO("SpikePlasticPolicy", vec(lambda: gym.make("CartPole-v1"), 2), n_steps=16, batch_size=16,
                 bptt_steps=8, seed=0, policy_kwargs=policy_kwargs)
     policy = model.policy
-    obs = torch.zeros(2, 4)
+    obs = torch.zeros(2, 4, device=model.device)
     state = policy.initial_state(2)
     with torch.no_grad():
         for _ in range(3):
-            _, _, _, state, _ = policy.step(obs, state, torch.zeros(2))
-        reset = state.reset(torch.tensor([1.0, 0.0]))
+            _, _, _, state, _ = policy.step(obs, state, torch.zeros(2, device=model.device))
+        reset = state.reset(torch.tensor([1.0, 0.0], device=model.device))
     fresh = policy.initial_state(2)
     for got, want, old in zip(_leaves(reset.layers), _leaves(fresh.layers), _leaves(state.layers)):
         assert torch.equal(got[0], want[0]) and torch.equal(got[1], old[1])
@@ -225,7 +225,7 @@ def test_grad_clip_modes(mode):
     params = [p for p in model.policy.parameters()]
     g = torch.Generator().manual_seed(0)
     for i, p in enumerate(params):
-        p.grad = torch.randn(p.shape, generator=g) * (1e6 if i == 0 else 1e-3)
+        p.grad = (torch.randn(p.shape, generator=g) * (1e6 if i == 0 else 1e-3)).to(p.device)
     before = [p.grad.clone() for p in params]
     total = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(b) for b in before])).item()
     assert model._clip_gradients() == pytest.approx(total, rel=1e-5)

@@ -15,14 +15,19 @@
 * :func:`bernoulli_spikes` (``bernoulli.cpp``), for :meth:`sb3_spikeplastic.coding.CounterBernoulli.sample`:
   the hash sampler in one pass instead of ~12, **bit-identical** (integer hashing, exact comparisons).
 
-They are compiled together with :func:`torch.utils.cpp_extension.load` the first time one is needed (never at
-import) and cached on disk.
+On CUDA, :func:`srm_loop` runs ``srm_loop_cuda.cu`` instead: one thread per neuron walks the interval's steps,
+one launch per layer where eager PyTorch launches ~350 kernels (T = 50), **bit-identical** to the eager loop on
+the same GPU. The other three fall back to eager PyTorch on CUDA, where their few large ops are already fast.
+
+The CPU ops are compiled together with :func:`torch.utils.cpp_extension.load` the first time one is needed (never
+at import) and cached on disk; the CUDA op likewise, the first time a CUDA tensor needs it (needs ``nvcc``).
 
 * Build directory: ``$SB3_SPIKEPLASTIC_BUILD_DIR`` if set, else
-  ``${XDG_CACHE_HOME:-~/.cache}/sb3_spikeplastic/<python>_<torch>_<cpu-flags>``. Building needs a C++ compiler
-  and ``ninja`` and takes ~10-30 s once; later processes only load the cached library (~0.3 s).
+  ``${XDG_CACHE_HOME:-~/.cache}/sb3_spikeplastic/<python>_<torch>_<cpu-flags>`` (the CUDA op in its
+  ``cuda<version>_sm<arch>`` subfolder). Building needs a C++ compiler and ``ninja`` and takes ~10-30 s once;
+  later processes only load the cached library (~0.3 s).
 * ``SB3_SPIKEPLASTIC_NO_COMPILE=1`` disables the compiled path (read at every call), for tests and debugging.
-* If the build fails, a single :class:`RuntimeWarning` is issued and the pure-PyTorch code is used instead; it
+* If a build fails, a single :class:`RuntimeWarning` is issued and the pure-PyTorch code is used instead; it
   gives the same results, only slower.
 """
 
@@ -41,8 +46,8 @@ from typing import Any, Optional
 import torch
 from torch import Tensor
 
-__all__ = ["NO_COMPILE_ENV", "bernoulli_spikes", "build_directory", "compiled_disabled", "load_ops",
-           "plastic_linear", "srm_loop", "trace_step"]
+__all__ = ["NO_COMPILE_ENV", "bernoulli_spikes", "build_directory", "compiled_disabled", "load_cuda_ops",
+           "load_ops", "plastic_linear", "srm_loop", "trace_step"]
 
 NO_COMPILE_ENV = "SB3_SPIKEPLASTIC_NO_COMPILE"
 BUILD_DIR_ENV = "SB3_SPIKEPLASTIC_BUILD_DIR"
@@ -50,10 +55,16 @@ _EXTENSION = "sb3_spikeplastic_fast"
 _SOURCES = [Path(__file__).with_name(name)
             for name in ("srm_loop.cpp", "trace_step.cpp", "plastic_linear.cpp", "bernoulli.cpp")]
 
+_CUDA_EXTENSION = "sb3_spikeplastic_fast_cuda"
+_CUDA_SOURCES = [Path(__file__).with_name("srm_loop_cuda.cu")]
+
 _lock = threading.Lock()
 _tried = False
 _ops: Optional[Any] = None
 _error: Optional[str] = None
+_cuda_tried = False
+_cuda_ops: Optional[Any] = None
+_cuda_error: Optional[str] = None
 
 
 def compiled_disabled() -> bool:
@@ -126,10 +137,10 @@ def _clear_stale_lock(directory: Path, max_age_s: float = 600.0) -> None:
             pass
 
 
-def _build() -> Any:
+def _compile(name: str, sources: list[Path], directory: Path, **options: Any) -> None:
+    """:func:`torch.utils.cpp_extension.load` into ``directory``, with ``ninja`` found where pip puts it."""
     from torch.utils import cpp_extension
 
-    directory = build_directory()
     directory.mkdir(parents=True, exist_ok=True)
     _clear_stale_lock(directory)
     path = os.environ.get("PATH", "")
@@ -137,49 +148,80 @@ def _build() -> Any:
     if extra:  # torch runs `ninja` from PATH
         os.environ["PATH"] = extra + os.pathsep + path
     try:
-        cpp_extension.load(
-            name=_EXTENSION,
-            sources=[str(source) for source in _SOURCES],
-            extra_cflags=_cflags(),
-            extra_ldflags=["-fopenmp"],
-            build_directory=str(directory),
-            with_cuda=False,
-            is_python_module=False,
-            verbose=False,
-        )
+        cpp_extension.load(name=name, sources=[str(source) for source in sources], build_directory=str(directory),
+                           is_python_module=False, verbose=False, **options)
     finally:
         if extra:
             os.environ["PATH"] = path
+
+
+def _build() -> Any:
+    _compile(_EXTENSION, _SOURCES, build_directory(), extra_cflags=_cflags(), extra_ldflags=["-fopenmp"],
+             with_cuda=False)
     return torch.ops.sb3_spikeplastic_fast
 
 
+def _build_cuda() -> Any:
+    major, minor = torch.cuda.get_device_capability()
+    # One build per CUDA version and GPU architecture: a cache shared between machines cannot mix them.
+    directory = build_directory() / f"cuda{torch.version.cuda}_sm{major}{minor}"
+    _compile(_CUDA_EXTENSION, _CUDA_SOURCES, directory, extra_cflags=["-O3"],
+             extra_cuda_cflags=["-O3", "-fmad=false"], with_cuda=True)
+    return torch.ops.sb3_spikeplastic_cuda
+
+
+def _try_build(build, what: str) -> tuple[Optional[Any], Optional[str]]:
+    """``(ops, None)``, or ``(None, error)`` after one warning when the build fails."""
+    try:
+        return build(), None
+    except Exception as exc:  # no compiler, no ninja/nvcc, failed build, failed load
+        message = " ".join(str(exc).split())
+        error = f"{type(exc).__name__}: {message[:200]}{'...' if len(message) > 200 else ''}"
+        # A failed build's message starts with the compiler's command line; its first "error" line says why.
+        reason = next((line.strip() for line in str(exc).splitlines()[1:] if "error" in line.lower()), None)
+        if reason:
+            error += f" [{reason[:300]}]"
+        warnings.warn(f"sb3_spikeplastic: could not build the compiled {what} ({error}); using pure PyTorch, "
+                      "which gives the same results but is slower.", RuntimeWarning, stacklevel=4)
+        return None, error
+
+
 def load_ops() -> Optional[Any]:
-    """The compiled ops' namespace, building them on the first call; ``None`` if the build failed (after one
+    """The compiled CPU ops' namespace, building them on the first call; ``None`` if the build failed (after one
     warning)."""
     global _tried, _ops, _error
     if _tried:
         return _ops
     with _lock:
         if not _tried:
-            try:
-                _ops = _build()
-            except Exception as exc:  # no compiler, no ninja, failed build, failed load
-                message = " ".join(str(exc).split())
-                _error = f"{type(exc).__name__}: {message[:200]}{'...' if len(message) > 200 else ''}"
-                warnings.warn(
-                    "sb3_spikeplastic: could not build the compiled inner loops "
-                    f"({_error}); using pure PyTorch, which gives the same results but is slower.",
-                    RuntimeWarning,
-                    stacklevel=3,
-                )
+            _ops, _error = _try_build(_build, "inner loops")
             _tried = True
     return _ops
+
+
+def load_cuda_ops() -> Optional[Any]:
+    """The CUDA op's namespace, building it on the first call; ``None`` without CUDA or if the build failed (after
+    one warning)."""
+    global _cuda_tried, _cuda_ops, _cuda_error
+    if _cuda_tried:
+        return _cuda_ops
+    with _lock:
+        if not _cuda_tried:
+            _cuda_ops, _cuda_error = _try_build(_build_cuda, "CUDA spike loop")
+            _cuda_tried = True
+    return _cuda_ops
 
 
 def _enabled_ops() -> Optional[Any]:
     if NO_COMPILE_ENV in os.environ and compiled_disabled():
         return None
     return _ops if _tried else load_ops()
+
+
+def _enabled_cuda_ops() -> Optional[Any]:
+    if NO_COMPILE_ENV in os.environ and compiled_disabled():
+        return None
+    return _cuda_ops if _cuda_tried else load_cuda_ops()
 
 
 def _cpu_float_operands(first: Tensor, *others: Tensor) -> bool:
@@ -196,23 +238,23 @@ def srm_loop(
 ) -> Optional[tuple[Tensor, Tensor, Tensor, Tensor]]:
     """Run the compiled recursion, or return ``None`` when it does not apply (then use the PyTorch loop).
 
-    It applies to CPU float32/float64 tensors ``synaptic (batch, L, n)`` and ``h1, h2 (batch, n)`` of one dtype,
-    unless disabled by ``SB3_SPIKEPLASTIC_NO_COMPILE`` or the build failed. Returns
-    ``(spikes, membrane, h1, h2)``, which never carry autograd history.
+    It applies to float32/float64 tensors ``synaptic (batch, L, n)`` and ``h1, h2 (batch, n)`` of one dtype, all
+    on the CPU (``srm_loop.cpp``) or all on one CUDA device (``srm_loop_cuda.cu``), unless disabled by
+    ``SB3_SPIKEPLASTIC_NO_COMPILE`` or the build failed. Returns ``(spikes, membrane, h1, h2)``, which never carry
+    autograd history.
     """
-    if not (
-        _cpu_float_operands(synaptic, h1, h2)
-        and synaptic.dim() == 3
-        and h1.shape == h2.shape == (synaptic.shape[0], synaptic.shape[2])
-    ):
+    if not (synaptic.dim() == 3 and h1.shape == h2.shape == (synaptic.shape[0], synaptic.shape[2])):
         return None
-    ops = _enabled_ops()
+    if synaptic.is_cuda:
+        usable = (synaptic.dtype in (torch.float32, torch.float64)
+                  and all(t.dtype is synaptic.dtype and t.device == synaptic.device for t in (h1, h2)))
+        ops = _enabled_cuda_ops() if usable else None
+    else:
+        ops = _enabled_ops() if _cpu_float_operands(synaptic, h1, h2) else None
     if ops is None:
         return None
-    if torch.is_grad_enabled() and (synaptic.requires_grad or h1.requires_grad or h2.requires_grad):
-        with torch.no_grad():
-            return ops.srm_loop(synaptic, h1, h2, d, kappa, theta)
-    return ops.srm_loop(synaptic, h1, h2, d, kappa, theta)
+    with torch.no_grad():
+        return ops.srm_loop(synaptic, h1, h2, d, kappa, theta)
 
 
 class _TraceStep(torch.autograd.Function):
