@@ -350,6 +350,54 @@ class PPO(SB3PPO):
             p.grad.mul_(torch.clamp(self.max_grad_norm / (norm + 1e-6), max=1.0))
         return torch.linalg.vector_norm(norms).item()
 
+    def _minibatch_losses(self, batch: ChunkSamples, evaluate, clip_range: float,
+                          clip_range_vf: Optional[float]) -> tuple[Tensor, dict[str, float]]:
+        """PPO's loss on one minibatch of chunks and its statistics (as floats)."""
+        values, log_prob, entropy = evaluate(
+            batch.observations, batch.actions, batch.episode_starts, batch.states, batch.action_masks)
+        values = values.flatten()
+        advantages = batch.advantages.flatten()
+        old_log_prob = batch.old_log_prob.flatten()
+        old_values, returns = batch.old_values.flatten(), batch.returns.flatten()
+        if self.normalize_advantage and len(advantages) > 1:
+            advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+        ratio = torch.exp(log_prob - old_log_prob)
+        policy_loss = -torch.min(advantages * ratio,
+                                 advantages * torch.clamp(ratio, 1 - clip_range, 1 + clip_range)).mean()
+        if clip_range_vf is None:
+            values_pred = values
+        else:
+            values_pred = old_values + torch.clamp(values - old_values, -clip_range_vf, clip_range_vf)
+        value_loss = F.mse_loss(returns, values_pred)
+        entropy_loss = -torch.mean(entropy) if entropy is not None else -torch.mean(-log_prob)
+        loss = policy_loss + self.ent_coef * entropy_loss + self.vf_coef * value_loss
+        with torch.no_grad():
+            log_ratio = log_prob - old_log_prob
+            approx_kl_div = torch.mean((torch.exp(log_ratio) - 1) - log_ratio)
+        stats = dict(policy_loss=policy_loss.item(), value_loss=value_loss.item(), entropy_loss=entropy_loss.item(),
+                     clip_fraction=torch.mean((torch.abs(ratio - 1) > clip_range).float()).item(),
+                     approx_kl=approx_kl_div.item())
+        return loss, stats
+
+    def _update_minibatch(self, batch: ChunkSamples, evaluate, clip_range: float,
+                          clip_range_vf: Optional[float]) -> tuple[dict[str, float], bool]:
+        """One gradient step on one minibatch: its statistics, and ``False`` (no step taken) when the KL early
+        stop triggers.
+
+        A method of its own so that the minibatch's autograd graph is gone when it returns: a graph kept alive
+        into the next minibatch (through a ``loss`` variable, say) would break a CUDA-graph capture there.
+        """
+        loss, stats = self._minibatch_losses(batch, evaluate, clip_range, clip_range_vf)
+        stats["loss"] = loss.item()
+        if self.target_kl is not None and stats["approx_kl"] > 1.5 * self.target_kl:
+            return stats, False
+        self.policy.optimizer.zero_grad()
+        loss.backward()
+        # Plastic traces make raw gradient norms span 1e1..1e12 across rules: clipping is essential.
+        stats["grad_norm"] = self._clip_gradients()
+        self.policy.optimizer.step()
+        return stats, True
+
     def train(self) -> None:
         if not self.recurrent:
             return super().train()
@@ -357,63 +405,37 @@ class PPO(SB3PPO):
         self._update_learning_rate(self.policy.optimizer)
         clip_range = self.clip_range(self._current_progress_remaining)
         clip_range_vf = None if self.clip_range_vf is None else self.clip_range_vf(self._current_progress_remaining)
-        entropy_losses, pg_losses, value_losses, clip_fractions, grad_norms = [], [], [], [], []
+        history: dict[str, list[float]] = {k: [] for k in ("policy_loss", "value_loss", "entropy_loss",
+                                                            "clip_fraction", "grad_norm", "loss")}
         approx_kl_divs: list[float] = []
         continue_training = True
-        loss = torch.zeros(())
         evaluate = self._training_evaluation()
         for epoch in range(self.n_epochs):
             approx_kl_divs = []
             for batch in self.rollout_buffer.get_chunks(self.batch_size // self.bptt_steps):
-                values, log_prob, entropy = evaluate(
-                    batch.observations, batch.actions, batch.episode_starts, batch.states, batch.action_masks)
-                values = values.flatten()
-                advantages = batch.advantages.flatten()
-                old_log_prob = batch.old_log_prob.flatten()
-                old_values, returns = batch.old_values.flatten(), batch.returns.flatten()
-                if self.normalize_advantage and len(advantages) > 1:
-                    advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
-                ratio = torch.exp(log_prob - old_log_prob)
-                policy_loss = -torch.min(advantages * ratio,
-                                         advantages * torch.clamp(ratio, 1 - clip_range, 1 + clip_range)).mean()
-                pg_losses.append(policy_loss.item())
-                clip_fractions.append(torch.mean((torch.abs(ratio - 1) > clip_range).float()).item())
-                if clip_range_vf is None:
-                    values_pred = values
-                else:
-                    values_pred = old_values + torch.clamp(values - old_values, -clip_range_vf, clip_range_vf)
-                value_loss = F.mse_loss(returns, values_pred)
-                value_losses.append(value_loss.item())
-                entropy_loss = -torch.mean(entropy) if entropy is not None else -torch.mean(-log_prob)
-                entropy_losses.append(entropy_loss.item())
-                loss = policy_loss + self.ent_coef * entropy_loss + self.vf_coef * value_loss
-                with torch.no_grad():
-                    log_ratio = log_prob - old_log_prob
-                    approx_kl_div = torch.mean((torch.exp(log_ratio) - 1) - log_ratio).item()
-                    approx_kl_divs.append(approx_kl_div)
-                if self.target_kl is not None and approx_kl_div > 1.5 * self.target_kl:
+                stats, stepped = self._update_minibatch(batch, evaluate, clip_range, clip_range_vf)
+                approx_kl_divs.append(stats.pop("approx_kl"))
+                for key, value in stats.items():
+                    history[key].append(value)
+                if not stepped:
                     continue_training = False
                     if self.verbose >= 1:
-                        print(f"Early stopping at step {epoch} due to reaching max kl: {approx_kl_div:.2f}")
+                        print(f"Early stopping at step {epoch} due to reaching max kl: {approx_kl_divs[-1]:.2f}")
                     break
-                self.policy.optimizer.zero_grad()
-                loss.backward()
-                # Plastic traces make raw gradient norms span 1e1..1e12 across rules: clipping is essential.
-                grad_norms.append(self._clip_gradients())
-                self.policy.optimizer.step()
             self._n_updates += 1
             if not continue_training:
                 break
         explained_var = explained_variance(self.rollout_buffer.values.flatten(), self.rollout_buffer.returns.flatten())
-        self.logger.record("train/entropy_loss", np.mean(entropy_losses))
-        self.logger.record("train/policy_gradient_loss", np.mean(pg_losses))
-        self.logger.record("train/value_loss", np.mean(value_losses))
+        self.logger.record("train/entropy_loss", np.mean(history["entropy_loss"]))
+        self.logger.record("train/policy_gradient_loss", np.mean(history["policy_loss"]))
+        self.logger.record("train/value_loss", np.mean(history["value_loss"]))
         self.logger.record("train/approx_kl", np.mean(approx_kl_divs))
-        self.logger.record("train/clip_fraction", np.mean(clip_fractions))
-        self.logger.record("train/loss", loss.item())
+        self.logger.record("train/clip_fraction", np.mean(history["clip_fraction"]))
+        if history["loss"]:
+            self.logger.record("train/loss", history["loss"][-1])
         self.logger.record("train/explained_variance", explained_var)
-        if grad_norms:
-            self.logger.record("train/grad_norm", float(np.median(grad_norms)))
+        if history["grad_norm"]:
+            self.logger.record("train/grad_norm", float(np.median(history["grad_norm"])))
         if hasattr(self.policy, "log_std"):
             self.logger.record("train/std", torch.exp(self.policy.log_std).mean().item())
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")

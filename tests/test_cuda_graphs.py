@@ -66,23 +66,26 @@ def test_capture_failure_warns_once_and_falls_back(monkeypatch):
         assert torch.equal(g, w) and torch.equal(a, w)
 
 
+def outputs_and_gradients(model, evaluate):
+    """``evaluate()``'s outputs and the parameter gradients of a loss over them, as detached copies (the autograd
+    graph is gone on return: a live one would break a later capture)."""
+    model.policy.zero_grad(set_to_none=True)
+    values, log_prob, entropy = evaluate()
+    (values.square().mean() + log_prob.mean() + 0.1 * entropy.mean()).backward()
+    grads = [None if p.grad is None else p.grad.clone() for p in model.policy.parameters() if p.requires_grad]
+    return [t.detach().clone() for t in (values, log_prob, entropy)], grads
+
+
 @needs_cuda
 @pytest.mark.parametrize("make_model", [tmaze_model, pendulum_model], ids=["tmaze-masks", "pendulum"])
 def test_graph_replay_equals_eager_values_and_gradients(make_model):
     """Two different minibatches through one captured graph (the second is a pure replay with new inputs)."""
     model = make_model("cuda", cuda_graphs=False)
     graphed = GraphedSequenceEvaluation(model.policy)
-    params = [p for p in model.policy.parameters() if p.requires_grad]
     for batch in first_batches(model, 2):
         args = (batch.observations, batch.actions, batch.episode_starts, batch.states, batch.action_masks)
-        results = []
-        for evaluate in (lambda: model.policy.evaluate_actions_sequence(*args)[:3], lambda: graphed(*args)):
-            model.policy.zero_grad(set_to_none=True)
-            values, log_prob, entropy = evaluate()
-            (values.square().mean() + log_prob.mean() + 0.1 * entropy.mean()).backward()
-            results.append(([t.detach().clone() for t in (values, log_prob, entropy)],
-                            [None if p.grad is None else p.grad.clone() for p in params]))
-        (eager_out, eager_grads), (graph_out, graph_grads) = results
+        eager_out, eager_grads = outputs_and_gradients(model, lambda: model.policy.evaluate_actions_sequence(*args)[:3])
+        graph_out, graph_grads = outputs_and_gradients(model, lambda: graphed(*args))
         for a, b in zip(graph_out, eager_out):
             torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-7)
         assert any(g is not None and g.abs().max() > 0 for g in eager_grads)
@@ -166,15 +169,15 @@ def test_graphed_rollout_step_samples_fresh_actions_and_respects_masks():
 
 
 @needs_cuda
-def test_learning_with_graphs_is_reproducible():
-    """The same seed gives the same model (the graphs' random numbers are seeded too), and it trains."""
-    models = [tmaze_model("cuda") for _ in range(2)]
-    before = {k: v.clone() for k, v in models[0].policy.state_dict().items()}
-    for model in models:
-        model.learn(3 * model.n_steps * model.n_envs)
-        assert model._graphed_step.error is None and model._graphed_evaluation.error is None
-    first, second = (m.policy.state_dict() for m in models)
-    assert any(not torch.equal(first[k], before[k]) for k in first)
-    for key, value in first.items():
+def test_learning_with_graphs_replays_and_trains():
+    """``learn`` on CUDA captures each graph once and then only replays; the model trains and stays finite. (Not
+    bitwise reproducible between runs: the backward of a gather adds with atomics on the GPU, graphs or not.)"""
+    model = tmaze_model("cuda")
+    before = {k: v.clone() for k, v in model.policy.state_dict().items()}
+    model.learn(3 * model.n_steps * model.n_envs)
+    assert model._graphed_step.error is None and len(model._graphed_step._graphs) == 1
+    assert model._graphed_evaluation.error is None and len(model._graphed_evaluation._graphed) == 1
+    after = model.policy.state_dict()
+    assert any(not torch.equal(after[k], before[k]) for k in after)
+    for key, value in after.items():
         assert torch.isfinite(value.float()).all(), key
-        assert torch.equal(second[key], value), key

@@ -237,3 +237,16 @@ def test_grad_clip_modes(mode):
         assert norms[0] == pytest.approx(1.0, rel=1e-4)
         for p, b in zip(params[1:], before[1:]):
             torch.testing.assert_close(p.grad, b)  # below the bound: unchanged
+
+
+def test_target_kl_stops_before_the_step_that_would_exceed_it():
+    """With a KL budget no step can meet, training takes the first minibatch's step (its KL is 0: nothing has
+    changed yet) and stops at the second, before stepping (SB3's early-stop semantics)."""
+    model = PPO("SpikePlasticPolicy", tmaze(2), n_steps=16, batch_size=16, bptt_steps=8, n_epochs=3, seed=0,
+                target_kl=1e-12, learning_rate=0.05, policy_kwargs=dict(hidden_sizes=[8]))
+    before = {k: v.clone() for k, v in model.policy.state_dict().items()}
+    model.learn(32)  # one rollout, two minibatches per epoch
+    after = model.policy.state_dict()
+    assert any(not torch.equal(after[k], before[k]) for k in before)
+    assert {int(state["step"]) for state in model.policy.optimizer.state.values()} == {1}
+    assert model.logger.name_to_value["train/approx_kl"] > 1.5e-12
