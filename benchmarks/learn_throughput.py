@@ -10,6 +10,8 @@ Usage (documented in the README)::
     pip install -e ".[bench]"
     python benchmarks/learn_throughput.py                      # prints a table, writes benchmarks/results/learn_throughput.json
     python benchmarks/learn_throughput.py --check              # compare the spiking/RecurrentPPO ratio with the committed result
+    python benchmarks/learn_throughput.py --device cuda        # all of them on the GPU (+ ndp-oja without CUDA graphs);
+                                                               # writes benchmarks/results/learn_throughput_cuda.json
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ import sb3_spikeplastic  # noqa: F401  (registers the environments)
 from sb3_spikeplastic import PPO
 
 RESULTS = Path(__file__).parent / "results" / "learn_throughput.json"
+RESULTS_CUDA = RESULTS.with_name("learn_throughput_cuda.json")  # --device cuda
 PAPER_NET = dict(hidden_sizes=[64, 64], steps=50, encoder_pop_size=50, action_pop_size=100)
 
 
@@ -62,10 +65,12 @@ def main(argv=None) -> int:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--only", nargs="*", help="subset of: mlp recurrent static ndp-oja ndp-oja-eager (CUDA only)")
-    parser.add_argument("--output", type=Path, default=RESULTS)
+    parser.add_argument("--output", type=Path, help=f"default: {RESULTS} ({RESULTS_CUDA.name} with --device cuda)")
     parser.add_argument("--check", action="store_true",
                         help="exit 1 if the spiking/RecurrentPPO ratio falls > 30%% below the committed baseline")
     args = parser.parse_args(argv)
+    if args.output is None:
+        args.output = RESULTS_CUDA if args.device.startswith("cuda") else RESULTS
     torch.set_num_threads(args.threads)
     keep_freed_memory()  # as `sb3-spikeplastic train` does
     per_rollout = args.n_envs * args.n_steps
@@ -101,7 +106,8 @@ def main(argv=None) -> int:
     result = dict(machine=describe_machine(args.threads), settings=dict(vars(args), output=str(args.output)), rows=rows,
                   ratio_ndp_oja_vs_recurrent=ratio)
     if args.check:
-        baseline = json.loads(RESULTS.read_text())["ratio_ndp_oja_vs_recurrent"]
+        baseline_file = RESULTS_CUDA if args.device.startswith("cuda") else RESULTS
+        baseline = json.loads(baseline_file.read_text())["ratio_ndp_oja_vs_recurrent"]
         if ratio is None or ratio < 0.7 * baseline:
             print(f"REGRESSION: ratio {ratio} vs committed baseline {baseline:.2f} (allowed down to {0.7 * baseline:.2f})")
             return 1

@@ -33,6 +33,7 @@ from sb3_spikeplastic.coding import ContinuousDecoder, PopulationEncoder
 from sb3_spikeplastic.network import SpikingPlasticNetwork
 
 RESULTS = Path(__file__).parent / "results" / "network_forward.json"
+RESULTS_CUDA = RESULTS.with_name("network_forward_cuda.json")  # --device cuda
 OBS_DIMS, ACT_DIMS = 12, 6
 
 
@@ -117,11 +118,13 @@ def main(argv=None) -> int:
     parser.add_argument("--repeats", type=int, default=21, help="timed repeats of the forward (median)")
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--output", type=Path, default=RESULTS)
+    parser.add_argument("--output", type=Path, help=f"default: {RESULTS} ({RESULTS_CUDA.name} with --device cuda)")
     parser.add_argument("--profile", action="store_true",
                         help="instead of timing, print torch.profiler's op table for forward+backward of the first "
                              "rule at the largest batch and T")
     args = parser.parse_args(argv)
+    if args.output is None:
+        args.output = RESULTS_CUDA if args.device.startswith("cuda") else RESULTS
     torch.set_num_threads(args.threads)
     keep_freed_memory()  # as `sb3-spikeplastic train` does
     if args.profile:

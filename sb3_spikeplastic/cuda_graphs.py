@@ -10,6 +10,9 @@ eager PyTorch on the GPU (tested); only the rollout's action sampling draws othe
 generator offsets), from the same distribution. Capture needs code that never waits for the device: the network's resets
 multiply unconditionally (``sync_free``), observations are checked before the graph, and
 ``torch.distributions``' argument validation (a host-side check) is off while capturing.
+
+If a capture fails anyway, PyTorch can leave its CUDA random generator in capture mode, and later sampling in the
+process raises "Offset increment outside graph capture": the warning says so; train with ``cuda_graphs=False``.
 """
 
 from __future__ import annotations
@@ -59,6 +62,13 @@ def _clone(tree):
     return type(tree)(*items) if hasattr(tree, "_fields") else type(tree)(items)
 
 
+def _release_last_distribution(policy: nn.Module) -> None:
+    """Drop the distribution SB3's ``action_dist`` keeps from its last use: after an eager training pass it holds
+    that pass's autograd graph, whose gradient accumulators (made on the default stream) break a capture."""
+    if hasattr(policy.action_dist, "distribution"):
+        policy.action_dist.distribution = None
+
+
 class _SequenceEvaluation(nn.Module):
     """``policy._evaluate_sequence`` on flat tensor arguments, as a module (so that its parameters are graphed)."""
 
@@ -105,13 +115,15 @@ class GraphedSequenceEvaluation:
             except Exception as exc:  # an op that cannot be captured, out of memory, ...
                 self.error = f"{type(exc).__name__}: {' '.join(str(exc).split())[:300]}"
                 warnings.warn(f"sb3_spikeplastic: CUDA-graph capture failed ({self.error}); training runs eagerly, "
-                              "with the same results, slower.", RuntimeWarning, stacklevel=2)
+                              "with the same results, slower (if sampling then fails with 'Offset increment outside "
+                              "graph capture', train with cuda_graphs=False).", RuntimeWarning, stacklevel=2)
                 return self.policy.evaluate_actions_sequence(obs, actions, episode_starts, state, action_masks)[:3]
             self._graphed[key] = graphed
         return graphed(*args)
 
     def _capture(self, args: tuple, rebuild, n_leaves: int, masked: bool) -> Callable:
         module = _SequenceEvaluation(self.policy, rebuild, n_leaves, masked)
+        _release_last_distribution(self.policy)
         validate = torch.distributions.Distribution._validate_args
         torch.distributions.Distribution.set_default_validate_args(False)
         try:
@@ -152,7 +164,8 @@ class GraphedRolloutStep:
             except Exception as exc:
                 self.error = f"{type(exc).__name__}: {' '.join(str(exc).split())[:300]}"
                 warnings.warn(f"sb3_spikeplastic: CUDA-graph capture failed ({self.error}); rollouts run eagerly, "
-                              "with the same results, slower.", RuntimeWarning, stacklevel=2)
+                              "with the same results, slower (if sampling then fails with 'Offset increment outside "
+                              "graph capture', train with cuda_graphs=False).", RuntimeWarning, stacklevel=2)
                 return self.policy.step(obs, state, episode_start, deterministic, action_masks)
             self._graphs[key] = entry
         graph, static_inputs, static_outputs = entry
@@ -171,6 +184,7 @@ class GraphedRolloutStep:
 
     def _capture(self, inputs: list[Tensor], rebuild, n_leaves: int, masked: bool, deterministic: bool) -> tuple:
         static_inputs = [t.clone() for t in inputs]
+        _release_last_distribution(self.policy)
         validate = torch.distributions.Distribution._validate_args
         torch.distributions.Distribution.set_default_validate_args(False)
         try:

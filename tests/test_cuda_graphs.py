@@ -31,9 +31,11 @@ def pendulum_model(device, **kw):
 
 
 def first_batches(model, n=2):
-    model.learn(model.n_steps * model.n_envs)  # fills the rollout buffer
-    batches = list(model.rollout_buffer.get_chunks(model.batch_size // model.bptt_steps))
-    return batches[:n]
+    """The first ``n`` minibatches of one rollout (collected without training)."""
+    _, callback = model._setup_learn(model.n_steps * model.n_envs)
+    callback.on_training_start(locals(), globals())
+    model.collect_rollouts(model.env, callback, model.rollout_buffer, model.n_steps)
+    return list(model.rollout_buffer.get_chunks(model.batch_size // model.bptt_steps))[:n]
 
 
 def test_flatten_state_round_trip():
@@ -84,8 +86,8 @@ def test_graph_replay_equals_eager_values_and_gradients(make_model):
     graphed = GraphedSequenceEvaluation(model.policy)
     for batch in first_batches(model, 2):
         args = (batch.observations, batch.actions, batch.episode_starts, batch.states, batch.action_masks)
-        eager_out, eager_grads = outputs_and_gradients(model, lambda: model.policy.evaluate_actions_sequence(*args)[:3])
         graph_out, graph_grads = outputs_and_gradients(model, lambda: graphed(*args))
+        eager_out, eager_grads = outputs_and_gradients(model, lambda: model.policy.evaluate_actions_sequence(*args)[:3])
         for a, b in zip(graph_out, eager_out):
             torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-7)
         assert any(g is not None and g.abs().max() > 0 for g in eager_grads)
@@ -95,6 +97,22 @@ def test_graph_replay_equals_eager_values_and_gradients(make_model):
             else:
                 torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-7)
     assert graphed.error is None and len(graphed._graphed) == 1
+
+
+@needs_cuda
+def test_capture_after_an_eager_training_pass():
+    """An eager backward pass before the first capture (SB3's ``action_dist`` keeps its last distribution, and
+    with it that pass's autograd graph) must not break the capture."""
+    model = tmaze_model("cuda", cuda_graphs=False)
+    model.learn(model.n_steps * model.n_envs)  # eager rollout and training
+    batch = first_batches(model, 1)[0]
+    args = (batch.observations, batch.actions, batch.episode_starts, batch.states, batch.action_masks)
+    graphed = GraphedSequenceEvaluation(model.policy)
+    graph_out, _ = outputs_and_gradients(model, lambda: graphed(*args))
+    assert graphed.error is None
+    eager_out, _ = outputs_and_gradients(model, lambda: model.policy.evaluate_actions_sequence(*args)[:3])
+    for a, b in zip(graph_out, eager_out):
+        torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-7)
 
 
 def rollout_inputs(model, n_steps=6, seed=0):
