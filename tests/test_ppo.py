@@ -250,3 +250,11 @@ def test_target_kl_stops_before_the_step_that_would_exceed_it():
     assert any(not torch.equal(after[k], before[k]) for k in before)
     assert {int(state["step"]) for state in model.policy.optimizer.state.values()} == {1}
     assert model.logger.name_to_value["train/approx_kl"] > 1.5e-12
+
+
+def test_cuda_graphs_setting_survives_save_and_load(tmp_path):
+    model = PPO("SpikePlasticPolicy", tmaze(1), n_steps=16, batch_size=16, bptt_steps=16, cuda_graphs=False,
+                policy_kwargs=dict(hidden_sizes=(8,)))
+    model.save(tmp_path / "eager.zip")
+    loaded = PPO.load(tmp_path / "eager.zip", env=tmaze(1))
+    assert loaded.cuda_graphs is False and loaded._graphed_step is None and loaded._graphed_evaluation is None
