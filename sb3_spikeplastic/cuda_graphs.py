@@ -2,13 +2,14 @@
 
 On a GPU the spiking network is bound by the host, not the device: a chunk of 32 environment steps issues ~10k
 small kernels forward and backward, each costing ~10-25 us of Python and launch overhead against ~1-3 us of GPU
-work (measured on an H100: 94 ms of host time for 9.5 ms of kernels per 8 steps). :func:`torch.cuda.make_graphed_callables`
-records the kernels once and replays them, so the per-step cost falls to the GPU's.
+work (measured on an H100: 94 ms of host time for 9.5 ms of kernels per 8 steps). CUDA graphs
+(:func:`torch.cuda.make_graphed_callables` for training, :class:`torch.cuda.CUDAGraph` for the rollout step)
+record the kernels once and replay them, so the per-step cost falls to the GPU's.
 
 Replays run the very kernels the eager pass runs, on the same inputs, so values and gradients are the same as
 eager PyTorch on the GPU (tested); only the rollout's action sampling draws other random numbers (the graph's
-generator offsets), from the same distribution. Capture needs code that never waits for the device: the network's resets
-multiply unconditionally (``sync_free``), observations are checked before the graph, and
+generator offsets), from the same distribution. Capture needs code that never waits for the device: the
+network's resets multiply unconditionally (``sync_free``), observations are checked before the graph, and
 ``torch.distributions``' argument validation (a host-side check) is off while capturing.
 
 If a capture fails anyway, PyTorch can leave its CUDA random generator in capture mode, and later sampling in the
@@ -17,8 +18,9 @@ process raises "Offset increment outside graph capture": the warning says so; tr
 
 from __future__ import annotations
 
+import contextlib
 import warnings
-from typing import Callable, Optional
+from typing import Callable, Iterator, Optional
 
 import torch
 from torch import Tensor, nn
@@ -64,9 +66,32 @@ def _clone(tree):
 
 def _release_last_distribution(policy: nn.Module) -> None:
     """Drop the distribution SB3's ``action_dist`` keeps from its last use: after an eager training pass it holds
-    that pass's autograd graph, whose gradient accumulators (made on the default stream) break a capture."""
+    that pass's autograd graph alive, and a capture after an eager backward pass failed on an H100 (our diagnosis
+    of that failure; this fix has not yet run on a GPU, see ``benchmarks/results/cuda_tests.md``)."""
     if hasattr(policy.action_dist, "distribution"):
         policy.action_dist.distribution = None
+
+
+@contextlib.contextmanager
+def _capturable(policy: nn.Module) -> Iterator[None]:
+    """Around a capture: no stale autograd graph from the policy's last distribution, and no argument validation
+    in ``torch.distributions`` (it asks the device whether the arguments are valid: a synchronisation)."""
+    _release_last_distribution(policy)
+    validate = torch.distributions.Distribution._validate_args
+    torch.distributions.Distribution.set_default_validate_args(False)
+    try:
+        yield
+    finally:
+        torch.distributions.Distribution.set_default_validate_args(validate)
+
+
+def _capture_failed(exc: Exception, what: str) -> str:
+    """Warn once that a capture failed and ``what`` runs eagerly; returns the error's one-line description."""
+    error = f"{type(exc).__name__}: {' '.join(str(exc).split())[:300]}"
+    warnings.warn(f"sb3_spikeplastic: CUDA-graph capture failed ({error}); {what} runs eagerly, with the same "
+                  "results, slower (if sampling then fails with 'Offset increment outside graph capture', train "
+                  "with cuda_graphs=False).", RuntimeWarning, stacklevel=3)
+    return error
 
 
 class _SequenceEvaluation(nn.Module):
@@ -113,24 +138,16 @@ class GraphedSequenceEvaluation:
             try:
                 graphed = self._capture(args, rebuild, len(leaves), action_masks is not None)
             except Exception as exc:  # an op that cannot be captured, out of memory, ...
-                self.error = f"{type(exc).__name__}: {' '.join(str(exc).split())[:300]}"
-                warnings.warn(f"sb3_spikeplastic: CUDA-graph capture failed ({self.error}); training runs eagerly, "
-                              "with the same results, slower (if sampling then fails with 'Offset increment outside "
-                              "graph capture', train with cuda_graphs=False).", RuntimeWarning, stacklevel=2)
+                self.error = _capture_failed(exc, "training")
                 return self.policy.evaluate_actions_sequence(obs, actions, episode_starts, state, action_masks)[:3]
             self._graphed[key] = graphed
         return graphed(*args)
 
     def _capture(self, args: tuple, rebuild, n_leaves: int, masked: bool) -> Callable:
         module = _SequenceEvaluation(self.policy, rebuild, n_leaves, masked)
-        _release_last_distribution(self.policy)
-        validate = torch.distributions.Distribution._validate_args
-        torch.distributions.Distribution.set_default_validate_args(False)
-        try:
+        with _capturable(self.policy):
             return torch.cuda.make_graphed_callables(module, tuple(a.detach() for a in args),
                                                      allow_unused_input=True)
-        finally:
-            torch.distributions.Distribution.set_default_validate_args(validate)
 
 
 class GraphedRolloutStep:
@@ -162,10 +179,7 @@ class GraphedRolloutStep:
             try:
                 entry = self._capture(inputs, rebuild, len(leaves), action_masks is not None, bool(deterministic))
             except Exception as exc:
-                self.error = f"{type(exc).__name__}: {' '.join(str(exc).split())[:300]}"
-                warnings.warn(f"sb3_spikeplastic: CUDA-graph capture failed ({self.error}); rollouts run eagerly, "
-                              "with the same results, slower (if sampling then fails with 'Offset increment outside "
-                              "graph capture', train with cuda_graphs=False).", RuntimeWarning, stacklevel=2)
+                self.error = _capture_failed(exc, "the rollout")
                 return self.policy.step(obs, state, episode_start, deterministic, action_masks)
             self._graphs[key] = entry
         graph, static_inputs, static_outputs = entry
@@ -184,10 +198,7 @@ class GraphedRolloutStep:
 
     def _capture(self, inputs: list[Tensor], rebuild, n_leaves: int, masked: bool, deterministic: bool) -> tuple:
         static_inputs = [t.clone() for t in inputs]
-        _release_last_distribution(self.policy)
-        validate = torch.distributions.Distribution._validate_args
-        torch.distributions.Distribution.set_default_validate_args(False)
-        try:
+        with _capturable(self.policy):
             # Warm-up on a side stream (lazy allocations, cached filter matrices, cuBLAS handles), as PyTorch
             # requires before capturing.
             side = torch.cuda.Stream()
@@ -199,6 +210,4 @@ class GraphedRolloutStep:
             graph = torch.cuda.CUDAGraph()
             with torch.cuda.graph(graph):
                 static_outputs = self._run(static_inputs, rebuild, n_leaves, masked, deterministic)
-        finally:
-            torch.distributions.Distribution.set_default_validate_args(validate)
         return graph, static_inputs, static_outputs
