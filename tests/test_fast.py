@@ -351,3 +351,19 @@ def test_allocator_settings_take_effect_on_glibc():
     if platform.libc_ver()[0] != "glibc":
         pytest.skip("not glibc")
     assert keep_freed_memory() is True
+
+
+def test_build_directory_depends_on_the_sources(monkeypatch, tmp_path):
+    """Each version of the C++/CUDA sources builds in its own cache directory (two installed versions sharing a
+    cache must not rebuild over each other's library)."""
+    monkeypatch.delenv(_fast.BUILD_DIR_ENV, raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    source = tmp_path / "srm_loop.cpp"
+    source.write_text("// version 1\n")
+    monkeypatch.setattr(_fast, "_SOURCES", [source])
+    first = _fast.build_directory()
+    assert first == _fast.build_directory() and first.parent == tmp_path / "sb3_spikeplastic"
+    source.write_text("// version 2\n")
+    assert _fast.build_directory() != first
+    monkeypatch.setenv(_fast.BUILD_DIR_ENV, str(tmp_path / "explicit"))
+    assert _fast.build_directory() == tmp_path / "explicit"

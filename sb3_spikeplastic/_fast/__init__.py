@@ -23,7 +23,7 @@ The CPU ops are compiled together with :func:`torch.utils.cpp_extension.load` th
 at import) and cached on disk; the CUDA op likewise, the first time a CUDA tensor needs it (needs ``nvcc``).
 
 * Build directory: ``$SB3_SPIKEPLASTIC_BUILD_DIR`` if set, else
-  ``${XDG_CACHE_HOME:-~/.cache}/sb3_spikeplastic/<python>_<torch>_<cpu-flags>`` (the CUDA op in its
+  ``${XDG_CACHE_HOME:-~/.cache}/sb3_spikeplastic/<python>_<torch>_<cpu-flags>_<sources hash>`` (the CUDA op in its
   ``cuda<version>_sm<arch>`` subfolder). Building needs a C++ compiler and ``ninja`` and takes ~10-30 s once;
   later processes only load the cached library (~0.3 s).
 * ``SB3_SPIKEPLASTIC_NO_COMPILE=1`` disables the compiled path (read at every call), for tests and debugging.
@@ -33,6 +33,7 @@ at import) and cached on disk; the CUDA op likewise, the first time a CUDA tenso
 
 from __future__ import annotations
 
+import hashlib
 import os
 import shutil
 import sys
@@ -97,9 +98,20 @@ def build_directory() -> Path:
             f"py{sys.version_info.major}{sys.version_info.minor}",
             "torch" + torch.__version__.replace("+", "-"),
             "avx2" if _vector_flags() else "generic",
+            _sources_digest(),
         ]
     )
     return cache / "sb3_spikeplastic" / tag
+
+
+def _sources_digest() -> str:
+    """A short hash of the C++/CUDA sources: each version of them builds in a directory of its own, so that two
+    installed versions (or checkouts) sharing one cache never rebuild over each other's library."""
+    digest = hashlib.sha256()
+    for source in [*_SOURCES, *_CUDA_SOURCES]:
+        digest.update(source.name.encode())
+        digest.update(source.read_bytes())
+    return digest.hexdigest()[:12]
 
 
 def _ninja_directory() -> Optional[str]:
