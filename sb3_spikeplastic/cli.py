@@ -771,7 +771,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
 
     def common(p: argparse.ArgumentParser) -> None:
-        p.add_argument("--device", default="cpu", help="torch device (default: cpu; tiny SNN ops are fastest there)")
+        p.add_argument("--device", default="cpu",
+                       help="torch device (default: cpu); cuda runs the spike kernel and CUDA graphs: the paper's "
+                            "HalfCheetah network trains ~20x faster on an H100 than on one CPU core")
         p.add_argument("--torch-threads", type=int, default=1, help="torch.set_num_threads (default: 1)")
 
     def model_source(p: argparse.ArgumentParser) -> None:
