@@ -385,7 +385,7 @@ class PPO(SB3PPO):
         stop triggers.
 
         A method of its own so that the minibatch's autograd graph is gone when it returns: a graph kept alive
-        into the next minibatch (through a ``loss`` variable, say) would break a CUDA-graph capture there.
+        into the next minibatch (through a ``loss`` variable, say) can break a CUDA-graph capture there.
         """
         loss, stats = self._minibatch_losses(batch, evaluate, clip_range, clip_range_vf)
         stats["loss"] = loss.item()
