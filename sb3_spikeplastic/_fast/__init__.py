@@ -58,6 +58,7 @@ _SOURCES = [Path(__file__).with_name(name)
 
 _CUDA_EXTENSION = "sb3_spikeplastic_fast_cuda"
 _CUDA_SOURCES = [Path(__file__).with_name("srm_loop_cuda.cu")]
+_HEADERS = [Path(__file__).with_name("srm_loop_checks.h")]
 
 _lock = threading.Lock()
 _tried = False
@@ -108,7 +109,7 @@ def _sources_digest() -> str:
     """A short hash of the C++/CUDA sources: each version of them builds in a directory of its own, so that two
     installed versions (or checkouts) sharing one cache never rebuild over each other's library."""
     digest = hashlib.sha256()
-    for source in [*_SOURCES, *_CUDA_SOURCES]:
+    for source in [*_SOURCES, *_CUDA_SOURCES, *_HEADERS]:
         digest.update(source.name.encode())
         digest.update(source.read_bytes())
     return digest.hexdigest()[:12]

@@ -23,6 +23,8 @@
 #include <c10/core/ScalarType.h>
 #include <torch/library.h>
 
+#include "srm_loop_checks.h"
+
 #include <algorithm>
 #include <cstdint>
 #include <tuple>
@@ -57,14 +59,8 @@ void srm_rows(const scalar_t* __restrict syn, scalar_t* __restrict h1, scalar_t*
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> srm_loop_cpu(const at::Tensor& synaptic,
                                                                       const at::Tensor& h1, const at::Tensor& h2,
                                                                       double d, double kappa, double theta) {
-  TORCH_CHECK(synaptic.dim() == 3, "srm_loop: synaptic must be (batch, length, n)");
-  TORCH_CHECK(synaptic.scalar_type() == at::kFloat || synaptic.scalar_type() == at::kDouble,
-              "srm_loop: float32 or float64 only");
-  TORCH_CHECK(h1.scalar_type() == synaptic.scalar_type() && h2.scalar_type() == synaptic.scalar_type(),
-              "srm_loop: state dtype must match synaptic dtype");
+  check_srm_operands(synaptic, h1, h2);
   const int64_t batch = synaptic.size(0), length = synaptic.size(1), n = synaptic.size(2);
-  TORCH_CHECK(h1.dim() == 2 && h1.size(0) == batch && h1.size(1) == n && h2.sizes() == h1.sizes(),
-              "srm_loop: state must be (batch, n)");
   TORCH_CHECK(synaptic.device().is_cpu() && h1.device().is_cpu() && h2.device().is_cpu(),
               "srm_loop: CPU tensors only");
 
