@@ -25,7 +25,8 @@ at import) and cached on disk; the CUDA op likewise, the first time a CUDA tenso
 * Build directory: ``$SB3_SPIKEPLASTIC_BUILD_DIR`` if set, else
   ``${XDG_CACHE_HOME:-~/.cache}/sb3_spikeplastic/<python>_<torch>_<cpu-flags>_<sources hash>`` (the CUDA op in its
   ``cuda<version>_sm<arch>`` subfolder). Building needs a C++ compiler and ``ninja`` and takes ~10-30 s once;
-  later processes only load the cached library (~0.3 s).
+  later processes only load the cached library (~0.3 s). Folders of other source versions are never used again
+  and may be deleted.
 * ``SB3_SPIKEPLASTIC_NO_COMPILE=1`` disables the compiled path (read at every call), for tests and debugging.
 * If a build fails, a single :class:`RuntimeWarning` is issued and the pure-PyTorch code is used instead; it
   gives the same results, only slower.
