@@ -11,6 +11,10 @@ then fits an L2-regularised logistic regression (a linear probe) from each of th
 is right more often than the policy shows that the information is there and lost later: if the trace probe
 beats the hidden-rate probe, reading the trace out through one frame of input spikes is the bottleneck.
 
+As a reference for what the input spikes allow, it also reports a spike counter on the same episodes: the
+decision ``left-population spikes > right-population spikes``, counted over the whole episode (two numbers of
+memory, no learning).
+
 Usage::
 
     python experiments/tmaze_probe.py results/tmaze/runs/TMazeCueNoisy-v0_dp-oja_0/ppo/TMazeCueNoisy-v0_1
@@ -36,19 +40,24 @@ PROBE_SEED = 2_000_000
 def record(policy, env_id: str, episodes: int, batch: int = 100) -> dict[str, np.ndarray]:
     """Per episode: the layer-0 trace entering the decision frame, the hidden rates during it, the policy's
     logit difference (right - left) and the correct side."""
-    rows: dict[str, list] = {"trace": [], "hidden": [], "logit_diff": [], "correct": []}
+    rows: dict[str, list] = {"trace": [], "hidden": [], "logit_diff": [], "correct": [], "count_diff": [], "margin": []}
     for start in range(0, episodes, batch):
         envs = [gymnasium.make(env_id) for _ in range(min(batch, episodes - start))]
         n = len(envs)
         obs = np.stack([env.reset(seed=PROBE_SEED + start + i)[0] for i, env in enumerate(envs)])
         last = np.array([env.unwrapped.n_frames - 1 for env in envs])
         rows["correct"].append([env.unwrapped.correct_action for env in envs])
+        rows["margin"].append([abs(2 * sum(env.unwrapped.cues) - len(env.unwrapped.cues)) for env in envs])
         state = policy.initial_state(n)
         trace = np.zeros((n, state.layers[0].plastic.trace[0].numel()))
         hidden, diff = np.zeros((n, policy.snn.sizes[1])), np.zeros(n)
+        count_diff = np.zeros(n)  # left minus right population spikes so far
+        pop = envs[0].unwrapped.neurons_per_population
         with torch.no_grad():
             for t in range(last.max() + 1):
                 at_decision = last == t
+                running = t <= last
+                count_diff[running] += obs[running, :, :pop].sum((1, 2)) - obs[running, :, pop:2 * pop].sum((1, 2))
                 trace[at_decision] = state.layers[0].plastic.trace.flatten(1)[torch.as_tensor(at_decision)].numpy()
                 starts = torch.full((n,), float(t == 0))
                 _, _, _, state, out = policy.step(torch.as_tensor(obs), state, starts, deterministic=True)
@@ -60,6 +69,7 @@ def record(policy, env_id: str, episodes: int, batch: int = 100) -> dict[str, np
         rows["trace"].append(trace)
         rows["hidden"].append(hidden)
         rows["logit_diff"].append(diff)
+        rows["count_diff"].append(count_diff)
     return {k: np.concatenate([np.asarray(v) for v in vs]) for k, vs in rows.items()}
 
 
@@ -104,10 +114,16 @@ def main(argv=None) -> int:
     data = record(policy, env_id, args.episodes)
     test = np.arange(len(data["correct"])) >= int(0.75 * len(data["correct"]))
     own = ((data["logit_diff"] > 0) == data["correct"])[test].mean()
+    counter = ((data["count_diff"] < 0) == data["correct"])[test].mean()
     print(f"{model_path} on {env_id}, {args.episodes} episodes (probes: 75 % fit, 25 % held out)")
     print(f"  policy's decision                       {own:.3f}")
     print(f"  linear probe on the hidden rates         {probe_accuracy(data['hidden'], data['correct']):.3f}")
     print(f"  linear probe on the layer-0 trace E      {probe_accuracy(data['trace'], data['correct']):.3f}")
+    print(f"  spike counter (left - right, whole episode) {counter:.3f}")
+    right = (data["logit_diff"] > 0) == data["correct"]
+    for margin in np.unique(data["margin"]):
+        split = data["margin"] == margin
+        print(f"  policy's decision on {margin}-cue margins ({split.mean():.0%} of episodes) {right[split].mean():.3f}")
     return 0
 
 
