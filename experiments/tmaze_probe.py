@@ -29,6 +29,7 @@ from pathlib import Path
 import gymnasium
 import numpy as np
 import torch
+import yaml
 
 import sb3_spikeplastic.envs  # noqa: F401  (registers the maze ids)
 from sb3_spikeplastic import PPO
@@ -37,12 +38,13 @@ from sb3_spikeplastic import PPO
 PROBE_SEED = 2_000_000
 
 
-def record(policy, env_id: str, episodes: int, batch: int = 100) -> dict[str, np.ndarray]:
+def record(policy, env_id: str, episodes: int, batch: int = 100, env_kwargs: dict | None = None
+           ) -> dict[str, np.ndarray]:
     """Per episode: the layer-0 trace entering the decision frame, the hidden rates during it, the policy's
-    logit difference (right - left) and the correct side."""
+    logit difference (right - left), the correct side, the cue margin and the input's left-right spike count."""
     rows: dict[str, list] = {"trace": [], "hidden": [], "logit_diff": [], "correct": [], "count_diff": [], "margin": []}
     for start in range(0, episodes, batch):
-        envs = [gymnasium.make(env_id) for _ in range(min(batch, episodes - start))]
+        envs = [gymnasium.make(env_id, **(env_kwargs or {})) for _ in range(min(batch, episodes - start))]
         n = len(envs)
         obs = np.stack([env.reset(seed=PROBE_SEED + start + i)[0] for i, env in enumerate(envs)])
         last = np.array([env.unwrapped.n_frames - 1 for env in envs])
@@ -110,8 +112,11 @@ def main(argv=None) -> int:
         model_path = args.run / f"{env_id}.zip"
     if env_id is None:
         parser.error("--env is needed with a .zip model")
+    # The run's environment arguments (e.g. frame_ms), as `sb3-spikeplastic train` saved them.
+    config = model_path.parent / env_id / "config.yml"
+    env_kwargs = yaml.safe_load(config.read_text())[env_id].get("env_kwargs") if config.exists() else None
     policy = PPO.load(model_path, device="cpu").policy
-    data = record(policy, env_id, args.episodes)
+    data = record(policy, env_id, args.episodes, env_kwargs=env_kwargs)
     test = np.arange(len(data["correct"])) >= int(0.75 * len(data["correct"]))
     own = ((data["logit_diff"] > 0) == data["correct"])[test].mean()
     counter = ((data["count_diff"] < 0) == data["correct"])[test].mean()

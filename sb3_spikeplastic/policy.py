@@ -76,6 +76,12 @@ class SpikePlasticPolicy(ActorCriticPolicy):
     :param critic: ``"snn"`` (value from the spiking layers' rates) or ``"mlp"`` (memoryless MLP on the observation).
     :param critic_hidden: hidden units of the critic's MLP.
     :param log_std_init: initial log standard deviation of the Gaussian actions.
+    :param alpha_lr_scale: learning-rate multiplier of the plasticity coefficients ``alpha`` (an optimizer
+        parameter group; :class:`sb3_spikeplastic.PPO` keeps the ratio when the learning rate changes). Adam moves
+        every parameter by about the learning rate per update whatever its size, and ``alpha`` starts ~10x larger
+        than ``W`` (mean ``alpha_init_mean``, std 10 % of it): with one shared rate it keeps its initial values
+        (measured on the T-maze: std 1.02 after 200k steps from 1.0), so the network cannot learn which synapses'
+        traces to read. 1 is the plain shared rate.
     :param kwargs: passed to :class:`~stable_baselines3.common.policies.ActorCriticPolicy` (optimizer etc.).
     """
 
@@ -108,10 +114,14 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         critic: str = "snn",
         critic_hidden: int = 64,
         log_std_init: float = 0.0,
+        alpha_lr_scale: float = 1.0,
         **kwargs: Any,
     ):
         if kwargs.pop("use_sde", False):
             raise ValueError("use_sde=True is not supported by SpikePlasticPolicy (its actions come from spike rates)")
+        if isinstance(alpha_lr_scale, bool) or not isinstance(alpha_lr_scale, (int, float)) or not (
+                0 < alpha_lr_scale < float("inf")):
+            raise ValueError(f"alpha_lr_scale={alpha_lr_scale!r} must be a positive finite number (1: no scaling)")
         if critic not in ("snn", "mlp"):
             raise ValueError(f"unknown critic {critic!r}; accepted: snn, mlp")
         if not isinstance(action_space, (spaces.Box, spaces.Discrete)):
@@ -134,7 +144,7 @@ class SpikePlasticPolicy(ActorCriticPolicy):
             encoder_p_min=encoder_p_min, obs_bounds=obs_bounds, input_rms_rate=input_rms_rate,
             action_pop_size=action_pop_size, logit_scale_init=logit_scale_init, w_init_gain=w_init_gain,
             w_init_mean=w_init_mean, alpha_init_mean=alpha_init_mean, alpha_init_std=alpha_init_std,
-            critic=critic, critic_hidden=critic_hidden,
+            critic=critic, critic_hidden=critic_hidden, alpha_lr_scale=float(alpha_lr_scale),
         )
         super().__init__(observation_space, action_space, lr_schedule, log_std_init=log_std_init, **kwargs)
 
@@ -178,7 +188,20 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         else:
             critic_in = int(np.prod(self.observation_space.shape))
         self.value_net = nn.Sequential(nn.Linear(critic_in, hidden), nn.Tanh(), nn.Linear(hidden, 1))
-        self.optimizer = self.optimizer_class(self.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)
+        self.optimizer = self.optimizer_class(self._parameter_groups(lr_schedule(1)), lr=lr_schedule(1),
+                                              **self.optimizer_kwargs)
+
+    def _parameter_groups(self, lr: float) -> list[dict]:
+        """The optimizer's parameter groups: the plasticity coefficients (at ``alpha_lr_scale`` times the rate,
+        recorded as the group's ``lr_scale``) and everything else."""
+        scale = self.snn_config["alpha_lr_scale"]
+        alphas = [layer.alpha for layer in self.snn.layers if layer.alpha is not None]
+        if scale == 1.0 or not alphas:
+            # One group, as before the option existed: saved optimizers of earlier models still load.
+            return [{"params": list(self.parameters())}]
+        ids = {id(a) for a in alphas}
+        return [{"params": [p for p in self.parameters() if id(p) not in ids], "lr_scale": 1.0},
+                {"params": alphas, "lr": lr * scale, "lr_scale": scale}]
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()

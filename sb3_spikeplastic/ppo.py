@@ -379,6 +379,13 @@ class PPO(SB3PPO):
                      approx_kl=approx_kl_div.item())
         return loss, stats
 
+    def _update_learning_rate(self, optimizers) -> None:
+        """SB3's schedule step, then each parameter group's ``lr_scale`` (see ``SpikePlasticPolicy.alpha_lr_scale``)."""
+        super()._update_learning_rate(optimizers)
+        for optimizer in optimizers if isinstance(optimizers, list) else [optimizers]:
+            for group in optimizer.param_groups:
+                group["lr"] *= group.get("lr_scale", 1.0)
+
     def _update_minibatch(self, batch: ChunkSamples, evaluate, clip_range: float,
                           clip_range_vf: Optional[float]) -> tuple[dict[str, float], bool]:
         """One gradient step on one minibatch: its statistics, and ``False`` (no step taken) when the KL early

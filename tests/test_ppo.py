@@ -258,3 +258,38 @@ def test_cuda_graphs_setting_survives_save_and_load(tmp_path):
     model.save(tmp_path / "eager.zip")
     loaded = PPO.load(tmp_path / "eager.zip", env=tmaze(1))
     assert loaded.cuda_graphs is False and loaded._graphed_step is None and loaded._graphed_evaluation is None
+
+
+def test_alpha_lr_scale_steps_alpha_at_its_own_rate_and_survives_schedules_and_save(tmp_path):
+    """Adam's first step moves every element by ~lr (its update is lr * g / |g|): with ``alpha_lr_scale=10`` the
+    plasticity coefficients move 10x further than W, the ratio holds when the schedule changes the rate, and it is
+    saved with the model."""
+    model = PPO("SpikePlasticPolicy", tmaze(1), n_steps=16, batch_size=16, bptt_steps=16, n_epochs=1, seed=0,
+                learning_rate=1e-3, max_grad_norm=1e9,
+                policy_kwargs=dict(hidden_sizes=[8], plastic_layers=[0], alpha_lr_scale=10.0))
+    layer = model.policy.snn.layers[0]
+    alpha, weight = layer.alpha.detach().clone(), layer.weight.detach().clone()
+    model.learn(16)  # one rollout, one minibatch: one Adam step
+    assert (layer.alpha - alpha).abs().max().item() == pytest.approx(1e-2, rel=1e-2)
+    assert (layer.weight - weight).abs().max().item() == pytest.approx(1e-3, rel=1e-2)
+    model.lr_schedule = lambda _: 2e-3
+    model._update_learning_rate(model.policy.optimizer)
+    assert sorted(g["lr"] for g in model.policy.optimizer.param_groups) == pytest.approx([2e-3, 2e-2])
+    model.save(tmp_path / "m.zip")
+    loaded = PPO.load(tmp_path / "m.zip")
+    assert loaded.policy.snn_config["alpha_lr_scale"] == 10.0
+    assert sorted(g["lr_scale"] for g in loaded.policy.optimizer.param_groups) == [1.0, 10.0]
+
+
+def test_alpha_lr_scale_default_keeps_one_parameter_group():
+    """Scale 1 keeps the single group of models saved before the option existed (their optimizers still load)."""
+    model = PPO("SpikePlasticPolicy", tmaze(1), n_steps=16, batch_size=16, bptt_steps=16,
+                policy_kwargs=dict(hidden_sizes=[8]))
+    assert len(model.policy.optimizer.param_groups) == 1
+
+
+@pytest.mark.parametrize("bad", [0, -1.0, float("inf"), "10", True])
+def test_bad_alpha_lr_scale_is_a_clear_error(bad):
+    with pytest.raises(ValueError, match=r"alpha_lr_scale=.* must be a positive finite number"):
+        PPO("SpikePlasticPolicy", tmaze(1), n_steps=16, batch_size=16, bptt_steps=16,
+            policy_kwargs=dict(hidden_sizes=[8], alpha_lr_scale=bad))
