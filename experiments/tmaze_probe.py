@@ -11,6 +11,9 @@ then fits an L2-regularised logistic regression (a linear probe) from each of th
 is right more often than the policy shows that the information is there and lost later: if the trace probe
 beats the hidden-rate probe, reading the trace out through one frame of input spikes is the bottleneck.
 
+A third probe reads the noise-free plastic input of each hidden neuron, ``(alpha * E) x`` with the decision
+frame's spikes ``x`` replaced by their mean: what one weighted sum per neuron keeps of the trace.
+
 As a reference for what the input spikes allow, it also reports a spike counter on the same episodes: the
 decision ``left-population spikes > right-population spikes``, counted over the whole episode (two numbers of
 memory, no learning).
@@ -42,7 +45,8 @@ def record(policy, env_id: str, episodes: int, batch: int = 100, env_kwargs: dic
            ) -> dict[str, np.ndarray]:
     """Per episode: the layer-0 trace entering the decision frame, the hidden rates during it, the policy's
     logit difference (right - left), the correct side, the cue margin and the input's left-right spike count."""
-    rows: dict[str, list] = {"trace": [], "hidden": [], "logit_diff": [], "correct": [], "count_diff": [], "margin": []}
+    rows: dict[str, list] = {"trace": [], "hidden": [], "logit_diff": [], "correct": [], "count_diff": [], "margin": [],
+                              "decision_input": []}
     for start in range(0, episodes, batch):
         envs = [gymnasium.make(env_id, **(env_kwargs or {})) for _ in range(min(batch, episodes - start))]
         n = len(envs)
@@ -54,6 +58,7 @@ def record(policy, env_id: str, episodes: int, batch: int = 100, env_kwargs: dic
         trace = np.zeros((n, state.layers[0].plastic.trace[0].numel()))
         hidden, diff = np.zeros((n, policy.snn.sizes[1])), np.zeros(n)
         count_diff = np.zeros(n)  # left minus right population spikes so far
+        decision_input = np.zeros((n, obs.shape[-1]))  # each input's firing rate in the decision frame
         pop = envs[0].unwrapped.neurons_per_population
         with torch.no_grad():
             for t in range(last.max() + 1):
@@ -61,6 +66,7 @@ def record(policy, env_id: str, episodes: int, batch: int = 100, env_kwargs: dic
                 running = t <= last
                 count_diff[running] += obs[running, :, :pop].sum((1, 2)) - obs[running, :, pop:2 * pop].sum((1, 2))
                 trace[at_decision] = state.layers[0].plastic.trace.flatten(1)[torch.as_tensor(at_decision)].numpy()
+                decision_input[at_decision] = obs[at_decision].mean(1)
                 starts = torch.full((n,), float(t == 0))
                 _, _, _, state, out = policy.step(torch.as_tensor(obs), state, starts, deterministic=True)
                 hidden[at_decision] = out.rates[0][torch.as_tensor(at_decision)].numpy()
@@ -72,6 +78,7 @@ def record(policy, env_id: str, episodes: int, batch: int = 100, env_kwargs: dic
         rows["hidden"].append(hidden)
         rows["logit_diff"].append(diff)
         rows["count_diff"].append(count_diff)
+        rows["decision_input"].append(decision_input)
     return {k: np.concatenate([np.asarray(v) for v in vs]) for k, vs in rows.items()}
 
 
@@ -124,6 +131,11 @@ def main(argv=None) -> int:
     print(f"  policy's decision                       {own:.3f}")
     print(f"  linear probe on the hidden rates         {probe_accuracy(data['hidden'], data['correct']):.3f}")
     print(f"  linear probe on the layer-0 trace E      {probe_accuracy(data['trace'], data['correct']):.3f}")
+    # What the hidden layer can get of E: its plastic input (alpha * E) x with the decision frame's input spikes
+    # x replaced by their mean over episodes (no input noise), one number per hidden neuron.
+    alpha = policy.snn.layers[0].alpha.detach().cpu().numpy()
+    drive = (alpha * data["trace"].reshape(-1, *alpha.shape) * data["decision_input"].mean(0)).sum(-1)
+    print(f"  linear probe on the noise-free plastic input per hidden neuron {probe_accuracy(drive, data['correct']):.3f}")
     print(f"  spike counter (left - right, whole episode) {counter:.3f}")
     right = (data["logit_diff"] > 0) == data["correct"]
     for margin in np.unique(data["margin"]):
