@@ -12,7 +12,9 @@ is right more often than the policy shows that the information is there and lost
 beats the hidden-rate probe, reading the trace out through one frame of input spikes is the bottleneck.
 
 A third probe reads the noise-free plastic input of each hidden neuron, ``(alpha * E) x`` with the decision
-frame's spikes ``x`` replaced by their mean: what one weighted sum per neuron keeps of the trace.
+frame's spikes ``x`` replaced by their mean: what one weighted sum per neuron keeps of the trace. A fourth reads,
+per hidden neuron, the sum of its left-cue trace columns minus the sum of its right-cue ones: what one sum per
+neuron could keep with a sign-structured ``alpha``.
 
 As a reference for what the input spikes allow, it also reports a spike counter on the same episodes: the
 decision ``left-population spikes > right-population spikes``, counted over the whole episode (two numbers of
@@ -136,6 +138,11 @@ def main(argv=None) -> int:
     alpha = policy.snn.layers[0].alpha.detach().cpu().numpy()
     drive = (alpha * data["trace"].reshape(-1, *alpha.shape) * data["decision_input"].mean(0)).sum(-1)
     print(f"  linear probe on the noise-free plastic input per hidden neuron {probe_accuracy(drive, data['correct']):.3f}")
+    # What a sign-structured alpha (+ on one cue population's columns, - on the other's) would read instead.
+    pop = alpha.shape[1] // 4
+    trace = data["trace"].reshape(-1, *alpha.shape)
+    left_minus_right = trace[..., :pop].sum(-1) - trace[..., pop:2 * pop].sum(-1)
+    print(f"  linear probe on left-minus-right trace sums per hidden neuron {probe_accuracy(left_minus_right, data['correct']):.3f}")
     print(f"  spike counter (left - right, whole episode) {counter:.3f}")
     right = (data["logit_diff"] > 0) == data["correct"]
     for margin in np.unique(data["margin"]):
