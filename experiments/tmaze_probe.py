@@ -136,13 +136,15 @@ def main(argv=None) -> int:
     # What the hidden layer can get of E: its plastic input (alpha * E) x with the decision frame's input spikes
     # x replaced by their mean over episodes (no input noise), one number per hidden neuron.
     alpha = policy.snn.layers[0].alpha.detach().cpu().numpy()
-    drive = (alpha * data["trace"].reshape(-1, *alpha.shape) * data["decision_input"].mean(0)).sum(-1)
-    print(f"  linear probe on the noise-free plastic input per hidden neuron {probe_accuracy(drive, data['correct']):.3f}")
+    trace = data["trace"].reshape(-1, *alpha.shape)
+    drive = (alpha * trace * data["decision_input"].mean(0)).sum(-1)
+    print("  linear probe on the noise-free plastic input per hidden neuron "
+          f"{probe_accuracy(drive, data['correct']):.3f}")
     # What a sign-structured alpha (+ on one cue population's columns, - on the other's) would read instead.
     pop = alpha.shape[1] // 4
-    trace = data["trace"].reshape(-1, *alpha.shape)
     left_minus_right = trace[..., :pop].sum(-1) - trace[..., pop:2 * pop].sum(-1)
-    print(f"  linear probe on left-minus-right trace sums per hidden neuron {probe_accuracy(left_minus_right, data['correct']):.3f}")
+    print("  linear probe on left-minus-right trace sums per hidden neuron "
+          f"{probe_accuracy(left_minus_right, data['correct']):.3f}")
     print(f"  spike counter (left - right, whole episode) {counter:.3f}")
     right = (data["logit_diff"] > 0) == data["correct"]
     for margin in np.unique(data["margin"]):

@@ -1,7 +1,8 @@
 """Learning checks on the paper's cue-association T-maze with the shipped hyperparameters (hyperparams/ppo.yml).
 
-The full check is ``slow`` (run with ``pytest -m slow``; ~2 min on one core, session 5): dp-oja reaches >= 0.9 success over
-100 deterministic episodes after 30k steps (measured: 0.99 at 30k, seed 0, results/tmaze/), static stays <= 0.7.
+The full check is ``slow`` (run with ``pytest -m slow``; ~2 min on one core, session 5): dp-oja reaches >= 0.9
+success over 100 deterministic episodes after 30k steps (measured: 0.99 at 30k, seed 0, results/tmaze/), static
+stays <= 0.7.
 The default suite keeps a short smoke version that only checks the pipeline with the shipped settings.
 """
 
