@@ -82,7 +82,8 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         than ``W`` (mean ``alpha_init_mean``, std 10 % of it): with one shared rate it keeps its initial values
         (measured on the T-maze: std 1.02 after 200k steps from 1.0), so the network cannot learn which synapses'
         traces to read. 1 is the plain shared rate; the T-maze entry of ``hyperparams/ppo.yml`` uses 30 (held-out
-        success on the high-noise maze 0.91-0.93 -> 0.91-0.97 across rules; 100 made the NDP rules unstable).
+        success on the high-noise maze after 200k steps: ndp-bcm+tanh 0.85-0.90 -> 0.96, dp-oja 0.91-0.93 ->
+        0.91-0.95; 100 made the NDP rules unstable).
     :param kwargs: passed to :class:`~stable_baselines3.common.policies.ActorCriticPolicy` (optimizer etc.).
     """
 
