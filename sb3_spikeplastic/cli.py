@@ -157,6 +157,7 @@ class RunInfo:
                  config: Optional[dict], run_dir: Optional[Path]):
         self.model_path, self.env_id, self.vecnormalize = model_path, env_id, vecnormalize
         self.config, self.run_dir = config or {}, run_dir
+        self.tensorboard_dir: Optional[Path] = None
 
     @property
     def env_kwargs(self) -> dict:
@@ -287,6 +288,26 @@ def _callback_classes():
     return AtomicCheckpoint, SaveBest
 
 
+def _continued_run(args: argparse.Namespace, env_id: str) -> RunInfo:
+    """The model (final or checkpoint) that ``--trained-agent`` names, with its run's config, VecNormalize
+    statistics and TensorBoard folder; ``UsageError`` if it cannot be continued as asked."""
+    from .config import yaml_load
+
+    if args.hyperparams or args.rule or args.n_envs or args.conf:
+        raise UsageError("--trained-agent continues a run with its own configuration; only -n (the total "
+                         "steps), --seed and the callback options may be given with it")
+    info = locate_run(args.trained_agent)
+    if not info.model_path.is_file() or info.model_path.suffix != ".zip":
+        raise UsageError(f"--trained-agent needs a model .zip or a run folder, got {args.trained_agent!r}")
+    if info.env_id is not None and info.env_id != env_id:
+        raise UsageError(f"--trained-agent {args.trained_agent!r} was trained on {info.env_id}, not {env_id}")
+    args_file = info.run_dir / info.env_id / "args.yml" if info.run_dir is not None else None
+    if args_file is not None and args_file.is_file():
+        tb = (yaml_load(args_file.read_text()) or {}).get("tensorboard_dir")
+        info.tensorboard_dir = Path(tb) if tb else None
+    return info
+
+
 def _rule_label(config: dict) -> str:
     if config.get("policy") != "SpikePlasticPolicy":
         return str(config.get("policy", "policy")).lower().replace("policy", "") or "policy"
@@ -313,9 +334,15 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
                                  ("--torch-threads", args.torch_threads, 1)):
         _check_int(name, value, minimum)
     device = _check_device(args.device)
+    source = _continued_run(args, env_id) if args.trained_agent else None
     try:
-        config = cfg.resolve_hyperparams(env_id, args.conf, args.hyperparams or (), rule=args.rule,
-                                         n_timesteps=args.n_timesteps, n_envs=args.n_envs)
+        if source is not None and source.config:
+            # The run's own resolved configuration: the continued model trains in the same environments.
+            config = cfg.validate_entry({**source.config, **({"n_timesteps": args.n_timesteps}
+                                                             if args.n_timesteps else {})})
+        else:
+            config = cfg.resolve_hyperparams(env_id, args.conf, args.hyperparams or (), rule=args.rule,
+                                             n_timesteps=args.n_timesteps, n_envs=args.n_envs)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     if args.figure_freq and config["policy"] != "SpikePlasticPolicy":
@@ -333,8 +360,20 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
         probe = _make_train_env(env_id, n_envs, env_kwargs, None)
         if norm_kwargs is not None:
             probe = VecNormalize(probe, **norm_kwargs)
-        model = PPO(policy, probe, **ppo_kwargs, policy_kwargs=policy_kwargs, seed=seed, device=device,
-                    verbose=args.verbose)
+        if source is None:
+            model = PPO(policy, probe, **ppo_kwargs, policy_kwargs=policy_kwargs, seed=seed, device=device,
+                        verbose=args.verbose)
+        else:
+            model = load_model(source, device=device)
+            _check_spaces(model, probe, env_id, source.model_path)
+            model.verbose = args.verbose
+            if model.num_timesteps >= config["n_timesteps"]:
+                raise UsageError(f"{str(source.model_path)!r} has trained {model.num_timesteps:,} of n_timesteps="
+                                 f"{config['n_timesteps']:,} steps already; pass a larger -n (the run's total)")
+    except UsageError:
+        if probe is not None:
+            probe.close()
+        raise
     except (ValueError, TypeError, AssertionError) as exc:
         if probe is not None:
             probe.close()
@@ -359,6 +398,8 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
         tb_root = Path(args.tensorboard_log) / env_id
         tb_root.mkdir(parents=True, exist_ok=True)
         tb_dir = tb_root / f"ppo_{rule}_{get_latest_run_id(str(tb_root), f'ppo_{rule}') + 1}"
+    elif source is not None and source.tensorboard_dir is not None:
+        tb_dir = source.tensorboard_dir  # the same TensorBoard run, its step axis continued
     else:
         tb_dir = run_dir
     command = shlex.join([PROG, *argv])
@@ -366,6 +407,8 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
     atomic_write(meta_dir / "config.yml", lambda f: f.write(cfg.dump_yaml({env_id: config})), binary=False)
     run_args = {k: v for k, v in sorted(vars(args).items()) if k != "func"}
     run_args.update(seed=seed, env=env_id, run_dir=str(run_dir), tensorboard_dir=str(tb_dir))
+    if source is not None:
+        run_args.update(trained_agent=str(source.model_path), start_timesteps=model.num_timesteps)
     atomic_write(meta_dir / "args.yml", lambda f: f.write(cfg.dump_yaml(run_args)), binary=False)
 
     model_path = run_dir / f"{env_id}.zip"
@@ -386,8 +429,13 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
 
         env = _make_train_env(env_id, n_envs, env_kwargs, run_dir)
         if norm_kwargs is not None:
-            env = VecNormalize(env, **norm_kwargs)
+            if source is not None and source.vecnormalize is not None:
+                env = VecNormalize.load(str(source.vecnormalize), env)  # the statistics continue too
+                env.training = True
+            else:
+                env = VecNormalize(env, **norm_kwargs)
         env.seed(seed)
+        model.set_random_seed(seed)
         model.set_env(env)
         formats = ["stdout"] if args.verbose >= 1 else []
         outputs = [make_output_format(f, str(run_dir)) for f in formats + ["csv"]]
@@ -415,7 +463,10 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
         print(f"Run folder:  {run_dir}")
         print(f"TensorBoard: tensorboard --logdir {args.tensorboard_log or args.log_folder}")
         sys.stdout.flush()
-        model.learn(config["n_timesteps"], callback=CallbackList(callbacks), progress_bar=not args.no_progress)
+        start = model.num_timesteps
+        # Continuing: the remaining steps with the counter kept, so schedules resume where they stopped.
+        model.learn(config["n_timesteps"] - start, callback=CallbackList(callbacks), progress_bar=not args.no_progress,
+                    reset_num_timesteps=source is None)
     except KeyboardInterrupt:
         save_final()
         print(f"\nInterrupted after {model.num_timesteps:,} steps; saved:", *saved, sep="\n  ")
@@ -803,6 +854,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--save-freq", type=int, default=0, help="checkpoint every N environment steps (0: never)")
     t.add_argument("--figure-freq", type=int, default=0, help="TensorBoard activity figure every N rollouts "
                    "(0: never)")
+    t.add_argument("-i", "--trained-agent", help="continue training this model (a run folder, its final .zip or "
+                   "a --save-freq checkpoint) with its VecNormalize statistics, step counter, schedules and "
+                   "TensorBoard run, up to -n total steps (default: the run's n_timesteps); writes a new run folder")
     t.add_argument("-v", "--verbose", type=int, default=1, help="0: quiet, 1: SB3's table every rollout (default)")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     common(t)

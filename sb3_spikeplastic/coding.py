@@ -11,7 +11,7 @@ spikes bit for bit (PPO re-evaluates every rollout step). The key advances by a 
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Optional, Sequence
 
 import numpy as np
 import torch
@@ -103,15 +103,30 @@ class PopulationEncoder(nn.Module):
     :param pop_size: cells per dimension, :math:`P_{dim}` (paper: 50).
     :param beta: tuning-curve sharpness (paper: 15).
     :param p_min: floor probability :math:`\\vartheta_{min}` (paper: 0.05).
+    :param indices: the observation dimensions to encode (``None``: all). ``low`` and ``high`` are those of the
+        whole observation; the paper's HalfCheetah network encodes only the 12 joint angles and velocities.
+
+    Each encoded value is clipped to its ``[low, high]`` before encoding, as the paper clips its measurements: a
+    value beyond the bounds fires the edge cell instead of silencing its whole population.
     """
 
     def __init__(self, low: Sequence[float], high: Sequence[float], pop_size: int = 50, beta: float = 15.0,
-                 p_min: float = 0.05):
+                 p_min: float = 0.05, indices: Optional[Sequence[int]] = None):
         super().__init__()
         low_t = torch.as_tensor(np.asarray(low, dtype=np.float64).reshape(-1))
         high_t = torch.as_tensor(np.asarray(high, dtype=np.float64).reshape(-1))
         if low_t.shape != high_t.shape:
             raise ValueError(f"encoder bounds differ in shape: low {tuple(low_t.shape)} vs high {tuple(high_t.shape)}")
+        self.n_obs = low_t.numel()
+        if indices is not None:
+            indices = [int(i) for i in indices]
+            bad = [i for i in indices if not 0 <= i < self.n_obs]
+            if bad or not indices or len(set(indices)) != len(indices):
+                raise ValueError(f"encoder indices {indices} must be distinct values in 0..{self.n_obs - 1}")
+            self.register_buffer("indices", torch.tensor(indices, dtype=torch.long))
+            low_t, high_t = low_t[indices], high_t[indices]
+        else:
+            self.indices = None
         if not (torch.isfinite(low_t).all() and torch.isfinite(high_t).all() and (high_t > low_t).all()):
             raise ValueError(f"encoder bounds must be finite with high > low, got low={low_t.tolist()} high={high_t.tolist()}")
         if pop_size < 2:
@@ -120,6 +135,8 @@ class PopulationEncoder(nn.Module):
         frac = torch.linspace(0.0, 1.0, pop_size, dtype=torch.float64)
         centres = low_t[:, None] + (high_t - low_t)[:, None] * frac[None, :]
         self.register_buffer("centres", centres.to(torch.float32))
+        self.register_buffer("low", low_t.to(torch.float32))
+        self.register_buffer("high", high_t.to(torch.float32))
         self.sampler = CounterBernoulli()
 
     @property
@@ -127,14 +144,21 @@ class PopulationEncoder(nn.Module):
         return self.n_dims * self.pop_size
 
     def probabilities(self, x: Tensor) -> Tensor:
-        """Firing probabilities ``(batch, P * pop_size)`` for observations ``(batch, P)``."""
+        """Firing probabilities ``(batch, P * pop_size)`` for observations ``(batch, n_obs)`` (the encoded ``P``
+        dimensions are selected and clipped to their bounds)."""
+        if self.indices is not None:
+            x = x.index_select(-1, self.indices)
+        return self._tuning(torch.maximum(torch.minimum(x, self.high), self.low))
+
+    def _tuning(self, x: Tensor) -> Tensor:
+        """The place cells' probabilities for values ``(batch, P)`` of the encoded dimensions."""
         p = torch.exp(-self.beta * (self.centres - x.unsqueeze(-1)) ** 2)
         return p.clamp(self.p_min, 1.0).flatten(1)
 
     def rms_rate(self) -> float:
         """Root-mean-square firing probability over cells, for ``x`` uniform within the bounds (for weight init)."""
         grid = self.centres[:, :1] + (self.centres[:, -1:] - self.centres[:, :1]) * torch.linspace(0, 1, 101)
-        p = self.probabilities(grid.T.contiguous())
+        p = self._tuning(grid.T.contiguous())
         return float(p.pow(2).mean().sqrt())
 
     def forward(self, x: Tensor, keys: Tensor, steps: int) -> Tensor:

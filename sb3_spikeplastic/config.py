@@ -54,12 +54,21 @@ _UNSETTABLE_POLICY_KEYS = ("self", "observation_space", "action_space", "lr_sche
                            "features_extractor_class")
 
 
-def default_hyperparams_path() -> Path:
-    """The ``ppo.yml`` shipped with the package (found both in editable installs and in wheels)."""
+def packaged_hyperparams_path(name: str = "ppo") -> Path:
+    """The hyperparameter file ``<name>.yml`` shipped with the package (found both in editable installs and in
+    wheels): ``ppo`` (the default) or ``paper`` (the paper's HalfCheetah network)."""
     try:
-        return Path(str(importlib.resources.files("sb3_spikeplastic.hyperparams").joinpath("ppo.yml")))
+        return Path(str(importlib.resources.files("sb3_spikeplastic.hyperparams").joinpath(f"{name}.yml")))
     except ModuleNotFoundError:  # an editable install made before the data package existed: the source tree's copy
-        return Path(__file__).resolve().parent.parent / "hyperparams" / "ppo.yml"
+        return Path(__file__).resolve().parent.parent / "hyperparams" / f"{name}.yml"
+
+
+def default_hyperparams_path() -> Path:
+    """The ``ppo.yml`` shipped with the package."""
+    return packaged_hyperparams_path("ppo")
+
+
+PACKAGED_HYPERPARAMS = ("ppo", "paper")
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -92,13 +101,19 @@ def yaml_load(text: str) -> Any:
 def load_hyperparams_file(path: Union[str, Path, None] = None) -> dict[str, dict]:
     """Read a hyperparameter file: a mapping of environment ids (and ``default``) to entries.
 
-    :param path: the YAML file; ``None``: :func:`default_hyperparams_path`.
+    :param path: the YAML file, or the name of a packaged one (:data:`PACKAGED_HYPERPARAMS`); ``None``:
+        :func:`default_hyperparams_path`.
     """
-    path = default_hyperparams_path() if path is None else Path(path)
+    if path is None:
+        path = default_hyperparams_path()
+    elif str(path) in PACKAGED_HYPERPARAMS and not Path(path).exists():
+        path = packaged_hyperparams_path(str(path))
+    path = Path(path)
     try:
         text = path.read_text()
     except OSError as exc:
-        raise ValueError(f"cannot read hyperparameter file {str(path)!r}: {exc.strerror or exc}") from None
+        raise ValueError(f"cannot read hyperparameter file {str(path)!r}: {exc.strerror or exc} (packaged files: "
+                         f"{', '.join(PACKAGED_HYPERPARAMS)})") from None
     try:
         data = yaml_load(text)
     except yaml.YAMLError as exc:

@@ -65,6 +65,8 @@ class SpikePlasticPolicy(ActorCriticPolicy):
     :param encoder_p_min: floor spike probability (paper: 0.05).
     :param obs_bounds: ``(low, high)`` for the encoder where the observation space is unbounded (scalars or
         arrays; with ``VecNormalize`` use the normalised range). Finite space bounds are used as they are.
+    :param obs_indices: the observation dimensions the encoder encodes (``None``: all). The paper's HalfCheetah
+        network encodes the 6 joint angles and 6 joint velocities, indices ``[2..7, 11..16]`` of HalfCheetah-v5.
     :param input_rms_rate: expected rms firing probability of spike-raster inputs (weight init only).
     :param action_pop_size: output neurons per action dimension (continuous, even; paper: 100) or per action
         (discrete). ``None``: 100 for ``Box``, 1 for ``Discrete``.
@@ -106,6 +108,7 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         encoder_beta: float = 15.0,
         encoder_p_min: float = 0.05,
         obs_bounds: tuple = (-3.0, 3.0),
+        obs_indices: Optional[Sequence[int]] = None,
         input_rms_rate: float = 0.25,
         action_pop_size: Optional[int] = None,
         logit_scale_init: float = 20.0,
@@ -136,6 +139,9 @@ class SpikePlasticPolicy(ActorCriticPolicy):
                 f"observation shape {observation_space.shape} is neither a vector (population-encoded) nor a "
                 "(T, n) spike raster with bounds [0, 1]"
             )
+        if raster and obs_indices is not None:
+            raise ValueError("obs_indices selects dimensions of a population-encoded vector; spike-raster "
+                             "observations pass through whole")
         if raster and steps is not None and steps != observation_space.shape[0]:
             raise ValueError(f"steps={steps} does not match the spike-raster length {observation_space.shape[0]}")
         self.snn_config = dict(
@@ -143,7 +149,8 @@ class SpikePlasticPolicy(ActorCriticPolicy):
             steps=int(observation_space.shape[0] if raster else (steps or 50)), plastic_layers=plastic_layers,
             neuron=dict(neuron or {}), e_max=e_max, plasticity_interval=plasticity_interval,
             rule_kwargs=dict(rule_kwargs or {}), encoder_pop_size=encoder_pop_size, encoder_beta=encoder_beta,
-            encoder_p_min=encoder_p_min, obs_bounds=obs_bounds, input_rms_rate=input_rms_rate,
+            encoder_p_min=encoder_p_min, obs_bounds=obs_bounds,
+            obs_indices=None if obs_indices is None else [int(i) for i in obs_indices], input_rms_rate=input_rms_rate,
             action_pop_size=action_pop_size, logit_scale_init=logit_scale_init, w_init_gain=w_init_gain,
             w_init_mean=w_init_mean, alpha_init_mean=alpha_init_mean, alpha_init_std=alpha_init_std,
             critic=critic, critic_hidden=critic_hidden, alpha_lr_scale=float(alpha_lr_scale),
@@ -161,7 +168,8 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         high = np.broadcast_to(np.asarray(cfg["obs_bounds"][1], dtype=np.float64), space.shape)
         low = np.where(np.isfinite(space.low), space.low, low)
         high = np.where(np.isfinite(space.high), space.high, high)
-        return PopulationEncoder(low, high, cfg["encoder_pop_size"], cfg["encoder_beta"], cfg["encoder_p_min"])
+        return PopulationEncoder(low, high, cfg["encoder_pop_size"], cfg["encoder_beta"], cfg["encoder_p_min"],
+                                 cfg.get("obs_indices"))
 
     def _make_decoder(self) -> nn.Module:
         cfg, space = self.snn_config, self.action_space

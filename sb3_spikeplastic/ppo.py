@@ -13,6 +13,8 @@ Any other policy (``MlpPolicy``...) goes through SB3's own code paths unchanged.
 
 from __future__ import annotations
 
+import math
+import warnings
 from typing import Any, ClassVar, Generator, NamedTuple, Optional, Union
 
 import numpy as np
@@ -243,6 +245,7 @@ class PPO(SB3PPO):
         self._last_network_state: Optional[NetworkState] = None
         self._graphed_evaluation: Optional[GraphedSequenceEvaluation] = None
         self._graphed_step: Optional[GraphedRolloutStep] = None
+        self._skipped_steps, self._warned_nonfinite = 0, False
         if self.recurrent:
             self._last_network_state = self.policy.initial_state(self.n_envs, seed=self.seed or 0)
             self.rollout_activity = RolloutActivity(self.policy.snn, self.policy)
@@ -250,7 +253,7 @@ class PPO(SB3PPO):
     def _excluded_save_params(self) -> list[str]:
         # The rollout state belongs to the running environments, not to the model.
         return [*super()._excluded_save_params(), "_last_network_state", "rollout_activity", "_graphed_evaluation",
-                "_graphed_step"]
+                "_graphed_step", "_skipped_steps", "_warned_nonfinite"]
 
     def _training_evaluation(self):
         """``(obs, actions, starts, states, masks) -> (values, log_prob, entropy)`` for the update: CUDA graphs
@@ -340,15 +343,22 @@ class PPO(SB3PPO):
         callback.on_rollout_end()
         return True
 
-    def _clip_gradients(self) -> float:
-        """Clip as ``self.grad_clip`` says; returns the global gradient norm before clipping."""
+    def _clip_gradients(self) -> Optional[float]:
+        """Clip as ``self.grad_clip`` says; returns the global gradient norm before clipping, or ``None`` (and
+        the gradients untouched) when that norm is not finite."""
         params = [p for p in self.policy.parameters() if p.grad is not None]
-        if self.grad_clip == "global":
-            return torch.nn.utils.clip_grad_norm_(params, self.max_grad_norm).item()
         norms = torch.stack([torch.linalg.vector_norm(p.grad) for p in params])
-        for p, norm in zip(params, norms):
-            p.grad.mul_(torch.clamp(self.max_grad_norm / (norm + 1e-6), max=1.0))
-        return torch.linalg.vector_norm(norms).item()
+        total = torch.linalg.vector_norm(norms).item()
+        if not math.isfinite(total):
+            return None
+        if self.grad_clip == "global":
+            scale = torch.clamp(self.max_grad_norm / (total + 1e-6), max=1.0)
+            for p in params:
+                p.grad.mul_(scale)
+        else:
+            for p, norm in zip(params, norms):
+                p.grad.mul_(torch.clamp(self.max_grad_norm / (norm + 1e-6), max=1.0))
+        return total
 
     def _minibatch_losses(self, batch: ChunkSamples, evaluate, clip_range: float,
                           clip_range_vf: Optional[float]) -> tuple[Tensor, dict[str, float]]:
@@ -400,8 +410,20 @@ class PPO(SB3PPO):
             return stats, False
         self.policy.optimizer.zero_grad()
         loss.backward()
-        # Plastic traces make raw gradient norms span 1e1..1e12 across rules: clipping is essential.
-        stats["grad_norm"] = self._clip_gradients()
+        grad_norm = self._clip_gradients()
+        if grad_norm is None:
+            # An overflowing gradient would turn every parameter into NaN (or, clipped, freeze them all): skip
+            # the step, count it (train/skipped_steps) and say so once.
+            self.policy.optimizer.zero_grad()
+            self._skipped_steps += 1
+            if not self._warned_nonfinite:
+                self._warned_nonfinite = True
+                warnings.warn(
+                    "non-finite gradient norm: the update step was skipped (counted in train/skipped_steps). "
+                    "With plastic layers this usually means the trace's Hebbian loop is self-exciting "
+                    "(alpha_init_mean too large for the layer) or bptt_steps is too long.", RuntimeWarning)
+            return stats, True
+        stats["grad_norm"] = grad_norm
         self.policy.optimizer.step()
         return stats, True
 
@@ -417,6 +439,7 @@ class PPO(SB3PPO):
         approx_kl_divs: list[float] = []
         continue_training = True
         evaluate = self._training_evaluation()
+        self._skipped_steps = 0
         for epoch in range(self.n_epochs):
             approx_kl_divs = []
             for batch in self.rollout_buffer.get_chunks(self.batch_size // self.bptt_steps):
@@ -443,6 +466,7 @@ class PPO(SB3PPO):
         self.logger.record("train/explained_variance", explained_var)
         if history["grad_norm"]:
             self.logger.record("train/grad_norm", float(np.median(history["grad_norm"])))
+        self.logger.record("train/skipped_steps", self._skipped_steps)
         if hasattr(self.policy, "log_std"):
             self.logger.record("train/std", torch.exp(self.policy.log_std).mean().item())
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")

@@ -278,3 +278,58 @@ def test_console_script_smoke(tmp_path):
     assert (tmp_path / "logs" / "ppo" / "TMazeCue-v0_1" / "TMazeCue-v0.zip").is_file()
     assert "Run folder:  logs/ppo/TMazeCue-v0_1" in result.stdout
     assert "sb3-spikeplastic evaluate --run logs/ppo/TMazeCue-v0_1" in result.stdout
+
+
+def test_train_continues_a_checkpoint_with_its_statistics_counter_and_tensorboard_run(tmaze_run, cheetah_run,
+                                                                                      workdir, capsys):
+    import pickle
+
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    # A --save-freq checkpoint of the T-maze run: its step counter and checkpoint names continue.
+    code, out, err = run_cli(capsys, "train", "--env", "TMazeCue-v0", "--trained-agent",
+                             tmaze_run / "rl_model_64_steps.zip", "-n", "192", "--seed", "4", "-f",
+                             workdir / "continued", "--save-freq", "64", "-v", "0", "--no-progress")
+    assert code == 0, err
+    run = workdir / "continued" / "ppo" / "TMazeCue-v0_1"
+    model = PPO.load(run / "TMazeCue-v0.zip")
+    assert model.num_timesteps == 192 and model.policy.snn.rule_name == "ndp-oja"
+    assert {"rl_model_128_steps.zip", "rl_model_192_steps.zip"} <= {p.name for p in run.iterdir()}
+    args = (run / "TMazeCue-v0" / "args.yml").read_text()
+    assert "start_timesteps: 64" in args and "rl_model_64_steps.zip" in args
+    assert f"tensorboard_dir: {workdir / 'tb' / 'TMazeCue-v0' / 'ppo_ndp-oja_1'}" in args  # the source's TB run
+    # The final model of a normalised run: its VecNormalize statistics go on accumulating.
+    code, _, err = run_cli(capsys, "train", "--env", "HalfCheetah-v5", "-i", cheetah_run, "-n", "96", "--seed", "1",
+                           "-f", workdir / "continued", "-v", "0", "--no-progress")
+    assert code == 0, err
+    new = workdir / "continued" / "ppo" / "HalfCheetah-v5_1"
+    assert PPO.load(new / "HalfCheetah-v5.zip").num_timesteps == 96
+    with open(cheetah_run / "HalfCheetah-v5" / "vecnormalize.pkl", "rb") as f:
+        before = pickle.load(f).obs_rms.count
+    with open(new / "HalfCheetah-v5" / "vecnormalize.pkl", "rb") as f:
+        after = pickle.load(f)
+    assert isinstance(after, VecNormalize) and after.obs_rms.count > before
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--hyperparams", "n_steps=64"], "--trained-agent continues a run with its own configuration"),
+    (["-n", "64"], "has trained 128 of n_timesteps=64 steps already; pass a larger -n"),
+    (["--env", "HalfCheetah-v5"], "was trained on TMazeCue-v0, not HalfCheetah-v5"),
+])
+def test_bad_trained_agent_exits_2_and_writes_nothing(tmaze_run, tmp_path, capsys, extra, message):
+    argv = ["train", "--env", "TMazeCue-v0", "-i", tmaze_run, "-f", tmp_path / "logs", *extra]
+    if "--env" in extra:
+        argv = argv[:1] + argv[3:]
+    code, _, err = run_cli(capsys, *argv)
+    assert code == 2 and len(err.strip().splitlines()) == 1 and message in err, err
+    assert not (tmp_path / "logs").exists()
+
+
+def test_packaged_paper_configuration():
+    config = load_hyperparams_file("paper")["HalfCheetah-v5"]
+    kwargs = config["policy_kwargs"]
+    assert kwargs["obs_indices"] == [2, 3, 4, 5, 6, 7, 11, 12, 13, 14, 15, 16]
+    assert (kwargs["encoder_pop_size"], kwargs["hidden_sizes"], kwargs["action_pop_size"], kwargs["steps"]) == (
+        50, [64, 64], 100, 50)
+    assert config["n_steps"] * config["n_envs"] == 3000 and config["gae_lambda"] == 0.97
+    assert config["learning_rate"] == "lin_5e-4" and config["n_epochs"] == 10

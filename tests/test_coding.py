@@ -21,10 +21,12 @@ LOW, HIGH = [-3.0, -1.0, 0.0], [3.0, 2.0, 5.0]
 
 
 def place_cell_probabilities_np(x, low, high, pop=50, beta=15.0, p_min=0.05):
-    """SPEC §4: p = clip(exp(-beta (Omega - x)^2), theta_min, 1), Omega evenly spaced over [low, high]."""
+    """SPEC §4: p = clip(exp(-beta (Omega - x)^2), theta_min, 1), Omega evenly spaced over [low, high], x clipped
+    to [low, high] first."""
     out = []
     for xi, lo, hi in zip(x, low, high):
         omega = np.linspace(lo, hi, pop)
+        xi = min(max(xi, lo), hi)
         out.append(np.clip(np.exp(-beta * (omega - xi) ** 2), p_min, 1.0))
     return np.concatenate(out)
 
@@ -37,6 +39,25 @@ def test_encoder_probabilities_match_formula():
     got = enc.probabilities(torch.tensor(x, dtype=torch.float32)).numpy()
     expected = np.stack([place_cell_probabilities_np(xi, LOW, HIGH) for xi in x])
     np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-6)
+
+
+def test_encoder_clips_to_its_bounds_so_out_of_range_values_fire_the_edge_cell():
+    enc = PopulationEncoder(LOW, HIGH, pop_size=10)
+    p = enc.probabilities(torch.tensor([[-7.0, 2.5, 50.0]]))
+    assert torch.equal(p, enc.probabilities(torch.tensor([[-3.0, 2.0, 5.0]])))  # the same as at the bounds
+    assert (p.view(3, 10)[:, [0, -1, -1]].diagonal() == 1.0).all()  # the edge cells fire at every step
+
+
+def test_encoder_indices_encode_the_chosen_dimensions_only():
+    enc = PopulationEncoder(LOW, HIGH, pop_size=10, indices=[2, 0])
+    assert enc.n_neurons == 20
+    x = torch.tensor([[1.2, 99.0, 3.3], [-0.4, -99.0, 0.1]])  # dimension 1 is ignored whatever its value
+    expected = np.stack([place_cell_probabilities_np([xi[2], xi[0]], [LOW[2], LOW[0]], [HIGH[2], HIGH[0]], pop=10)
+                         for xi in x.numpy()])
+    np.testing.assert_allclose(enc.probabilities(x).numpy(), expected, rtol=1e-5, atol=1e-6)
+    for bad in ([3], [0, 0], []):
+        with pytest.raises(ValueError, match="encoder indices"):
+            PopulationEncoder(LOW, HIGH, indices=bad)
 
 
 def test_encoder_empirical_firing_probability_within_binomial_tolerance():

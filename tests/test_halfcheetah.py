@@ -1,0 +1,106 @@
+"""HalfCheetah with the shipped hyperparameters: gradients stay finite and updates move the policy; the plastic
+trace's Hebbian loop and the guard against a non-finite gradient."""
+
+import math
+import warnings
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.vec_env import VecNormalize
+
+from sb3_spikeplastic import PPO, SpikePlasticPolicy
+from sb3_spikeplastic.config import model_arguments, normalize_arguments, resolve_hyperparams
+
+ENV_ID = "HalfCheetah-v5"
+
+
+def shipped_model(n_envs=2, n_steps=32, seed=0, **overrides):
+    """A model built from the packaged HalfCheetah-v5 entry, with only the rollout size made small."""
+    items = [f"n_envs={n_envs}", f"n_steps={n_steps}", f"batch_size={n_envs * n_steps}",
+             *[f"{k}={v}" for k, v in overrides.items()]]
+    config = resolve_hyperparams(ENV_ID, None, items)
+    policy, ppo_kwargs, policy_kwargs = model_arguments(config)
+    env = make_vec_env(ENV_ID, n_envs, seed=seed)
+    norm = normalize_arguments(config)
+    if norm is not None:
+        env = VecNormalize(env, **norm)
+    return PPO(policy, env, **ppo_kwargs, policy_kwargs=policy_kwargs, seed=seed)
+
+
+def test_shipped_entry_updates_move_the_policy_with_finite_gradients():
+    model = shipped_model(n_epochs=2, bptt_steps=16)
+    spiking = {n: p.detach().clone() for n, p in model.policy.snn.named_parameters()}
+    log_std = model.policy.log_std.detach().clone()
+    model.learn(3 * 2 * 32)
+    values = model.logger.name_to_value
+    assert values["train/approx_kl"] > 0
+    assert math.isfinite(values["train/grad_norm"]) and values["train/skipped_steps"] == 0
+    assert not torch.equal(model.policy.log_std, log_std)
+    for name, p in model.policy.snn.named_parameters():  # every spiking layer learns, not only the readouts
+        if name.endswith("weight"):
+            assert not torch.equal(p, spiking[name]), name
+
+
+def last_action_gradient(policy, obs, steps):
+    """Norm of the gradient of the last step's mean action, after ``steps`` steps of BPTT from a warmed state,
+    with respect to the first layer's weights."""
+    snn = policy.snn
+    state = snn.initial_state(obs.shape[1])
+    with torch.no_grad():
+        for k in range(8):
+            _, state = snn(obs[k], state)
+    snn.zero_grad()
+    outputs, _ = snn.forward_sequence(obs[8:8 + steps], torch.zeros(steps, obs.shape[1]), state)
+    outputs[-1].action.sum().backward()
+    return snn.layers[0].weight.grad.norm().item()
+
+
+@pytest.fixture(scope="module")
+def cheetah_observations():
+    env = gym.make(ENV_ID)
+    rng = np.random.default_rng(0)
+    obs, _ = env.reset(seed=0)
+    seq = []
+    for _ in range(32):
+        obs, *_ = env.step(rng.uniform(-1, 1, 6).astype(np.float32))
+        seq.append(obs)
+    # Rough normalisation, as VecNormalize gives the policy; 4 environments from shifted windows.
+    seq = np.array(seq, dtype=np.float32)
+    seq = (seq - seq.mean(0)) / (seq.std(0) + 1e-3)
+    return torch.tensor(np.stack([np.roll(seq, 3 * i, axis=0) for i in range(4)], 1))
+
+
+def test_positive_mean_alpha_makes_the_trace_loop_explode_and_the_shipped_init_does_not(cheetah_observations):
+    # dp-oja with the rule's default alpha (positive mean, tuned for the T-maze's memory): the trace's Hebbian
+    # loop E -> firing -> E gains ~7x per environment step, so the gradient grows geometrically with BPTT length.
+    # With zero-mean alpha (the HalfCheetah entries) it stays at the static network's scale.
+    space, action_space = gym.make(ENV_ID).observation_space, gym.make(ENV_ID).action_space
+    small = dict(hidden_sizes=(32, 32), steps=10, encoder_pop_size=10, action_pop_size=20, rule="dp-oja")
+    torch.manual_seed(0)
+    exploding = SpikePlasticPolicy(space, action_space, lambda _: 1e-3, **small)
+    torch.manual_seed(0)
+    bounded = SpikePlasticPolicy(space, action_space, lambda _: 1e-3, alpha_init_mean=0.0, alpha_init_std=1.0, **small)
+    growth = last_action_gradient(exploding, cheetah_observations, 12) / last_action_gradient(
+        exploding, cheetah_observations, 4)
+    assert growth > 1e3
+    bounded_growth = last_action_gradient(bounded, cheetah_observations, 12) / last_action_gradient(
+        bounded, cheetah_observations, 4)
+    assert bounded_growth < 10
+
+
+def test_nonfinite_gradient_skips_the_step_counts_it_and_warns_once():
+    model = shipped_model(n_epochs=2, bptt_steps=16)
+    before = {n: p.detach().clone() for n, p in model.policy.named_parameters()}
+    model.policy.snn.layers[0].weight.register_hook(lambda g: g * float("inf"))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model.learn(2 * 32)
+    nonfinite = [w for w in caught if "non-finite gradient norm" in str(w.message)]
+    assert len(nonfinite) == 1
+    # one rollout of 64 transitions, one minibatch per epoch, two epochs: both steps skipped
+    assert model.logger.name_to_value["train/skipped_steps"] == 2
+    for name, p in model.policy.named_parameters():
+        assert torch.equal(p, before[name]), name  # neither NaN nor moved
