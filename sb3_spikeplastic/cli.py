@@ -204,10 +204,14 @@ def locate_run(path: str, best: bool = False) -> RunInfo:
 
 
 def load_model(info: RunInfo, device: str = "cpu"):
-    from .ppo import PPO
+    from .config import algorithm_class
 
     try:
-        return PPO.load(str(info.model_path), device=device)
+        algorithm = algorithm_class(info.config.get("algo", "ppo"))
+    except ValueError as exc:
+        raise UsageError(f"cannot load model {str(info.model_path)!r}: {exc}") from None
+    try:
+        return algorithm.load(str(info.model_path), device=device)
     except Exception as exc:  # a corrupt or foreign file
         raise UsageError(f"cannot load model {str(info.model_path)!r}: {type(exc).__name__}: {exc}") from None
 
@@ -319,7 +323,6 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
 
     from . import config as cfg
     from ._fast.allocator import keep_freed_memory
-    from .ppo import PPO
 
     # ---- validation: nothing is written before all of this passed ----
     try:
@@ -361,8 +364,9 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
         if norm_kwargs is not None:
             probe = VecNormalize(probe, **norm_kwargs)
         if source is None:
-            model = PPO(policy, probe, **ppo_kwargs, policy_kwargs=policy_kwargs, seed=seed, device=device,
-                        verbose=args.verbose)
+            algorithm = cfg.algorithm_class(config.get("algo", "ppo"))
+            model = algorithm(policy, probe, **ppo_kwargs, policy_kwargs=policy_kwargs, seed=seed, device=device,
+                              verbose=args.verbose)
         else:
             model = load_model(source, device=device)
             _check_spaces(model, probe, env_id, source.model_path)
@@ -458,7 +462,8 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
         if args.figure_freq:
             callbacks.append(ActivityFigureCallback(env_id, every=args.figure_freq, env_kwargs=env_kwargs, seed=seed))
 
-        print(f"Training PPO ({config['policy']}, rule {rule}) on {env_id} for {config['n_timesteps']:,} steps, "
+        algo_name = "RecurrentPPO" if config.get("algo") == "ppo_lstm" else "PPO"
+        print(f"Training {algo_name} ({config['policy']}, rule {rule}) on {env_id} for {config['n_timesteps']:,} steps, "
               f"seed {seed}")
         print(f"Run folder:  {run_dir}")
         print(f"TensorBoard: tensorboard --logdir {args.tensorboard_log or args.log_folder}")

@@ -40,7 +40,10 @@ from typing import Any, Mapping, Optional, Sequence, Union
 import yaml
 
 #: Keys of an entry that are not PPO arguments (rl-zoo's meta keys that this CLI implements).
-META_KEYS = ("n_timesteps", "n_envs", "policy", "policy_kwargs", "normalize", "env_kwargs")
+META_KEYS = ("algo", "n_timesteps", "n_envs", "policy", "policy_kwargs", "normalize", "env_kwargs")
+#: Values of an entry's ``algo`` key (rl-zoo's algorithm names): ``ppo`` is :class:`sb3_spikeplastic.PPO` (spiking
+#: and SB3 policies), ``ppo_lstm`` sb3-contrib's ``RecurrentPPO`` (a baseline; ``pip install sb3-contrib``).
+ALGOS = ("ppo", "ppo_lstm")
 #: PPO arguments that the command line (or the run) sets, not the hyperparameter file.
 _PPO_EXCLUDED = ("self", "policy", "env", "policy_kwargs", "tensorboard_log", "verbose", "seed", "device",
                  "_init_setup_model", "rollout_buffer_class", "rollout_buffer_kwargs")
@@ -56,7 +59,8 @@ _UNSETTABLE_POLICY_KEYS = ("self", "observation_space", "action_space", "lr_sche
 
 def packaged_hyperparams_path(name: str = "ppo") -> Path:
     """The hyperparameter file ``<name>.yml`` shipped with the package (found both in editable installs and in
-    wheels): ``ppo`` (the default) or ``paper`` (the paper's HalfCheetah network)."""
+    wheels): ``ppo`` (the default), ``paper`` (the paper's HalfCheetah network), ``mlp`` and ``ppo_lstm`` (the
+    MlpPolicy and RecurrentPPO baselines, trained with the spiking entry's PPO settings)."""
     try:
         return Path(str(importlib.resources.files("sb3_spikeplastic.hyperparams").joinpath(f"{name}.yml")))
     except ModuleNotFoundError:  # an editable install made before the data package existed: the source tree's copy
@@ -68,7 +72,7 @@ def default_hyperparams_path() -> Path:
     return packaged_hyperparams_path("ppo")
 
 
-PACKAGED_HYPERPARAMS = ("ppo", "paper")
+PACKAGED_HYPERPARAMS = ("ppo", "paper", "mlp", "ppo_lstm")
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -357,11 +361,24 @@ def _signature_hints(fn) -> dict[str, Any]:
             if p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)}
 
 
-def ppo_argument_hints() -> dict[str, Any]:
-    """The PPO arguments a hyperparameter entry may set, with their type hints."""
-    from .ppo import PPO
+def algorithm_class(algo: str = "ppo") -> type:
+    """The class trained for an entry's ``algo`` (:data:`ALGOS`)."""
+    if algo == "ppo":
+        from .ppo import PPO
 
-    return {k: v for k, v in _signature_hints(PPO.__init__).items() if k not in _PPO_EXCLUDED}
+        return PPO
+    if algo == "ppo_lstm":
+        try:
+            from sb3_contrib import RecurrentPPO
+        except ImportError:
+            raise ValueError("algo='ppo_lstm' needs sb3-contrib: pip install 'sb3-spikeplastic[baselines]'") from None
+        return RecurrentPPO
+    raise ValueError(f"unknown algo {algo!r}; accepted: {', '.join(ALGOS)}")
+
+
+def ppo_argument_hints(algo: str = "ppo") -> dict[str, Any]:
+    """The algorithm's arguments a hyperparameter entry may set, with their type hints."""
+    return {k: v for k, v in _signature_hints(algorithm_class(algo).__init__).items() if k not in _PPO_EXCLUDED}
 
 
 def accepted_keys() -> tuple[str, ...]:
@@ -369,27 +386,22 @@ def accepted_keys() -> tuple[str, ...]:
     return (*META_KEYS, *ppo_argument_hints())
 
 
-def policy_names() -> tuple[str, ...]:
-    """Policy names accepted by ``policy`` (``SpikePlasticPolicy`` and SB3's on-policy ones)."""
-    from .ppo import PPO
-
-    return tuple(PPO.policy_aliases)
-
-
-def _policy_class(policy: str) -> type:
-    from .ppo import PPO
-
-    return PPO.policy_aliases[policy]
+def policy_names(algo: str = "ppo") -> tuple[str, ...]:
+    """Policy names accepted by ``policy`` (``SpikePlasticPolicy`` and SB3's on-policy ones; for ``ppo_lstm``
+    sb3-contrib's LSTM policies)."""
+    return tuple(algorithm_class(algo).policy_aliases)
 
 
-def policy_kwarg_hints(policy: str = "SpikePlasticPolicy") -> dict[str, Any]:
+def _policy_class(policy: str, algo: str = "ppo") -> type:
+    return algorithm_class(algo).policy_aliases[policy]
+
+
+def policy_kwarg_hints(policy: str = "SpikePlasticPolicy", algo: str = "ppo") -> dict[str, Any]:
     """The ``policy_kwargs`` a policy accepts from a hyperparameter file, with their type hints."""
     from stable_baselines3.common.policies import ActorCriticPolicy
 
-    from .ppo import PPO
-
     base = {k: v for k, v in _signature_hints(ActorCriticPolicy.__init__).items() if k not in _UNSETTABLE_POLICY_KEYS}
-    policy_class = PPO.policy_aliases[policy]
+    policy_class = _policy_class(policy, algo)
     if policy_class is ActorCriticPolicy or not issubclass(policy_class, ActorCriticPolicy):
         return base
     own = {k: v for k, v in _signature_hints(policy_class.__init__).items() if k not in _UNSETTABLE_POLICY_KEYS}
@@ -413,7 +425,7 @@ def resolve_class_name(name: str, key: str) -> type:
     return candidate
 
 
-def _validate_policy_kwargs(policy: str, kwargs: Any) -> dict:
+def _validate_policy_kwargs(policy: str, kwargs: Any, algo: str = "ppo") -> dict:
     from .plasticity import available_rules, get_rule_class
 
     kwargs = _as_mapping(kwargs, "policy_kwargs")
@@ -421,7 +433,7 @@ def _validate_policy_kwargs(policy: str, kwargs: Any) -> dict:
         return {}
     if not isinstance(kwargs, dict):
         raise ValueError(f"policy_kwargs={kwargs!r} must be a mapping")
-    hints = policy_kwarg_hints(policy)
+    hints = policy_kwarg_hints(policy, algo)
     _check_keys("policy_kwargs key", kwargs, list(hints))
     out = {}
     for key, value in kwargs.items():
@@ -438,7 +450,7 @@ def _validate_policy_kwargs(policy: str, kwargs: Any) -> dict:
     if "rule" in out and out["rule"] not in available_rules():
         raise ValueError(f"unknown rule {out['rule']!r}; accepted: {', '.join(available_rules())}")
     if "rule" in hints:
-        default_rule = inspect.signature(_policy_class(policy).__init__).parameters["rule"].default
+        default_rule = inspect.signature(_policy_class(policy, algo).__init__).parameters["rule"].default
         out_rule = out.get("rule", default_rule)
         if out.get("rule_kwargs"):
             rule_hints = {k: v for k, v in _signature_hints(get_rule_class(out_rule).__init__).items()
@@ -496,15 +508,20 @@ def validate_entry(entry: Mapping[str, Any]) -> dict:
 
     :raises ValueError: one line naming the bad key or value and what is accepted.
     """
-    ppo_hints = ppo_argument_hints()
-    _check_keys("hyperparameter", entry, (*META_KEYS, *ppo_hints))
+    algo = entry.get("algo", "ppo")
+    if algo not in ALGOS:
+        raise ValueError(f"unknown algo {algo!r}; accepted: {', '.join(ALGOS)}")
+    ppo_hints = ppo_argument_hints(algo)
+    _check_keys("hyperparameter", entry, (*META_KEYS, *ppo_hints), "" if algo == "ppo" else f" for algo {algo!r}")
     out: dict[str, Any] = {}
-    policy = entry.get("policy", "SpikePlasticPolicy")
-    if policy not in policy_names():
-        raise ValueError(f"unknown policy {policy!r}; accepted: {', '.join(policy_names())}")
+    policy = entry.get("policy", "SpikePlasticPolicy" if algo == "ppo" else "MlpLstmPolicy")
+    if policy not in policy_names(algo):
+        raise ValueError(f"unknown policy {policy!r}; accepted: {', '.join(policy_names(algo))}")
     out["policy"] = policy
+    if algo != "ppo":
+        out["algo"] = algo
     for key, value in entry.items():
-        if key == "policy":
+        if key in ("policy", "algo"):
             continue
         if key == "n_timesteps":
             out[key] = _check_value(key, value, int)
@@ -515,7 +532,7 @@ def validate_entry(entry: Mapping[str, Any]) -> dict:
             if out[key] < 1:
                 raise ValueError(f"n_envs={value!r} must be >= 1")
         elif key == "policy_kwargs":
-            out[key] = _validate_policy_kwargs(policy, value)
+            out[key] = _validate_policy_kwargs(policy, value, algo)
         elif key == "normalize":
             out[key] = _validate_normalize(value)
         elif key == "env_kwargs":

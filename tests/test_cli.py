@@ -333,3 +333,26 @@ def test_packaged_paper_configuration():
         50, [64, 64], 100, 50)
     assert config["n_steps"] * config["n_envs"] == 3000 and config["gae_lambda"] == 0.97
     assert config["learning_rate"] == "lin_5e-4" and config["n_epochs"] == 10
+
+
+@pytest.mark.parametrize("conf, policy_class", [("mlp", "ActorCriticPolicy"), ("ppo_lstm", "RecurrentActorCriticPolicy")])
+def test_baselines_train_and_evaluate_through_the_same_commands(conf, policy_class, tmp_path, capsys):
+    tiny = ["n_envs=1", "n_steps=32", "batch_size=32", "n_epochs=1", "env_kwargs.max_episode_steps=20"]
+    code, out, err = run_cli(capsys, "train", "--env", "HalfCheetah-v5", "--conf", conf, "-n", "64", "--seed", "0",
+                             "-f", tmp_path / "logs", "--hyperparams", *tiny, "-v", "0", "--no-progress")
+    assert code == 0, err
+    run = tmp_path / "logs" / "ppo" / "HalfCheetah-v5_1"
+    config = load_hyperparams_file(run / "HalfCheetah-v5" / "config.yml")["HalfCheetah-v5"]
+    assert config.get("algo", "ppo") == ("ppo_lstm" if conf == "ppo_lstm" else "ppo")
+    code, out, err = run_cli(capsys, "evaluate", "--run", run, "--episodes", "2")
+    assert code == 0 and "mean episode length 20.0" in out, err
+    model = cli.load_model(cli.locate_run(str(run)))
+    assert type(model.policy).__name__ == policy_class and model.num_timesteps == 64
+
+
+def test_unknown_algo_is_a_one_line_error(tmp_path, capsys):
+    conf = tmp_path / "bad.yml"
+    conf.write_text("HalfCheetah-v5:\n  algo: sac\n")
+    code, _, err = run_cli(capsys, "train", "--env", "HalfCheetah-v5", "--conf", conf, "-f", tmp_path / "logs")
+    assert code == 2 and "unknown algo 'sac'; accepted: ppo, ppo_lstm" in err
+    assert not (tmp_path / "logs").exists()
