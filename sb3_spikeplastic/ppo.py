@@ -352,7 +352,7 @@ class PPO(SB3PPO):
         if not math.isfinite(total):
             return None
         if self.grad_clip == "global":
-            scale = torch.clamp(self.max_grad_norm / (total + 1e-6), max=1.0)
+            scale = min(self.max_grad_norm / (total + 1e-6), 1.0)  # as torch's clip_grad_norm_
             for p in params:
                 p.grad.mul_(scale)
         else:

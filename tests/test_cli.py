@@ -110,7 +110,7 @@ def test_train_halfcheetah_normalized(cheetah_run):
     model = PPO.load(cheetah_run / "HalfCheetah-v5.zip")
     assert model.policy.snn.sizes == [17 * 8, 16, 6 * 4] and hasattr(model.policy, "log_std")
     ea = event_accumulator(cheetah_run)  # no --tensorboard-log: events in the run folder
-    assert {"snn/action_std", "snn/layer0/spike_rate", "plasticity/layer0/modulation_std"} <= set(ea.Tags()["scalars"])
+    assert {"snn/action_std", "snn/layer0/spike_rate", "plasticity/layer0/trace_abs_mean"} <= set(ea.Tags()["scalars"])
     assert len(ea.Images("snn/activity")) == 2
     assert "hyperparameters/text_summary" in ea.Tags()["tensors"]
 

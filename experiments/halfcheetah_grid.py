@@ -1,0 +1,273 @@
+"""The locomotion experiment (paper §3.2, Fig. 4 E-H): every rule and the two baselines on HalfCheetah-v5 over
+several seeds, then their robustness to joint-friction, action and observation noise.
+
+Runs ``sb3-spikeplastic train`` for each (variant, seed) in parallel processes (one torch thread each), with
+``--save-freq`` checkpoints (an interrupted run continues with ``train --trained-agent``) and a deterministic
+evaluation every ``--eval-freq`` steps; then evaluates each final model on ``--final-episodes`` deterministic
+episodes, runs ``sb3-spikeplastic robustness`` on all final models side by side (the same noise draws for every
+model), and aggregates into ``--out``:
+
+* ``training_curves.png`` / ``curves.csv`` — evaluation return vs environment steps, mean and min-max band over
+  seeds (Fig. 4 E);
+* ``robustness.png`` — per noise type, the return ratio to sigma = 0 against sigma, mean and standard deviation
+  over seeds (Fig. 4 F-H);
+* ``table.md`` / ``summary.csv`` — per variant: final deterministic return per seed, minutes per run, and per
+  noise type the area under the ratio curve (trapezoid over sigma, divided by the sigma range: 1 = no loss) and
+  the worst ratio.
+
+Variants: the rules of ``ppo.yml``'s HalfCheetah entry (``static``, ``dp-oja``...), ``<rule>+tanh`` (the
+bounded-modulation stabiliser), and the baselines ``mlp`` (``--conf mlp``) and ``ppo_lstm`` (``--conf ppo_lstm``).
+
+Usage::
+
+    python experiments/halfcheetah_grid.py --variants static dp-oja ndp-oja mlp --seeds 0 1 2
+    python experiments/halfcheetah_grid.py --aggregate-only
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import shutil
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+ENV = "HalfCheetah-v5"
+STABILISED = ["policy_kwargs.rule_kwargs.modulation=tanh", "policy_kwargs.rule_kwargs.wm_init_gain=5"]
+RULES = ("static", "dp-linear", "dp-oja", "dp-bcm", "ndp-oja", "ndp-bcm")
+VARIANTS = (*RULES, "ndp-oja+tanh", "ndp-bcm+tanh", "mlp", "ppo_lstm")
+NOISES = ("friction", "action", "obs")
+#: First environment seed of the final and robustness evaluations (training's evaluations use the seed's range).
+HELDOUT_SEED = 1_000_000
+
+
+def cli() -> str:
+    """The console script of the running interpreter's environment (works without activating it)."""
+    return shutil.which("sb3-spikeplastic", path=str(Path(sys.executable).parent)) or "sb3-spikeplastic"
+
+
+def run_root(variant: str, seed: int, args: argparse.Namespace) -> Path:
+    return args.out / "runs" / f"{variant}_{seed}"
+
+
+def latest_run(variant: str, seed: int, args: argparse.Namespace) -> Path | None:
+    runs = sorted(run_root(variant, seed, args).glob(f"ppo/{ENV}_*"), key=lambda p: int(p.name.rsplit("_", 1)[1]))
+    return runs[-1] if runs else None
+
+
+def train_command(variant: str, seed: int, args: argparse.Namespace) -> list[str]:
+    if variant in ("mlp", "ppo_lstm"):
+        selection = ["--conf", variant]
+    else:
+        selection = ["--rule", variant.split("+")[0]]
+        overrides = [*(STABILISED if variant.endswith("+tanh") else []), *args.hyperparams]
+        selection += ["--hyperparams", *overrides] if overrides else []
+    return [cli(), "train", "--env", ENV, *selection, "--seed", str(seed), "-n", str(args.n_timesteps),
+            "-f", str(run_root(variant, seed, args)), "--eval-freq", str(args.eval_freq), "--eval-episodes",
+            str(args.eval_episodes), "--save-freq", str(args.save_freq), "--torch-threads", "1", "--no-progress",
+            "-v", "0"]
+
+
+def final_command(variant: str, seed: int, args: argparse.Namespace) -> list[str]:
+    run = latest_run(variant, seed, args)
+    return [cli(), "evaluate", "--run", str(run), "--episodes", str(args.final_episodes), "--seed",
+            str(HELDOUT_SEED), "--torch-threads", "1", "-o", str(run / "final_eval.json")]
+
+
+def run_one(commands: list, log: Path) -> int:
+    """Run the commands one after another (each built when its turn comes), stopping at the first failure."""
+    log.parent.mkdir(parents=True, exist_ok=True)
+    with open(log, "a") as out:
+        for make in commands:
+            out.flush()
+            code = subprocess.call(make(), stdout=out, stderr=subprocess.STDOUT,
+                                   env={**os.environ, "OMP_NUM_THREADS": "1"})
+            if code:
+                return code
+    return 0
+
+
+def finished_runs(args: argparse.Namespace) -> dict[str, Path]:
+    """``<variant>_s<seed>`` -> run folder, for every run with a final model."""
+    found = {}
+    for folder in sorted((args.out / "runs").glob("*_*")):
+        variant, seed = folder.name.rsplit("_", 1)
+        run = latest_run(variant, int(seed), args)
+        if run is not None and (run / f"{ENV}.zip").exists():
+            found[f"{variant}_s{seed}"] = run
+    return found
+
+
+def robustness_commands(args: argparse.Namespace) -> list[list[str]]:
+    runs = finished_runs(args)
+    models = [f"{name}={run}" for name, run in runs.items()]
+    return [[cli(), "robustness", "--models", *models, "--noise", noise, "--sigmas", *map(str, args.sigmas),
+             "--episodes", str(args.robustness_episodes), "--n-envs", "5", "--seed", str(HELDOUT_SEED),
+             "--torch-threads", "1", "-o", str(args.out / "robustness"), "--no-progress"] for noise in args.noises]
+
+
+def read_evaluations(run: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Evaluation steps and mean returns, across the run and the runs it continued (``--trained-agent``)."""
+    evaluations = np.load(run / "evaluations.npz")
+    return evaluations["timesteps"], evaluations["results"].mean(axis=1)
+
+
+def variant_of(name: str) -> str:
+    return name.rsplit("_s", 1)[0]
+
+
+def aggregate(args: argparse.Namespace) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs = finished_runs(args)
+    if not runs:
+        print(f"no finished runs under {args.out / 'runs'}")
+        return
+    variants = [v for v in VARIANTS if any(variant_of(n) == v for n in runs)]
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    curves, summary = [], []
+    for variant in variants:
+        group = {n: r for n, r in runs.items() if variant_of(n) == variant and (r / "evaluations.npz").exists()}
+        if not group:
+            continue
+        data = [read_evaluations(r) for r in group.values()]
+        grid = np.unique(np.concatenate([s for s, _ in data]))
+        ys = np.stack([np.interp(grid, s, y) for s, y in data])
+        line, = ax.plot(grid, ys.mean(0), label=f"{variant} (n={len(group)})")
+        ax.fill_between(grid, ys.min(0), ys.max(0), alpha=0.2, color=line.get_color())
+        curves += [dict(variant=variant, steps=int(s), mean=m, lo=lo, hi=hi)
+                   for s, m, lo, hi in zip(grid, ys.mean(0), ys.min(0), ys.max(0))]
+    ax.axhline(1500, color="k", ls=":", lw=1)
+    ax.set(title=f"{ENV}: deterministic evaluation return", xlabel="environment steps", ylabel="mean return")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(args.out / "training_curves.png", dpi=120)
+
+    ratios: dict[tuple[str, str], dict[float, list[float]]] = {}
+    for noise in NOISES:
+        path = args.out / "robustness" / f"robustness_{ENV}_{noise}.csv"
+        if not path.exists():
+            continue
+        with open(path) as f:
+            for row in csv.DictReader(f):
+                cell = ratios.setdefault((variant_of(row["model"]), noise), {})
+                cell.setdefault(float(row["sigma"]), []).append(float(row["ratio"]))
+    noises = [n for n in NOISES if any(k[1] == n for k in ratios)]
+    if noises:
+        fig, axes = plt.subplots(1, len(noises), figsize=(5 * len(noises), 4), squeeze=False)
+        for ax, noise in zip(axes[0], noises):
+            for variant in variants:
+                cell = ratios.get((variant, noise))
+                if cell:
+                    sigmas = sorted(cell)
+                    mean = [np.mean(cell[s]) for s in sigmas]
+                    std = [np.std(cell[s]) for s in sigmas]
+                    ax.errorbar(sigmas, mean, yerr=std, capsize=3, marker="o", ms=3, label=variant)
+            ax.set(title=f"{noise} noise", xlabel="sigma", ylabel="return / return at sigma = 0")
+            ax.legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(args.out / "robustness.png", dpi=120)
+
+    for name, run in runs.items():
+        final = run / "final_eval.json"
+        meta = yaml.safe_load((run / ENV / "args.yml").read_text())
+        with open(run / "progress.csv") as f:
+            rows = [r for r in csv.DictReader(f) if r.get("time/time_elapsed")]
+        row = dict(variant=variant_of(name), seed=meta["seed"],
+                   final_return=json.loads(final.read_text())["mean_return"] if final.exists() else np.nan,
+                   steps=int(float(rows[-1]["time/total_timesteps"])) if rows else 0,
+                   minutes=float(rows[-1]["time/time_elapsed"]) / 60 if rows else np.nan)
+        for noise in noises:
+            # this model's own ratio curve
+            path = args.out / "robustness" / f"robustness_{ENV}_{noise}.csv"
+            with open(path) as f:
+                own = sorted((float(r["sigma"]), float(r["ratio"])) for r in csv.DictReader(f) if r["model"] == name)
+            if own:
+                s, r = np.array(own).T
+                row[f"{noise}_auc"] = float(np.trapezoid(r, s) / (s[-1] - s[0])) if s[-1] > s[0] else np.nan
+                row[f"{noise}_worst"] = float(r.min())
+        summary.append(row)
+    fields = sorted({k for r in summary for k in r}, key=lambda k: (k not in ("variant", "seed"), k))
+    with open(args.out / "summary.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=fields)
+        writer.writeheader()
+        writer.writerows(summary)
+    if curves:
+        with open(args.out / "curves.csv", "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(curves[0]))
+            writer.writeheader()
+            writer.writerows(curves)
+
+    def cell(values, fmt):
+        values = [v for v in values if v == v]
+        return " / ".join(fmt.format(v) for v in values) or "-"
+
+    head = ["variant", "seeds", "final return (10 ep., per seed)", "steps", "minutes per run"]
+    head += [f"{n} {what}" for n in noises for what in ("AUC", "worst")]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for variant in variants:
+        rows = [r for r in summary if r["variant"] == variant]
+        cells = [variant, str(len(rows)), cell([r["final_return"] for r in rows], "{:.0f}"),
+                 cell([r["steps"] for r in rows], "{:,}"), cell([r["minutes"] for r in rows], "{:.0f}")]
+        for noise in noises:
+            for what in ("auc", "worst"):
+                vals = [r.get(f"{noise}_{what}", np.nan) for r in rows]
+                known = [v for v in vals if v == v]
+                cells.append(f"{np.mean(known):.2f} ± {np.std(known):.2f}" if known else "-")
+        lines.append("| " + " | ".join(cells) + " |")
+    (args.out / "table.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--variants", nargs="+", default=["static", "dp-oja", "dp-bcm", "ndp-oja", "ndp-bcm", "mlp",
+                                                          "ppo_lstm"], choices=VARIANTS)
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    parser.add_argument("-n", "--n-timesteps", type=int, default=1_000_000)
+    parser.add_argument("--eval-freq", type=int, default=50_000)
+    parser.add_argument("--eval-episodes", type=int, default=5)
+    parser.add_argument("--save-freq", type=int, default=100_000)
+    parser.add_argument("--final-episodes", type=int, default=10)
+    parser.add_argument("--noises", nargs="+", default=list(NOISES), choices=NOISES)
+    parser.add_argument("--sigmas", nargs="+", type=float, default=[0.0, 0.1, 0.2, 0.3, 0.5])
+    parser.add_argument("--robustness-episodes", type=int, default=20)
+    parser.add_argument("--jobs", type=int, default=os.cpu_count(), help="parallel training processes")
+    parser.add_argument("--hyperparams", nargs="*", default=[], help="overrides passed to every spiking run")
+    parser.add_argument("--out", type=Path, default=Path("results/halfcheetah"))
+    parser.add_argument("--aggregate-only", action="store_true")
+    parser.add_argument("--skip-robustness", action="store_true")
+    args = parser.parse_args(argv)
+    if not args.aggregate_only:
+        jobs = [(v, s) for s in args.seeds for v in args.variants]  # seed-major: a cut grid has every variant
+        print(f"{len(jobs)} runs, {args.jobs} at a time; logs under {args.out / 'logs'}")
+
+        def launch(job):
+            commands = [lambda: train_command(*job, args), lambda: final_command(*job, args)]
+            return run_one(commands, args.out / "logs" / f"{job[0]}_{job[1]}.log")
+
+        with ThreadPoolExecutor(args.jobs) as pool:
+            codes = list(pool.map(launch, jobs))
+        failed = [job for job, code in zip(jobs, codes) if code]
+        if failed:
+            print(f"failed runs (see their logs): {failed}", file=sys.stderr)
+        if not args.skip_robustness:
+            with ThreadPoolExecutor(args.jobs) as pool:
+                list(pool.map(lambda cmd: run_one([lambda: cmd], args.out / "logs" / "robustness.log"),
+                              robustness_commands(args)))
+    aggregate(args)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
