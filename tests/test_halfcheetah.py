@@ -17,9 +17,10 @@ from sb3_spikeplastic.config import model_arguments, normalize_arguments, resolv
 ENV_ID = "HalfCheetah-v5"
 
 
-def shipped_model(seed=0, **overrides):
-    """A model built from the packaged HalfCheetah-v5 entry with ``overrides`` (e.g. a smaller rollout)."""
-    config = resolve_hyperparams(ENV_ID, None, [f"{k}={v}" for k, v in overrides.items()])
+def shipped_model(seed=0, conf=None, **overrides):
+    """A model built from the packaged HalfCheetah-v5 entry (``conf``: another packaged file) with ``overrides``
+    (e.g. a smaller rollout)."""
+    config = resolve_hyperparams(ENV_ID, conf, [f"{k}={v}" for k, v in overrides.items()])
     n_envs = config["n_envs"]
     policy, ppo_kwargs, policy_kwargs = model_arguments(config)
     env = make_vec_env(ENV_ID, n_envs, seed=seed)
@@ -41,6 +42,16 @@ def test_shipped_entry_updates_move_the_policy_with_finite_gradients():
     for name, p in model.policy.snn.named_parameters():  # every spiking layer learns, not only the readouts
         if name.endswith("weight"):
             assert not torch.equal(p, spiking[name]), name
+
+
+def test_paper_network_updates_with_finite_gradients():
+    model = shipped_model(conf="paper", n_envs=2, n_steps=20, batch_size=40, n_epochs=2)
+    assert model.policy.snn.sizes == [12 * 50, 64, 64, 6 * 100] and model.policy.snn.steps == 50
+    log_std = model.policy.log_std.detach().clone()
+    model.learn(2 * 2 * 20)  # two rollouts: at the first update the annealed rate is still half its start
+    values = model.logger.name_to_value
+    assert values["train/approx_kl"] > 0 and values["train/skipped_steps"] == 0
+    assert math.isfinite(values["train/grad_norm"]) and not torch.equal(model.policy.log_std, log_std)
 
 
 def last_action_gradient(policy, obs, steps):
