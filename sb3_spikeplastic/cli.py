@@ -91,10 +91,36 @@ def _check_device(device: str) -> str:
     import torch
 
     try:
-        torch.device(device if device != "auto" else "cpu")
+        parsed = torch.device(device if device != "auto" else "cpu")
     except (RuntimeError, TypeError):
         raise UsageError(f"unknown device {device!r}; accepted: cpu, cuda, cuda:<n>, mps, auto") from None
+    if parsed.type == "cuda" and not torch.cuda.is_available():
+        # An explicit request is never downgraded silently (`auto` takes the CPU when there is no GPU).
+        raise UsageError(f"--device {device}: no CUDA device is available (torch {torch.__version__}); "
+                         "accepted here: cpu, auto")
+    if parsed.type == "cuda" and parsed.index is not None and parsed.index >= torch.cuda.device_count():
+        raise UsageError(f"--device {device}: only {torch.cuda.device_count()} CUDA device(s) here")
     return device
+
+
+def check_output_path(path: os.PathLike, flag: str, directory: bool) -> Path:
+    """``UsageError`` unless ``path`` can be created or written as a folder (``directory``) or a file: the part that
+    exists must be a folder (no file on the way) and the nearest existing folder writable. Checked before any
+    work, so that a long run never fails at its end for want of a place to write."""
+    path = Path(path)
+    if path.exists():
+        if directory and not path.is_dir():
+            raise UsageError(f"{flag} {str(path)!r} is a file, not a folder")
+        if not directory and path.is_dir():
+            raise UsageError(f"{flag} {str(path)!r} is a folder, not a file")
+    parent = path if directory else path.parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise UsageError(f"{flag} {str(path)!r} lies under the file {str(parent)!r}")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise UsageError(f"{flag} {str(path)!r}: no permission to write in {str(parent)!r}")
+    return path
 
 
 def _check_rule(rule: Optional[str]) -> None:
@@ -337,6 +363,9 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
                                  ("--torch-threads", args.torch_threads, 1)):
         _check_int(name, value, minimum)
     device = _check_device(args.device)
+    check_output_path(args.log_folder, "-f/--log-folder", directory=True)
+    if args.tensorboard_log:
+        check_output_path(args.tensorboard_log, "--tensorboard-log", directory=True)
     source = _continued_run(args, env_id) if args.trained_agent else None
     try:
         if source is not None and source.config:
@@ -564,8 +593,10 @@ def _check_spaces(model, env, env_id: str, model_path) -> None:
 
     try:
         check_for_correct_spaces(env, model.observation_space, model.action_space)
-    except ValueError as exc:
-        raise UsageError(f"model {str(model_path)!r} does not fit {env_id}: {' '.join(str(exc).split())}") from None
+    except ValueError:
+        raise UsageError(f"model {str(model_path)!r} (observations {model.observation_space}, actions "
+                         f"{model.action_space}) does not fit {env_id} (observations {env.observation_space}, "
+                         f"actions {env.action_space})") from None
 
 
 def cmd_evaluate(args: argparse.Namespace, argv: Sequence[str]) -> int:
@@ -575,18 +606,23 @@ def cmd_evaluate(args: argparse.Namespace, argv: Sequence[str]) -> int:
 
     _check_int("--episodes", args.episodes, 1)
     _check_int("--n-envs", args.n_envs, 1)
+    if args.output:
+        check_output_path(args.output, "-o/--output", directory=False)
     info, env_id = _resolve_model_args(args)
     torch.set_num_threads(args.torch_threads)
     model = load_model(info, args.device)
     try:
+        probe = gymnasium.make(env_id, **info.env_kwargs)
+    except Exception as exc:
+        raise UsageError(f"cannot make {env_id} with env_kwargs={info.env_kwargs}: {exc}") from None
+    try:  # the model against the env before the env's VecNormalize statistics (which would blame the env)
+        _check_spaces(model, probe, env_id, info.model_path)
+    finally:
+        probe.close()
+    try:
         venv = make_eval_env(env_id, args.n_envs, args.seed, info.env_kwargs, info.vecnormalize)
     except Exception as exc:
-        raise UsageError(f"cannot make {env_id}: {exc}") from None
-    try:
-        _check_spaces(model, venv, env_id, info.model_path)
-    except UsageError:
-        venv.close()
-        raise
+        raise UsageError(f"cannot make {env_id} with the statistics {str(info.vecnormalize)!r}: {exc}") from None
     successes: list[float] = []
 
     def on_step(local_vars: dict, _globals: dict) -> None:
@@ -630,6 +666,7 @@ def cmd_robustness(args: argparse.Namespace, argv: Sequence[str]) -> int:
 
     if args.noise not in NOISE_TYPES:
         raise UsageError(f"unknown noise type {args.noise!r}; accepted: {', '.join(NOISE_TYPES)}")
+    check_output_path(args.output, "-o/--output", directory=True)
     if args.friction_target not in FRICTION_TARGETS:
         raise UsageError(f"unknown friction target {args.friction_target!r}; accepted: {', '.join(FRICTION_TARGETS)}")
     for s in args.sigmas:
@@ -701,6 +738,7 @@ def cmd_plot(args: argparse.Namespace, argv: Sequence[str]) -> int:
     if args.x not in ("timesteps", "episodes", "walltime"):
         raise UsageError(f"unknown --x {args.x!r}; accepted: timesteps, episodes, walltime")
     _check_int("--smooth", args.smooth, 1)
+    check_output_path(args.output, "-o/--output", directory=False)
     from .figures import read_monitor_files
 
     runs = {}
@@ -752,6 +790,8 @@ def cmd_inspect(args: argparse.Namespace, argv: Sequence[str]) -> int:
     from .envs.tmaze import TMazeCueEnv
     from .monitoring import record_episode
 
+    if args.output:
+        check_output_path(args.output, "-o/--output", directory=True)
     info, env_id = _resolve_model_args(args)
     torch.set_num_threads(args.torch_threads)
     model = load_model(info, args.device)

@@ -235,7 +235,8 @@ def training_curves_figure(runs: Mapping[str, Mapping[str, np.ndarray]], x: str 
 
 
 def robustness_figure(rows: Sequence["RobustnessRow"], title: Optional[str] = None) -> Figure:
-    """Return ratio (mean return over the mean return at ``sigma = 0``) against ``sigma``, one line per model
+    """Return ratio (:func:`~sb3_spikeplastic.robustness.return_ratio`, the mean return relative to the one at
+    ``sigma = 0``) against ``sigma``, one line per model
     (paper Fig. 4 F-H). Error bars: one standard deviation of the episode returns over ``|mean return at 0|``."""
     fig = Figure(figsize=(6.5, 4.5), layout="constrained")
     ax = fig.subplots()

@@ -177,6 +177,11 @@ class SpikingPlasticNetwork(nn.Module):
                  w_init_gain: IntOrSeq = 3.0, w_init_mean: IntOrSeq = 0.0, alpha_init_mean: Optional[IntOrSeq] = None,
                  alpha_init_std: Optional[IntOrSeq] = None, hidden_rms_rate: float = 0.2):
         super().__init__()
+        if not hidden_sizes or any(isinstance(h, bool) or int(h) != h or h < 1 for h in hidden_sizes):
+            raise ValueError(f"hidden_sizes={list(hidden_sizes)} must be one or more positive integers (neurons per "
+                             "hidden layer)")
+        if steps < 1:
+            raise ValueError(f"steps={steps} must be a positive number of network steps T per environment step")
         interval = steps if plasticity_interval is None else int(plasticity_interval)
         if steps < 1 or interval < 1 or steps % interval:
             raise ValueError(f"plasticity_interval={interval} must be a positive divisor of steps T={steps}")

@@ -139,6 +139,8 @@ class SpikePlasticPolicy(ActorCriticPolicy):
                 f"observation shape {observation_space.shape} is neither a vector (population-encoded) nor a "
                 "(T, n) spike raster with bounds [0, 1]"
             )
+        if steps is not None and (isinstance(steps, bool) or int(steps) != steps or steps < 1):
+            raise ValueError(f"steps={steps!r} must be a positive integer (network steps T per environment step)")
         if raster and obs_indices is not None:
             raise ValueError("obs_indices selects dimensions of a population-encoded vector; spike-raster "
                              "observations pass through whole")

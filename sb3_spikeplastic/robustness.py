@@ -40,8 +40,10 @@ class RobustnessRow:
     :param mean_return: mean episode return.
     :param std_return: standard deviation of the episode returns.
     :param n_episodes: number of episodes.
-    :param ratio: ``mean_return`` over the same model's mean return at ``sigma = 0`` (NaN if that is 0); as in the
-        paper, it reads as the fraction of performance kept only when the noise-free return is positive.
+    :param ratio: the return relative to the same model's at ``sigma = 0``, :math:`1 + (R_\sigma - R_0) / |R_0|`
+        (NaN if :math:`R_0 = 0`): the paper's :math:`R_\sigma / R_0` when :math:`R_0 > 0`, and for a negative
+        :math:`R_0` still below 1 exactly when the noise lowers the return (a plain quotient would read -5.3 ->
+        -1.6 as 0.3, a loss).
     """
 
     model: str
@@ -161,9 +163,15 @@ def evaluate_robustness(
                 mean = float(np.mean(returns))
                 if sigma == 0.0:
                     baseline = mean
-                ratio = mean / baseline if baseline != 0.0 else math.nan
+                ratio = return_ratio(mean, baseline)
                 rows.append(RobustnessRow(name, noise_type, sigma, mean, float(np.std(returns)), len(returns), ratio))
     return rows
+
+
+def return_ratio(mean_return: float, baseline: float) -> float:
+    """:math:`1 + (R_\sigma - R_0) / |R_0|`, the return relative to the noise-free one (see :class:`RobustnessRow`);
+    NaN when ``baseline`` is 0."""
+    return 1.0 + (mean_return - baseline) / abs(baseline) if baseline != 0.0 else math.nan
 
 
 def write_csv(rows: Sequence[RobustnessRow], path: str | os.PathLike) -> Path:

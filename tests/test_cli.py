@@ -197,7 +197,9 @@ def test_bad_robustness_evaluate_and_plot_input(tmaze_run, tmp_path, capsys):
         (["robustness", "--models", f"a={tmp_path / 'nowhere'}", "--noise", "obs", "-o", tmp_path / "r"],
          "no run folder or model file"),
         (["robustness", "--models", f"a={tmaze_run}", "--env", "HalfCheetah-v5", "--noise", "obs", "-o", tmp_path / "r"],
-         "does not fit HalfCheetah-v5: Observation spaces do not match"),
+         "(observations Box(0.0, 1.0, (25, 40), float32), actions Discrete(2)) does not fit HalfCheetah-v5 "
+         "(observations Box(-inf, inf, (17,), float64), actions Box(-1.0, 1.0, (6,), float32))"),
+        (["evaluate", "--run", tmaze_run, "--env", "HalfCheetah-v5"], "does not fit HalfCheetah-v5 (observations"),
         (["evaluate", "--run", tmp_path], "is not a run folder of `sb3-spikeplastic train`"),
         (["evaluate", "--model", tmaze_run / "TMazeCue-v0.zip", "--env", "Nope-v0"], "unknown environment id 'Nope-v0'"),
         (["plot", tmp_path, "-o", tmp_path / "p.png"], "no Monitor files"),
@@ -209,6 +211,44 @@ def test_bad_robustness_evaluate_and_plot_input(tmaze_run, tmp_path, capsys):
         assert err.strip().splitlines() == [f"sb3-spikeplastic: error: {err.split('error: ', 1)[1].strip()}"]
         assert message in err, (argv, err)
     assert not (tmp_path / "r").exists() and not (tmp_path / "p.png").exists()
+
+
+BAD_PATHS = [
+    (["train", "--env", "TMazeCue-v0", "-f", "afile/logs"], "-f/--log-folder 'afile/logs' lies under the file 'afile'"),
+    (["train", "--env", "TMazeCue-v0", "-f", "logs", "--tensorboard-log", "afile/tb"],
+     "--tensorboard-log 'afile/tb' lies under the file 'afile'"),
+    (["train", "--env", "TMazeCue-v0", "-f", "afile"], "-f/--log-folder 'afile' is a file, not a folder"),
+    (["evaluate", "--run", "RUN", "-o", "afile/x.json"], "-o/--output 'afile/x.json' lies under the file 'afile'"),
+    (["evaluate", "--run", "RUN", "-o", "."], "-o/--output '.' is a folder, not a file"),
+    (["plot", "RUN", "-o", "afile/x.png"], "-o/--output 'afile/x.png' lies under the file 'afile'"),
+    (["robustness", "--models", "a=RUN", "--noise", "obs", "-o", "afile/r"], "-o/--output 'afile/r' lies under"),
+    (["inspect", "--run", "RUN", "-o", "afile/figures"], "-o/--output 'afile/figures' lies under the file"),
+    (["train", "--env", "HalfCheetah-v5", "-f", "logs", "--hyperparams", "policy_kwargs.hidden_sizes=[-3]"],
+     "hidden_sizes=[-3] must be one or more positive integers"),
+    (["train", "--env", "HalfCheetah-v5", "-f", "logs", "--hyperparams", "policy_kwargs.hidden_sizes=[0]"],
+     "hidden_sizes=[0] must be one or more positive integers"),
+    (["train", "--env", "HalfCheetah-v5", "-f", "logs", "--hyperparams", "policy_kwargs.steps=0"],
+     "steps=0 must be a positive integer"),
+]
+
+
+@pytest.mark.parametrize("argv, message", BAD_PATHS)
+def test_bad_paths_and_sizes_exit_2_before_any_work_and_write_nothing(argv, message, tmaze_run, tmp_path, capsys,
+                                                                    monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "afile").write_text("")
+    argv = [str(tmaze_run) if a == "RUN" else a.replace("RUN", str(tmaze_run)) for a in argv]
+    code, _, err = run_cli(capsys, *argv)
+    assert code == 2 and len(err.strip().splitlines()) == 1 and message in err, err
+    # Nothing written (MuJoCo itself logs the model's deprecation warning to MUJOCO_LOG.TXT when an env is built).
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name != "MUJOCO_LOG.TXT") == ["afile"]
+
+
+@pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="needs a machine without CUDA")
+def test_device_cuda_without_cuda_is_an_error(tmp_path, capsys):
+    code, _, err = run_cli(capsys, "train", "--env", "TMazeCue-v0", "-f", tmp_path / "logs", "--device", "cuda")
+    assert code == 2 and "--device cuda: no CUDA device is available" in err and "accepted here: cpu, auto" in err
+    assert not (tmp_path / "logs").exists()
 
 
 def _train_argv(tmp_path, n="128"):

@@ -1,6 +1,7 @@
 """The Fig. 4 F-H robustness protocol: end to end with PPO, recurrent state, VecNormalize, CSV and Markdown."""
 
 import csv
+import math
 
 import gymnasium
 import numpy as np
@@ -62,7 +63,7 @@ def test_end_to_end_with_ppo(tmp_path):
     assert all(r.ratio == 1.0 for r in rows if r.sigma == 0.0)
     for r in rows:
         baseline = next(b for b in rows if b.model == r.model and b.sigma == 0.0)
-        assert r.ratio == pytest.approx(r.mean_return / baseline.mean_return)
+        assert r.ratio == pytest.approx(1 + (r.mean_return - baseline.mean_return) / abs(baseline.mean_return))
     again = evaluate_robustness(models, "HalfCheetah-v5", "action", [0.5, 0.1], progress_bar=False, **kwargs)
     assert again == rows  # seeded: every cell is reproducible
 
@@ -116,3 +117,12 @@ def test_bad_arguments_name_the_value(kwargs, bad):
     assert bad in str(excinfo.value)
     if bad == "'gravity'":
         assert all(name in str(excinfo.value) for name in ("'obs'", "'action'", "'friction'"))
+
+
+def test_return_ratio_reads_as_kept_performance_for_negative_returns_too():
+    from sb3_spikeplastic.robustness import return_ratio
+
+    assert return_ratio(100.0, 200.0) == pytest.approx(0.5)  # the paper's quotient for positive returns
+    assert return_ratio(-1.62, -5.33) == pytest.approx(1 + 3.71 / 5.33)  # less negative: better, above 1
+    assert return_ratio(-10.66, -5.33) == pytest.approx(0.0)  # twice as negative: below 1
+    assert math.isnan(return_ratio(3.0, 0.0))
