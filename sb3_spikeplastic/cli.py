@@ -323,7 +323,7 @@ def _continued_run(args: argparse.Namespace, env_id: str) -> RunInfo:
     statistics and TensorBoard folder; ``UsageError`` if it cannot be continued as asked."""
     from .config import yaml_load
 
-    if args.hyperparams or args.rule or args.n_envs or args.conf:
+    if args.hyperparams or args.rule or args.n_envs or args.conf or args.env_kwargs:
         raise UsageError("--trained-agent continues a run with its own configuration; only -n (the total "
                          "steps), --seed and the callback options may be given with it")
     info = locate_run(args.trained_agent)
@@ -373,7 +373,9 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
             config = cfg.validate_entry({**source.config, **({"n_timesteps": args.n_timesteps}
                                                              if args.n_timesteps else {})})
         else:
-            config = cfg.resolve_hyperparams(env_id, args.conf, args.hyperparams or (), rule=args.rule,
+            # --env-kwargs k=v is --hyperparams env_kwargs.k=v (after the other overrides: it wins)
+            overrides = [*(args.hyperparams or ()), *[f"env_kwargs.{item}" for item in args.env_kwargs or ()]]
+            config = cfg.resolve_hyperparams(env_id, args.conf, overrides, rule=args.rule,
                                              n_timesteps=args.n_timesteps, n_envs=args.n_envs)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
@@ -892,7 +894,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--tensorboard-log", help="TensorBoard root (default: events in the run folder)")
     t.add_argument("--hyperparams", nargs="+", metavar="KEY=VALUE", help="overrides, values as YAML: "
                    "n_steps=128 policy_kwargs.rule=dp-bcm policy_kwargs.hidden_sizes=[32]")
-    t.add_argument("--conf", help="hyperparameter file (default: the packaged hyperparams/ppo.yml)")
+    t.add_argument("--env-kwargs", nargs="+", metavar="KEY=VALUE", help="gymnasium.make arguments, values as YAML "
+                   "(the same as --hyperparams env_kwargs.KEY=VALUE), e.g. max_episode_steps=200 action_noise=0.1")
+    t.add_argument("--conf", help="hyperparameter file, or a packaged one by name: ppo (default), paper, mlp, "
+                   "ppo_lstm")
     t.add_argument("--n-envs", type=int, help="number of environments (default: the file's)")
     t.add_argument("--eval-freq", type=int, default=0, help="evaluate every N environment steps (0: never)")
     t.add_argument("--eval-episodes", type=int, default=20, help="episodes per evaluation (default: 20)")

@@ -102,6 +102,17 @@ def test_train_tmaze_tensorboard(tmaze_run, workdir):
     assert "| policy_kwargs.rule | ndp-oja |" in text and "| bptt_steps | 16 |" in text and "| seed | 3 |" in text
 
 
+def test_train_env_kwargs_reach_the_environment_and_the_config(tmp_path, capsys):
+    code, _, err = run_cli(capsys, "train", "--env", "NoisyHalfCheetah-v5", "-n", "32", "--seed", "0", "-f", tmp_path,
+                           "--hyperparams", *[h for h in TINY_CHEETAH if not h.startswith("env_kwargs")],
+                           "--env-kwargs", "max_episode_steps=16", "action_noise=0.2", "-v", "0", "--no-progress")
+    assert code == 0, err
+    run = tmp_path / "ppo" / "NoisyHalfCheetah-v5_1"
+    config = load_hyperparams_file(run / "NoisyHalfCheetah-v5" / "config.yml")["NoisyHalfCheetah-v5"]
+    assert config["env_kwargs"] == {"max_episode_steps": 16, "action_noise": 0.2}
+    assert (run / "0.monitor.csv").read_text().splitlines()[2].split(",")[1] == "16"  # 16-step episodes
+
+
 def test_train_halfcheetah_normalized(cheetah_run):
     names = {p.name for p in cheetah_run.iterdir()}
     assert {"HalfCheetah-v5.zip", "command.txt", "0.monitor.csv", "HalfCheetah-v5"} <= names
