@@ -12,8 +12,8 @@
 ``train`` writes an rl-zoo-like run folder ``<log folder>/ppo/<EnvId>_<n>/``:
 
 * ``<EnvId>.zip`` — the final model (also written on Ctrl-C), ``best_model.zip`` and ``evaluations.npz`` with
-  ``--eval-freq``, ``rl_model_<steps>_steps.zip`` (+ ``rl_model_vecnormalize_<steps>_steps.pkl``) with
-  ``--save-freq``. Every model and statistics file is written to a temporary file and renamed into place, so a
+  ``--eval-freq``, checkpoints ``rl_model_<steps>_steps.zip`` (+ ``rl_model_vecnormalize_<steps>_steps.pkl``)
+  every ``--save-freq`` steps (by default a tenth of a run of 100k steps or more; the latest 2 kept). Every model and statistics file is written to a temporary file and renamed into place, so a
   crash never leaves a half-written one.
 * ``<EnvId>/config.yml`` — the resolved hyperparameters, itself a hyperparameter file (``--conf`` reproduces the
   run), ``<EnvId>/args.yml`` — the command's arguments (with the seed actually used), ``<EnvId>/vecnormalize.pkl``
@@ -26,8 +26,8 @@ Everything is validated before the run folder is created (environment id, rule, 
 and the model itself is constructed), so bad input writes nothing and fails with one line
 ``sb3-spikeplastic: error: ...`` and exit status 2. If training crashes before its first environment step, the run
 folder is removed; later, it is kept (its logs explain the crash) and marked by ``FAILED.txt`` with the traceback,
-and no final model is written (checkpoints and the best model stay). Ctrl-C saves the model and exits with
-status 130.
+and no final model is written (checkpoints and the best model stay). Ctrl-C saves the model, writes
+``INTERRUPTED.txt`` and exits with status 130. ``train --trained-agent`` continues any of these.
 """
 
 from __future__ import annotations
@@ -201,6 +201,13 @@ def _read_run_config(run_dir: Path) -> tuple[Optional[str], Optional[dict]]:
     return None, None
 
 
+def latest_checkpoint(run_dir: Path) -> Optional[Path]:
+    """The ``rl_model_<steps>_steps.zip`` of ``run_dir`` with the most steps (``None`` if there is none)."""
+    found = [(int(m.group(1)), p) for p in run_dir.glob("rl_model_*_steps.zip")
+             if (m := re.fullmatch(r"rl_model_(\d+)_steps\.zip", p.name))]
+    return max(found)[1] if found else None
+
+
 def locate_run(path: str, best: bool = False) -> RunInfo:
     """Resolve a run folder or a model ``.zip`` into a :class:`RunInfo` (``UsageError`` if there is no model)."""
     p = Path(path)
@@ -211,7 +218,9 @@ def locate_run(path: str, best: bool = False) -> RunInfo:
         model = p / ("best_model.zip" if best else f"{env_id}.zip")
         if not model.is_file():
             failed = " (training failed: see FAILED.txt)" if (p / "FAILED.txt").exists() else ""
-            raise UsageError(f"run folder {path!r} has no {model.name}{failed}")
+            checkpoint = latest_checkpoint(p)
+            hint = f"; its latest checkpoint is --model {str(checkpoint)!r}" if checkpoint is not None else ""
+            raise UsageError(f"run folder {path!r} has no {model.name}{failed}{hint}")
         vecnorm = p / env_id / "vecnormalize.pkl"
         return RunInfo(model, env_id, vecnorm if vecnorm.is_file() else None, config, p)
     if p.is_file() or Path(f"{path}.zip").is_file():
@@ -286,20 +295,26 @@ def _callback_classes():
     from stable_baselines3.common.callbacks import BaseCallback
 
     class AtomicCheckpoint(BaseCallback):
-        """Every ``save_freq`` calls, ``rl_model_<steps>_steps.zip`` (+ VecNormalize statistics), atomically."""
+        """Every ``save_freq`` calls, ``rl_model_<steps>_steps.zip`` (+ VecNormalize statistics), atomically; only
+        the latest ``keep`` checkpoints stay (0: all)."""
 
-        def __init__(self, save_freq: int, save_dir: Path):
+        def __init__(self, save_freq: int, save_dir: Path, keep: int = 0):
             super().__init__()
-            self.save_freq, self.save_dir = save_freq, save_dir
+            self.save_freq, self.save_dir, self.keep = save_freq, save_dir, keep
             self.saved: list[Path] = []
 
         def _on_step(self) -> bool:
             if self.n_calls % self.save_freq == 0:
-                path = save_model(self.model, self.save_dir / f"rl_model_{self.num_timesteps}_steps.zip")
-                self.saved.append(path)
+                steps = self.num_timesteps
                 venv = self.model.get_vec_normalize_env()
-                if venv is not None:
-                    save_vecnormalize(venv, self.save_dir / f"rl_model_vecnormalize_{self.num_timesteps}_steps.pkl")
+                if venv is not None:  # statistics first: a checkpoint's zip never exists without them
+                    save_vecnormalize(venv, self.save_dir / f"rl_model_vecnormalize_{steps}_steps.pkl")
+                self.saved.append(save_model(self.model, self.save_dir / f"rl_model_{steps}_steps.zip"))
+                while self.keep and len(self.saved) > self.keep:
+                    old = self.saved.pop(0)
+                    old.unlink(missing_ok=True)
+                    old.with_name(old.name.replace("rl_model_", "rl_model_vecnormalize_")).with_suffix(
+                        ".pkl").unlink(missing_ok=True)
             return True
 
     class SaveBest(BaseCallback):
@@ -318,6 +333,10 @@ def _callback_classes():
     return AtomicCheckpoint, SaveBest
 
 
+#: ``train`` runs at least this long checkpoint every tenth of their steps unless ``--save-freq`` says otherwise.
+AUTO_CHECKPOINT_MIN_STEPS = 100_000
+
+
 def _continued_run(args: argparse.Namespace, env_id: str) -> RunInfo:
     """The model (final or checkpoint) that ``--trained-agent`` names, with its run's config, VecNormalize
     statistics and TensorBoard folder; ``UsageError`` if it cannot be continued as asked."""
@@ -326,7 +345,14 @@ def _continued_run(args: argparse.Namespace, env_id: str) -> RunInfo:
     if args.hyperparams or args.rule or args.n_envs or args.conf or args.env_kwargs:
         raise UsageError("--trained-agent continues a run with its own configuration; only -n (the total "
                          "steps), --seed and the callback options may be given with it")
-    info = locate_run(args.trained_agent)
+    folder = Path(args.trained_agent)
+    env_id_of_folder = _read_run_config(folder)[0] if folder.is_dir() else None
+    if env_id_of_folder and not (folder / f"{env_id_of_folder}.zip").is_file() and latest_checkpoint(folder):
+        # A run killed before its end (no final model): continue from its latest checkpoint.
+        info = locate_run(str(latest_checkpoint(folder)))
+        print(f"{PROG}: {str(folder)!r} has no final model; continuing from {info.model_path.name}")
+    else:
+        info = locate_run(args.trained_agent)
     if not info.model_path.is_file() or info.model_path.suffix != ".zip":
         raise UsageError(f"--trained-agent needs a model .zip or a run folder, got {args.trained_agent!r}")
     if info.env_id is not None and info.env_id != env_id:
@@ -359,7 +385,8 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
     _check_rule(args.rule)
     for name, value, minimum in (("--n-timesteps", args.n_timesteps, 1), ("--n-envs", args.n_envs, 1),
                                  ("--eval-freq", args.eval_freq, 0), ("--eval-episodes", args.eval_episodes, 1),
-                                 ("--save-freq", args.save_freq, 0), ("--figure-freq", args.figure_freq, 0),
+                                 ("--save-freq", args.save_freq, 0), ("--keep-checkpoints", args.keep_checkpoints, 0),
+                                 ("--figure-freq", args.figure_freq, 0),
                                  ("--torch-threads", args.torch_threads, 1)):
         _check_int(name, value, minimum)
     device = _check_device(args.device)
@@ -379,6 +406,9 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
                                              n_timesteps=args.n_timesteps, n_envs=args.n_envs)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
+    # Checkpoints by default on long runs (a run killed outright keeps its latest tenth), none on short ones.
+    save_freq = args.save_freq if args.save_freq is not None else (
+        config["n_timesteps"] // 10 if config["n_timesteps"] >= AUTO_CHECKPOINT_MIN_STEPS else 0)
     if args.figure_freq and config["policy"] != "SpikePlasticPolicy":
         raise UsageError(f"--figure-freq needs policy SpikePlasticPolicy, not {config['policy']!r}")
     torch.set_num_threads(args.torch_threads)
@@ -488,8 +518,8 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
                 eval_env, callback_on_new_best=SaveBest(run_dir / "best_model.zip"),
                 n_eval_episodes=args.eval_episodes, eval_freq=max(args.eval_freq // n_envs, 1),
                 log_path=str(run_dir), best_model_save_path=None, deterministic=True, verbose=args.verbose))
-        if args.save_freq:
-            callbacks.append(AtomicCheckpoint(max(args.save_freq // n_envs, 1), run_dir))
+        if save_freq:
+            callbacks.append(AtomicCheckpoint(max(save_freq // n_envs, 1), run_dir, args.keep_checkpoints))
         if args.figure_freq:
             callbacks.append(ActivityFigureCallback(env_id, every=args.figure_freq, env_kwargs=env_kwargs, seed=seed))
 
@@ -505,6 +535,10 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
                     reset_num_timesteps=source is None)
     except KeyboardInterrupt:
         save_final()
+        note = (f"interrupted after {model.num_timesteps:,} of {config['n_timesteps']:,} steps; continue with\n"
+                f"{PROG} train --env {env_id} --trained-agent {shlex.quote(str(model_path))} -f "
+                f"{shlex.quote(str(args.log_folder))}\n")
+        atomic_write(run_dir / "INTERRUPTED.txt", lambda f: f.write(note), binary=False)
         print(f"\nInterrupted after {model.num_timesteps:,} steps; saved:", *saved, sep="\n  ")
         return 130
     except BaseException:
@@ -538,7 +572,7 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
     if args.eval_freq:
         best = run_dir / "best_model.zip"
         print(f"  best model:   {best if best.exists() else '(no evaluation ran)'}; evaluations.npz")
-    if args.save_freq:
+    if save_freq:
         print(f"  checkpoints:  {run_dir}/rl_model_*_steps.zip")
     print(f"  config:       {meta_dir / 'config.yml'}")
     print(f"  monitor:      {run_dir}/*.monitor.csv")
@@ -901,7 +935,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--n-envs", type=int, help="number of environments (default: the file's)")
     t.add_argument("--eval-freq", type=int, default=0, help="evaluate every N environment steps (0: never)")
     t.add_argument("--eval-episodes", type=int, default=20, help="episodes per evaluation (default: 20)")
-    t.add_argument("--save-freq", type=int, default=0, help="checkpoint every N environment steps (0: never)")
+    t.add_argument("--save-freq", type=int, help="checkpoint every N environment steps (0: never; default: every "
+                   "tenth of n_timesteps for runs of 100k steps or more, else never)")
+    t.add_argument("--keep-checkpoints", type=int, default=2, help="keep only the latest N checkpoints (0: all; "
+                   "default 2)")
     t.add_argument("--figure-freq", type=int, default=0, help="TensorBoard activity figure every N rollouts "
                    "(0: never)")
     t.add_argument("-i", "--trained-agent", help="continue training this model (a run folder, its final .zip or "

@@ -169,7 +169,7 @@ def evaluate_robustness(
 
 
 def return_ratio(mean_return: float, baseline: float) -> float:
-    """:math:`1 + (R_\sigma - R_0) / |R_0|`, the return relative to the noise-free one (see :class:`RobustnessRow`);
+    r""":math:`1 + (R_\sigma - R_0) / |R_0|`, the return relative to the noise-free one (see :class:`RobustnessRow`);
     NaN when ``baseline`` is 0."""
     return 1.0 + (mean_return - baseline) / abs(baseline) if baseline != 0.0 else math.nan
 

@@ -407,3 +407,71 @@ def test_unknown_algo_is_a_one_line_error(tmp_path, capsys):
     code, _, err = run_cli(capsys, "train", "--env", "HalfCheetah-v5", "--conf", conf, "-f", tmp_path / "logs")
     assert code == 2 and "unknown algo 'sac'; accepted: ppo, ppo_lstm" in err
     assert not (tmp_path / "logs").exists()
+
+
+def test_a_killed_run_keeps_its_checkpoints_and_continues_from_them(tmp_path, capsys):
+    import signal
+    import time
+
+    logs = tmp_path / "logs"
+    argv = [sys.executable, "-m", "sb3_spikeplastic.cli", "train", "--env", "TMazeCue-v0", "-n", "1000000", "--seed",
+            "0", "-f", str(logs), "--save-freq", "64", "-v", "0", "--no-progress",
+            "--hyperparams", *TINY_TMAZE]
+    process = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    run = logs / "ppo" / "TMazeCue-v0_1"
+    try:
+        deadline = time.time() + 180
+        while not list(run.glob("rl_model_*_steps.zip")) and time.time() < deadline:
+            if process.poll() is not None:
+                pytest.fail("training exited before it was killed")
+            time.sleep(0.2)
+    finally:
+        process.send_signal(signal.SIGKILL)  # power loss: no handler runs
+        process.wait()
+    checkpoints = sorted(run.glob("rl_model_*_steps.zip"), key=lambda p: int(p.name.split("_")[2]))
+    assert not (run / "TMazeCue-v0.zip").exists()
+    latest = checkpoints[-1]
+    code, _, err = run_cli(capsys, "evaluate", "--run", run)
+    assert code == 2 and f"its latest checkpoint is --model '{latest}'" in err
+    code, out, err = run_cli(capsys, "evaluate", "--model", latest, "--episodes", "2")
+    assert code == 0 and "mean return" in out, err
+    steps = int(latest.name.split("_")[2])
+    code, out, err = run_cli(capsys, "train", "--env", "TMazeCue-v0", "-i", run, "-n", str(steps + 64), "-f", logs,
+                             "-v", "0", "--no-progress")
+    assert code == 0 and f"continuing from {latest.name}" in out, err
+    assert PPO.load(logs / "ppo" / "TMazeCue-v0_2" / "TMazeCue-v0.zip").num_timesteps == steps + 64
+
+
+def test_checkpoints_are_pruned_to_the_latest(tmp_path, capsys):
+    argv = _train_argv(tmp_path, n="320") + ["--save-freq", "64", "--keep-checkpoints", "2"]
+    assert run_cli(capsys, *argv)[0] == 0
+    run = tmp_path / "logs" / "ppo" / "TMazeCue-v0_1"
+    assert sorted(p.name for p in run.glob("rl_model_*")) == ["rl_model_256_steps.zip", "rl_model_320_steps.zip"]
+
+
+def test_ctrl_c_leaves_a_marker_that_says_how_to_continue(tmp_path, capsys, monkeypatch):
+    def interrupted(self):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(PPO, "train", interrupted)
+    code, _, _ = run_cli(capsys, *_train_argv(tmp_path))
+    run = tmp_path / "logs" / "ppo" / "TMazeCue-v0_1"
+    note = (run / "INTERRUPTED.txt").read_text()
+    assert code == 130 and "interrupted after 64 of 128 steps" in note and "--trained-agent" in note
+
+
+def test_long_runs_checkpoint_by_default(tmp_path, capsys, monkeypatch):
+    seen = {}
+
+    def stop_at_once(self, total_timesteps, callback=None, **kwargs):
+        seen["callbacks"] = [type(c).__name__ for c in callback.callbacks]
+        seen["freq"] = [c.save_freq for c in callback.callbacks if hasattr(c, "save_freq")]
+        return self
+
+    monkeypatch.setattr(PPO, "learn", stop_at_once)
+    argv = ["train", "--env", "TMazeCue-v0", "-n", "200000", "-f", tmp_path / "logs", "-v", "0", "--no-progress",
+            "--hyperparams", *TINY_TMAZE]
+    assert run_cli(capsys, *argv)[0] == 0
+    assert seen["callbacks"] == ["AtomicCheckpoint"] and seen["freq"] == [200000 // 10 // 2]  # 2 envs
+    assert run_cli(capsys, *argv, "--save-freq", "0")[0] == 0 and seen["callbacks"] == []
+    assert run_cli(capsys, *[a if a != "200000" else "50000" for a in argv])[0] == 0 and seen["callbacks"] == []
