@@ -32,7 +32,7 @@ from sb3_spikeplastic.envs.noise import make_noisy_env, noise_kwargs
 
 @dataclasses.dataclass(frozen=True)
 class RobustnessRow:
-    """The result of one (model, ``sigma``) cell.
+    r"""The result of one (model, ``sigma``) cell.
 
     :param model: the model's name (its key in ``models``).
     :param noise_type: ``"obs"``, ``"action"`` or ``"friction"``.
