@@ -317,6 +317,23 @@ def _callback_classes():
                         ".pkl").unlink(missing_ok=True)
             return True
 
+    class WallClockProgress(BaseCallback):
+        """A progress bar over environment steps whose rate is steps per second of wall time, updates included
+        (SB3's bar moves only during rollouts, so its rate is the rollout's alone)."""
+
+        def _on_training_start(self) -> None:
+            from tqdm.auto import tqdm
+
+            total = self.locals["total_timesteps"] - self.model.num_timesteps
+            self.bar = tqdm(total=total, unit="step", unit_scale=True, smoothing=0, dynamic_ncols=True)
+
+        def _on_step(self) -> bool:
+            self.bar.update(self.training_env.num_envs)
+            return True
+
+        def _on_training_end(self) -> None:
+            self.bar.close()
+
     class SaveBest(BaseCallback):
         """Called by ``EvalCallback`` on a new best mean reward: ``best_model.zip``, atomically."""
 
@@ -330,7 +347,7 @@ def _callback_classes():
             self.saved = True
             return True
 
-    return AtomicCheckpoint, SaveBest
+    return AtomicCheckpoint, SaveBest, WallClockProgress
 
 
 #: ``train`` runs at least this long checkpoint every tenth of their steps unless ``--save-freq`` says otherwise.
@@ -508,8 +525,8 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
         model.set_logger(Logger(str(run_dir), outputs))
         write_hyperparameters(model.logger, {"env_id": env_id, "seed": seed, **config})
 
-        AtomicCheckpoint, SaveBest = _callback_classes()
-        callbacks = []
+        AtomicCheckpoint, SaveBest, WallClockProgress = _callback_classes()
+        callbacks = [] if args.no_progress else [WallClockProgress()]
         if args.eval_freq:
             eval_env = make_eval_env(env_id, 1, seed + n_envs, env_kwargs, None)
             if norm_kwargs is not None:
@@ -531,8 +548,7 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
         sys.stdout.flush()
         start = model.num_timesteps
         # Continuing: the remaining steps with the counter kept, so schedules resume where they stopped.
-        model.learn(config["n_timesteps"] - start, callback=CallbackList(callbacks), progress_bar=not args.no_progress,
-                    reset_num_timesteps=source is None)
+        model.learn(config["n_timesteps"] - start, callback=CallbackList(callbacks), reset_num_timesteps=source is None)
     except KeyboardInterrupt:
         save_final()
         note = (f"interrupted after {model.num_timesteps:,} of {config['n_timesteps']:,} steps; continue with\n"
@@ -659,10 +675,14 @@ def cmd_evaluate(args: argparse.Namespace, argv: Sequence[str]) -> int:
         venv = make_eval_env(env_id, args.n_envs, args.seed, info.env_kwargs, info.vecnormalize)
     except Exception as exc:
         raise UsageError(f"cannot make {env_id} with the statistics {str(info.vecnormalize)!r}: {exc}") from None
+    from tqdm.auto import tqdm
+
     successes: list[float] = []
+    bar = tqdm(total=args.episodes, unit="episode", disable=args.no_progress, dynamic_ncols=True)
 
     def on_step(local_vars: dict, _globals: dict) -> None:
         if local_vars["done"] and "episode" in local_vars["info"]:
+            bar.update(1)
             value = local_vars["info"].get("is_success")
             if value is not None:
                 successes.append(float(value))
@@ -673,6 +693,7 @@ def cmd_evaluate(args: argparse.Namespace, argv: Sequence[str]) -> int:
                                            deterministic=args.deterministic, return_episode_rewards=True,
                                            callback=on_step)
     finally:
+        bar.close()
         venv.close()
     returns = np.asarray(returns, dtype=float)
     mode = "deterministic" if args.deterministic else "stochastic"
@@ -958,6 +979,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--seed", type=int, default=0, help="environment seed (default: 0)")
     e.add_argument("--n-envs", type=int, default=1, help="environments side by side (default: 1)")
     e.add_argument("-o", "--output", help="also write the result as JSON to this file")
+    e.add_argument("--no-progress", action="store_true", help="no progress bar")
     common(e)
     e.set_defaults(func=cmd_evaluate)
 

@@ -475,3 +475,11 @@ def test_long_runs_checkpoint_by_default(tmp_path, capsys, monkeypatch):
     assert seen["callbacks"] == ["AtomicCheckpoint"] and seen["freq"] == [200000 // 10 // 2]  # 2 envs
     assert run_cli(capsys, *argv, "--save-freq", "0")[0] == 0 and seen["callbacks"] == []
     assert run_cli(capsys, *[a if a != "200000" else "50000" for a in argv])[0] == 0 and seen["callbacks"] == []
+
+
+def test_progress_bars_count_environment_steps_and_episodes(tmp_path, capsys):
+    argv = [a for a in _train_argv(tmp_path) if a != "--no-progress"]
+    code, _, err = run_cli(capsys, *argv)
+    assert code == 0 and "128/128" in err and "step/s" in err  # tqdm's line: steps over wall time
+    code, _, err = run_cli(capsys, "evaluate", "--run", tmp_path / "logs" / "ppo" / "TMazeCue-v0_1", "--episodes", "3")
+    assert code == 0 and "3/3" in err and "episode" in err
