@@ -41,6 +41,7 @@ import re
 import shlex
 import sys
 import traceback
+import warnings
 from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
 
@@ -1023,6 +1024,20 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _route_mujoco_warnings() -> None:
+    """MuJoCo's warnings as Python ``RuntimeWarning``\ s: shown once per kind, not once per environment built
+    (HalfCheetah's model prints a deprecation at every build), and no ``MUJOCO_LOG.TXT`` in the working folder."""
+    try:
+        import mujoco
+    except ImportError:
+        return
+
+    def warn(message: str) -> None:
+        warnings.warn(f"MuJoCo: {message.strip()}", RuntimeWarning, stacklevel=2)
+
+    mujoco.set_mju_user_warning(warn)
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """Entry point of the ``sb3-spikeplastic`` console script; returns the exit status."""
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -1031,6 +1046,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # argparse: --help (0) or a usage error (2)
         return int(exc.code or 0)
+    _route_mujoco_warnings()
     try:
         return int(args.func(args, argv) or 0)
     except UsageError as exc:
