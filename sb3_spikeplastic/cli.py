@@ -265,10 +265,11 @@ def make_eval_env(env_id: str, n_envs: int, seed: int, env_kwargs: Optional[dict
 # train
 
 
-def _make_train_env(env_id: str, n_envs: int, env_kwargs: dict, monitor_dir: Optional[Path]):
-    """``DummyVecEnv`` of ``n_envs`` monitored environments (Monitor CSVs in ``monitor_dir`` when given)."""
+def _make_train_env(env_id: str, n_envs: int, env_kwargs: dict, monitor_dir: Optional[Path], vec_env: str = "dummy"):
+    """``n_envs`` monitored environments (Monitor CSVs in ``monitor_dir`` when given), stepped in this process
+    (``vec_env="dummy"``) or each in a process of its own (``"subproc"``)."""
     from stable_baselines3.common.monitor import Monitor
-    from stable_baselines3.common.vec_env import DummyVecEnv
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
     def factory(rank: int):
         def make():
@@ -278,7 +279,8 @@ def _make_train_env(env_id: str, n_envs: int, env_kwargs: dict, monitor_dir: Opt
 
         return make
 
-    return DummyVecEnv([factory(i) for i in range(n_envs)])
+    factories = [factory(i) for i in range(n_envs)]
+    return SubprocVecEnv(factories) if vec_env == "subproc" else DummyVecEnv(factories)
 
 
 class SuccessColumn(gymnasium.Wrapper):
@@ -510,7 +512,7 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
 
         from .monitoring import ActivityFigureCallback, write_hyperparameters
 
-        env = _make_train_env(env_id, n_envs, env_kwargs, run_dir)
+        env = _make_train_env(env_id, n_envs, env_kwargs, run_dir, args.vec_env)
         if norm_kwargs is not None:
             if source is not None and source.vecnormalize is not None:
                 env = VecNormalize.load(str(source.vecnormalize), env)  # the statistics continue too
@@ -955,6 +957,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--conf", help="hyperparameter file, or a packaged one by name: ppo (default), paper, mlp, "
                    "ppo_lstm")
     t.add_argument("--n-envs", type=int, help="number of environments (default: the file's)")
+    t.add_argument("--vec-env", choices=("dummy", "subproc"), default="dummy", help="step the environments in this "
+                   "process (dummy, default) or each in its own (subproc: for slow environments)")
     t.add_argument("--eval-freq", type=int, default=0, help="evaluate every N environment steps (0: never)")
     t.add_argument("--eval-episodes", type=int, default=20, help="episodes per evaluation (default: 20)")
     t.add_argument("--save-freq", type=int, help="checkpoint every N environment steps (0: never; default: every "
@@ -1025,7 +1029,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _route_mujoco_warnings() -> None:
-    """MuJoCo's warnings as Python ``RuntimeWarning``\ s: shown once per kind, not once per environment built
+    """MuJoCo's warnings as Python ``RuntimeWarning`` objects: shown once per kind, not once per environment built
     (HalfCheetah's model prints a deprecation at every build), and no ``MUJOCO_LOG.TXT`` in the working folder."""
     try:
         import mujoco

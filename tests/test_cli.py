@@ -103,9 +103,11 @@ def test_train_tmaze_tensorboard(tmaze_run, workdir):
 
 
 def test_train_env_kwargs_reach_the_environment_and_the_config(tmp_path, capsys):
+    # in subprocesses (--vec-env subproc): the env_kwargs travel with the factories
     code, _, err = run_cli(capsys, "train", "--env", "NoisyHalfCheetah-v5", "-n", "32", "--seed", "0", "-f", tmp_path,
                            "--hyperparams", *[h for h in TINY_CHEETAH if not h.startswith("env_kwargs")],
-                           "--env-kwargs", "max_episode_steps=16", "action_noise=0.2", "-v", "0", "--no-progress")
+                           "--env-kwargs", "max_episode_steps=16", "action_noise=0.2", "-v", "0", "--no-progress",
+                           "--vec-env", "subproc")
     assert code == 0, err
     run = tmp_path / "ppo" / "NoisyHalfCheetah-v5_1"
     config = load_hyperparams_file(run / "NoisyHalfCheetah-v5" / "config.yml")["NoisyHalfCheetah-v5"]
