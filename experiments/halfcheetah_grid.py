@@ -2,7 +2,7 @@
 several seeds, then their robustness to joint-friction, action and observation noise.
 
 Runs ``sb3-spikeplastic train`` for each (variant, seed) in parallel processes (one torch thread each), with
-``--save-freq`` checkpoints (an interrupted run continues with ``train --trained-agent``) and a deterministic
+``--save-freq`` checkpoints and a deterministic
 evaluation every ``--eval-freq`` steps; then evaluates each final model on ``--final-episodes`` deterministic
 episodes, runs ``sb3-spikeplastic robustness`` on all final models side by side (the same noise draws for every
 model), and aggregates into ``--out``:
@@ -17,6 +17,9 @@ model), and aggregates into ``--out``:
 
 Variants: the rules of ``ppo.yml``'s HalfCheetah entry (``static``, ``dp-oja``...), ``<rule>+tanh`` (the
 bounded-modulation stabiliser), and the baselines ``mlp`` (``--conf mlp``) and ``ppo_lstm`` (``--conf ppo_lstm``).
+
+Running the same command again resumes the grid: finished runs are skipped, and a run cut short (killed, or
+stopped with its machine) continues from its latest checkpoint with ``train --trained-agent``.
 
 Usage::
 
@@ -63,6 +66,14 @@ def latest_run(variant: str, seed: int, args: argparse.Namespace) -> Path | None
 
 
 def train_command(variant: str, seed: int, args: argparse.Namespace) -> list[str]:
+    """The run's ``train`` command; a run cut short before (killed, or stopped with the machine) continues from
+    its latest checkpoint (``--trained-agent``, a new run folder beside it) instead of starting over."""
+    previous = latest_run(variant, seed, args)
+    if previous is not None and any(previous.glob("rl_model_*_steps.zip")):
+        return [cli(), "train", "--env", ENV, "--trained-agent", str(previous), "--seed", str(seed), "-n",
+                str(args.n_timesteps), "-f", str(run_root(variant, seed, args)), "--eval-freq", str(args.eval_freq),
+                "--eval-episodes", str(args.eval_episodes), "--save-freq", str(args.save_freq), "--torch-threads",
+                "1", "--no-progress", "-v", "0"]
     if variant in ("mlp", "ppo_lstm"):
         selection = ["--conf", variant]
     else:
@@ -114,9 +125,17 @@ def robustness_commands(args: argparse.Namespace) -> list[list[str]]:
 
 
 def read_evaluations(run: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Evaluation steps and mean returns, across the run and the runs it continued (``--trained-agent``)."""
-    evaluations = np.load(run / "evaluations.npz")
-    return evaluations["timesteps"], evaluations["results"].mean(axis=1)
+    """Evaluation steps and mean returns of a run and of the runs it continued (``--trained-agent``: the other
+    run folders of the same variant and seed)."""
+    steps, returns = [], []
+    for folder in sorted(run.parent.glob(f"{ENV}_*")):
+        if (folder / "evaluations.npz").exists():
+            evaluations = np.load(folder / "evaluations.npz")
+            steps.append(evaluations["timesteps"])
+            returns.append(evaluations["results"].mean(axis=1))
+    steps, returns = np.concatenate(steps), np.concatenate(returns)
+    order = np.argsort(steps, kind="stable")
+    return steps[order], returns[order]
 
 
 def variant_of(name: str) -> str:
@@ -181,12 +200,16 @@ def aggregate(args: argparse.Namespace) -> None:
     for name, run in runs.items():
         final = run / "final_eval.json"
         meta = yaml.safe_load((run / ENV / "args.yml").read_text())
-        with open(run / "progress.csv") as f:
-            rows = [r for r in csv.DictReader(f) if r.get("time/time_elapsed")]
+        minutes, steps = 0.0, 0
+        for folder in sorted(run.parent.glob(f"{ENV}_*")):  # the run and the runs it continued
+            with open(folder / "progress.csv") as f:
+                rows = [r for r in csv.DictReader(f) if r.get("time/time_elapsed")]
+            if rows:
+                minutes += float(rows[-1]["time/time_elapsed"]) / 60
+                steps = max(steps, int(float(rows[-1]["time/total_timesteps"])))
         row = dict(variant=variant_of(name), seed=meta["seed"],
                    final_return=json.loads(final.read_text())["mean_return"] if final.exists() else np.nan,
-                   steps=int(float(rows[-1]["time/total_timesteps"])) if rows else 0,
-                   minutes=float(rows[-1]["time/time_elapsed"]) / 60 if rows else np.nan)
+                   steps=steps, minutes=minutes)
         for noise in noises:
             # this model's own ratio curve
             path = args.out / "robustness" / f"robustness_{ENV}_{noise}.csv"
@@ -253,6 +276,9 @@ def main(argv=None) -> int:
         print(f"{len(jobs)} runs, {args.jobs} at a time; logs under {args.out / 'logs'}")
 
         def launch(job):
+            run = latest_run(*job, args)
+            if run is not None and (run / f"{ENV}.zip").exists():
+                return 0  # finished before: the grid resumes where it stopped
             commands = [lambda: train_command(*job, args), lambda: final_command(*job, args)]
             return run_one(commands, args.out / "logs" / f"{job[0]}_{job[1]}.log")
 
