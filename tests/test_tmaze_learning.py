@@ -1,9 +1,8 @@
 """Learning checks on the paper's cue-association T-maze with the shipped hyperparameters (hyperparams/ppo.yml).
 
-The full check is ``slow`` (run with ``pytest -m slow``; ~2 min on one core, session 5): dp-oja reaches >= 0.9
-success over 100 deterministic episodes after 30k steps (measured: 0.99 at 30k, seed 0, results/tmaze/), static
-stays <= 0.7.
-The default suite keeps a short smoke version that only checks the pipeline with the shipped settings.
+The full check is ``slow`` (run with ``pytest -m slow``; ~2 min on one core): dp-oja reaches >= 0.9 success over
+100 deterministic episodes after 30k steps (measured: 0.99 at 30k, seed 0, results/tmaze/), static stays <= 0.7.
+The default suite keeps a short version: ndp-oja with the shipped settings, well above chance after 10k steps.
 """
 
 import helpers
@@ -35,7 +34,7 @@ def test_dp_oja_solves_the_low_noise_maze_and_static_does_not():
     assert deterministic_success(train("static", 30_000)) <= 0.7
 
 
-def test_shipped_tmaze_settings_train_and_evaluate():
-    model = train("ndp-oja", 2048)
-    assert model.num_timesteps == 2048
-    assert 0.0 <= deterministic_success(model, n_episodes=20) <= 1.0
+def test_shipped_tmaze_settings_learn_within_10k_steps():
+    model = train("ndp-oja", 10_240)
+    assert model.num_timesteps == 10_240
+    assert deterministic_success(model) >= 0.8  # chance is 0.5; static's ceiling is ~0.7
