@@ -138,6 +138,16 @@ def read_evaluations(run: Path) -> tuple[np.ndarray, np.ndarray]:
     return steps[order], returns[order]
 
 
+def robustness_rows(args: argparse.Namespace, noise: str) -> list[dict]:
+    """The rows of every ``robustness*/robustness_<env>_<noise>.csv`` under ``--out`` (models evaluated in several
+    ``robustness`` runs with the same seed and sigmas see the same noise draws)."""
+    rows = []
+    for path in sorted(args.out.glob(f"robustness*/robustness_{ENV}_{noise}.csv")):
+        with open(path) as f:
+            rows += list(csv.DictReader(f))
+    return rows
+
+
 def variant_of(name: str) -> str:
     return name.rsplit("_s", 1)[0]
 
@@ -174,13 +184,9 @@ def aggregate(args: argparse.Namespace) -> None:
 
     ratios: dict[tuple[str, str], dict[float, list[float]]] = {}
     for noise in NOISES:
-        path = args.out / "robustness" / f"robustness_{ENV}_{noise}.csv"
-        if not path.exists():
-            continue
-        with open(path) as f:
-            for row in csv.DictReader(f):
-                cell = ratios.setdefault((variant_of(row["model"]), noise), {})
-                cell.setdefault(float(row["sigma"]), []).append(float(row["ratio"]))
+        for row in robustness_rows(args, noise):
+            cell = ratios.setdefault((variant_of(row["model"]), noise), {})
+            cell.setdefault(float(row["sigma"]), []).append(float(row["ratio"]))
     noises = [n for n in NOISES if any(k[1] == n for k in ratios)]
     if noises:
         fig, axes = plt.subplots(1, len(noises), figsize=(5 * len(noises), 4), squeeze=False)
@@ -212,9 +218,8 @@ def aggregate(args: argparse.Namespace) -> None:
                    steps=steps, minutes=minutes)
         for noise in noises:
             # this model's own ratio curve
-            path = args.out / "robustness" / f"robustness_{ENV}_{noise}.csv"
-            with open(path) as f:
-                own = sorted((float(r["sigma"]), float(r["ratio"])) for r in csv.DictReader(f) if r["model"] == name)
+            own = sorted((float(r["sigma"]), float(r["ratio"])) for r in robustness_rows(args, noise)
+                         if r["model"] == name)
             if own:
                 s, r = np.array(own).T
                 row[f"{noise}_auc"] = float(np.trapezoid(r, s) / (s[-1] - s[0])) if s[-1] > s[0] else np.nan
