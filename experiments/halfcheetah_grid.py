@@ -11,9 +11,9 @@ model), and aggregates into ``--out``:
   seeds (Fig. 4 E);
 * ``robustness.png`` — per noise type, the return ratio to sigma = 0 against sigma, mean and standard deviation
   over seeds (Fig. 4 F-H);
-* ``table.md`` / ``summary.csv`` — per variant: final deterministic return per seed, minutes per run, and per
-  noise type the area under the ratio curve (trapezoid over sigma, divided by the sigma range: 1 = no loss) and
-  the worst ratio.
+* ``table.md`` / ``summary.csv`` / ``robustness_summary.csv`` — per variant: final deterministic return per seed,
+  steps and minutes per run; per group of models and noise type, the area under the ratio curve (trapezoid over
+  sigma, divided by the sigma range: 1 = no loss) and the worst ratio, mean ± standard deviation over the models.
 
 Variants: the rules of ``ppo.yml``'s HalfCheetah entry (``static``, ``dp-oja``...), ``<rule>+tanh`` (the
 bounded-modulation stabiliser), and the baselines ``mlp`` (``--conf mlp``) and ``ppo_lstm`` (``--conf ppo_lstm``).
@@ -182,23 +182,35 @@ def aggregate(args: argparse.Namespace) -> None:
     fig.tight_layout()
     fig.savefig(args.out / "training_curves.png", dpi=120)
 
-    ratios: dict[tuple[str, str], dict[float, list[float]]] = {}
+    # Robustness: per model, its ratio curve; grouped by the model name's variant (``<variant>_s<seed>``; a
+    # robustness run may name checkpoints, e.g. ``dp-oja@300k_s0``).
+    curves_of: dict[tuple[str, str], dict[str, list[tuple[float, float]]]] = {}
     for noise in NOISES:
         for row in robustness_rows(args, noise):
-            cell = ratios.setdefault((variant_of(row["model"]), noise), {})
-            cell.setdefault(float(row["sigma"]), []).append(float(row["ratio"]))
-    noises = [n for n in NOISES if any(k[1] == n for k in ratios)]
+            models = curves_of.setdefault((variant_of(row["model"]), noise), {})
+            models.setdefault(row["model"], []).append((float(row["sigma"]), float(row["ratio"])))
+    noises = [n for n in NOISES if any(k[1] == n for k in curves_of)]
+    groups = list(dict.fromkeys(k[0] for k in curves_of))
+    robustness_summary = []
     if noises:
         fig, axes = plt.subplots(1, len(noises), figsize=(5 * len(noises), 4), squeeze=False)
         for ax, noise in zip(axes[0], noises):
-            for variant in variants:
-                cell = ratios.get((variant, noise))
-                if cell:
-                    sigmas = sorted(cell)
-                    mean = [np.mean(cell[s]) for s in sigmas]
-                    std = [np.std(cell[s]) for s in sigmas]
-                    ax.errorbar(sigmas, mean, yerr=std, capsize=3, marker="o", ms=3, label=variant)
-            ax.set(title=f"{noise} noise", xlabel="sigma", ylabel="return / return at sigma = 0")
+            for group in groups:
+                models = curves_of.get((group, noise))
+                if not models:
+                    continue
+                sigmas = sorted({s for curve in models.values() for s, _ in curve})
+                table = np.array([[dict(curve).get(s, np.nan) for s in sigmas] for curve in models.values()])
+                ax.errorbar(sigmas, np.nanmean(table, 0), yerr=np.nanstd(table, 0), capsize=3, marker="o", ms=3,
+                            label=f"{group} (n={len(models)})")
+                span = sigmas[-1] - sigmas[0]
+                auc = [np.trapezoid(row, sigmas) / span for row in table] if span > 0 else [np.nan]
+                robustness_summary.append(dict(variant=group, noise=noise, models=len(models),
+                                               auc_mean=float(np.mean(auc)), auc_std=float(np.std(auc)),
+                                               worst_mean=float(np.mean(table.min(1))),
+                                               worst_std=float(np.std(table.min(1)))))
+            ax.axhline(1.0, color="0.6", ls=":", lw=0.8)
+            ax.set(title=f"{noise} noise", xlabel="sigma", ylabel="return ratio to sigma = 0")
             ax.legend(fontsize=7)
         fig.tight_layout()
         fig.savefig(args.out / "robustness.png", dpi=120)
@@ -213,46 +225,37 @@ def aggregate(args: argparse.Namespace) -> None:
             if rows:
                 minutes += float(rows[-1]["time/time_elapsed"]) / 60
                 steps = max(steps, int(float(rows[-1]["time/total_timesteps"])))
-        row = dict(variant=variant_of(name), seed=meta["seed"],
-                   final_return=json.loads(final.read_text())["mean_return"] if final.exists() else np.nan,
-                   steps=steps, minutes=minutes)
-        for noise in noises:
-            # this model's own ratio curve
-            own = sorted((float(r["sigma"]), float(r["ratio"])) for r in robustness_rows(args, noise)
-                         if r["model"] == name)
-            if own:
-                s, r = np.array(own).T
-                row[f"{noise}_auc"] = float(np.trapezoid(r, s) / (s[-1] - s[0])) if s[-1] > s[0] else np.nan
-                row[f"{noise}_worst"] = float(r.min())
-        summary.append(row)
-    fields = sorted({k for r in summary for k in r}, key=lambda k: (k not in ("variant", "seed"), k))
-    with open(args.out / "summary.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=fields)
-        writer.writeheader()
-        writer.writerows(summary)
-    if curves:
-        with open(args.out / "curves.csv", "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(curves[0]))
-            writer.writeheader()
-            writer.writerows(curves)
+        summary.append(dict(variant=variant_of(name), seed=meta["seed"], steps=steps, minutes=minutes,
+                            final_return=json.loads(final.read_text())["mean_return"] if final.exists() else np.nan))
+    for name, rows in (("summary.csv", summary), ("robustness_summary.csv", robustness_summary), ("curves.csv", curves)):
+        if rows:
+            with open(args.out / name, "w", newline="") as f:
+                writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+                writer.writeheader()
+                writer.writerows(rows)
 
     def cell(values, fmt):
         values = [v for v in values if v == v]
         return " / ".join(fmt.format(v) for v in values) or "-"
 
-    head = ["variant", "seeds", "final return (10 ep., per seed)", "steps", "minutes per run"]
-    head += [f"{n} {what}" for n in noises for what in ("AUC", "worst")]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    lines = ["| variant | seeds | deterministic return, 10 episodes (per seed) | steps | minutes per run |",
+             "|---|---|---|---|---|"]
     for variant in variants:
-        rows = [r for r in summary if r["variant"] == variant]
-        cells = [variant, str(len(rows)), cell([r["final_return"] for r in rows], "{:.0f}"),
-                 cell([r["steps"] for r in rows], "{:,}"), cell([r["minutes"] for r in rows], "{:.0f}")]
-        for noise in noises:
-            for what in ("auc", "worst"):
-                vals = [r.get(f"{noise}_{what}", np.nan) for r in rows]
-                known = [v for v in vals if v == v]
-                cells.append(f"{np.mean(known):.2f} ± {np.std(known):.2f}" if known else "-")
-        lines.append("| " + " | ".join(cells) + " |")
+        rows = sorted((r for r in summary if r["variant"] == variant), key=lambda r: r["seed"])
+        lines.append(f"| {variant} | {len(rows)} | {cell([r['final_return'] for r in rows], '{:.0f}')} | "
+                     f"{cell([r['steps'] for r in rows], '{:,}')} | {cell([r['minutes'] for r in rows], '{:.0f}')} |")
+    if robustness_summary:
+        lines += ["", "| models | n | " + " | ".join(f"{n}: AUC | {n}: worst" for n in noises) + " |",
+                  "|---|---|" + "---|---|" * len(noises)]
+        for group in groups:
+            found = {r["noise"]: r for r in robustness_summary if r["variant"] == group}
+            n = max(r["models"] for r in found.values())
+            cells = []
+            for noise in noises:
+                r = found.get(noise)
+                cells += ([f"{r['auc_mean']:.2f} ± {r['auc_std']:.2f}", f"{r['worst_mean']:.2f} ± {r['worst_std']:.2f}"]
+                          if r else ["-", "-"])
+            lines.append(f"| {group} | {n} | " + " | ".join(cells) + " |")
     (args.out / "table.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
