@@ -33,14 +33,13 @@ import argparse
 import csv
 import json
 import os
-import shutil
-import subprocess
 import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import yaml
+from grid_common import cli, run_one
 
 ENV = "HalfCheetah-v5"
 STABILISED = ["policy_kwargs.rule_kwargs.modulation=tanh", "policy_kwargs.rule_kwargs.wm_init_gain=5"]
@@ -50,10 +49,6 @@ NOISES = ("friction", "action", "obs")
 #: First environment seed of the final and robustness evaluations (training's evaluations use the seed's range).
 HELDOUT_SEED = 1_000_000
 
-
-def cli() -> str:
-    """The console script of the running interpreter's environment (works without activating it)."""
-    return shutil.which("sb3-spikeplastic", path=str(Path(sys.executable).parent)) or "sb3-spikeplastic"
 
 
 def run_root(variant: str, seed: int, args: argparse.Namespace) -> Path:
@@ -91,18 +86,6 @@ def final_command(variant: str, seed: int, args: argparse.Namespace) -> list[str
     return [cli(), "evaluate", "--run", str(run), "--episodes", str(args.final_episodes), "--seed",
             str(HELDOUT_SEED), "--torch-threads", "1", "-o", str(run / "final_eval.json")]
 
-
-def run_one(commands: list, log: Path) -> int:
-    """Run the commands one after another (each built when its turn comes), stopping at the first failure."""
-    log.parent.mkdir(parents=True, exist_ok=True)
-    with open(log, "a") as out:
-        for make in commands:
-            out.flush()
-            code = subprocess.call(make(), stdout=out, stderr=subprocess.STDOUT,
-                                   env={**os.environ, "OMP_NUM_THREADS": "1"})
-            if code:
-                return code
-    return 0
 
 
 def finished_runs(args: argparse.Namespace) -> dict[str, Path]:

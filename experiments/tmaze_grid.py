@@ -25,14 +25,13 @@ import argparse
 import csv
 import json
 import os
-import shutil
-import subprocess
 import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import yaml
+from grid_common import cli, run_one
 
 #: The neuromodulation stabiliser (bounded modulation, see plasticity.modulatory_signal) with W_m starting at
 #: 5 I, so that M = tanh(W_m r_post) ~ 0.6-0.8 at the initial hidden rates (with the paper's W_m ~ I, M ~ r_post
@@ -46,10 +45,6 @@ ENVS = ("TMazeCue-v0", "TMazeCueNoisy-v0")
 #: First environment seed of the held-out evaluation (EvalCallback's evaluations use the training seed's range).
 HELDOUT_SEED = 1_000_000
 
-
-def cli() -> str:
-    """The console script of the running interpreter's environment (works without activating it)."""
-    return shutil.which("sb3-spikeplastic", path=str(Path(sys.executable).parent)) or "sb3-spikeplastic"
 
 
 def run_folder(env: str, variant: str, seed: int, args: argparse.Namespace) -> Path:
@@ -73,18 +68,6 @@ def heldout_command(env: str, variant: str, seed: int, args: argparse.Namespace,
             str(args.heldout_episodes), "--n-envs", "10", "--seed", str(HELDOUT_SEED), "--torch-threads", "1",
             "-o", str(run / ("heldout_best.json" if best else "heldout.json"))]
 
-
-def run_one(commands: list, log: Path) -> int:
-    """Run the commands one after another (each built when its turn comes), stopping at the first failure."""
-    log.parent.mkdir(parents=True, exist_ok=True)
-    with open(log, "w") as out:
-        for make in commands:
-            out.flush()
-            code = subprocess.call(make(), stdout=out, stderr=subprocess.STDOUT,
-                                   env={**os.environ, "OMP_NUM_THREADS": "1"})
-            if code:
-                return code
-    return 0
 
 
 def read_progress(run: Path) -> dict[str, np.ndarray]:
