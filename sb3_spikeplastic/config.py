@@ -35,7 +35,7 @@ import re
 import types
 import typing
 from pathlib import Path
-from typing import Any, Mapping, Optional, Sequence, Union
+from typing import Any, Mapping, NamedTuple, Optional, Sequence, Union
 
 import yaml
 
@@ -649,6 +649,76 @@ def normalize_arguments(config: Mapping[str, Any]) -> Optional[dict]:
     if "gamma" in config:
         kwargs.setdefault("gamma", config["gamma"])
     return kwargs
+
+
+class Hyperparams(NamedTuple):
+    """A packaged entry, ready to build the environment and the model (:func:`load_hyperparams`)::
+
+        env = make_vec_env(env_id, n_envs=h.n_envs, env_kwargs=h.env_kwargs)
+        if h.normalize is not None:
+            env = VecNormalize(env, **h.normalize)
+        model = PPO(h.policy, env, **h.model_kwargs)
+        model.learn(h.n_timesteps)
+    """
+
+    #: Policy name for the algorithm's first argument (``"SpikePlasticPolicy"``, ``"MlpPolicy"``...).
+    policy: str
+    #: Number of environments stepped side by side.
+    n_envs: int
+    #: Total environment steps of a full run (all environments together).
+    n_timesteps: int
+    #: ``VecNormalize`` keyword arguments, or ``None`` when the entry does not normalise.
+    normalize: Optional[dict]
+    #: Keyword arguments of ``gymnasium.make(env_id, ...)`` (usually empty).
+    env_kwargs: dict
+    #: Keyword arguments of the algorithm's constructor after ``(policy, env)``, ``policy_kwargs`` included
+    #: (``lin_`` schedules and class names already resolved).
+    model_kwargs: dict
+    #: The entry's algorithm (:data:`ALGOS`): ``"ppo"`` for :class:`sb3_spikeplastic.PPO`, ``"ppo_lstm"`` for
+    #: sb3-contrib's ``RecurrentPPO`` (:func:`algorithm_class` gives the class).
+    algo: str = "ppo"
+
+
+def check_env_id(env_id: str, entries: Sequence[str] = ()) -> str:
+    """``env_id`` if Gymnasium knows it (the plugin's environments included) or ``entries`` lists it.
+
+    :raises ValueError: one line naming ``env_id`` and what is accepted.
+    """
+    import gymnasium
+
+    from . import envs  # noqa: F401  (registers TMazeCue-v0, TMazeCueNoisy-v0, NoisyHalfCheetah-v5)
+
+    if env_id in gymnasium.registry or (env_id in entries and env_id != "default"):
+        return env_id
+    listed = ", ".join(e for e in entries if e != "default") or "none"
+    raise ValueError(f"unknown environment id {env_id!r}; accepted: an entry of the file ({listed}) or any of "
+                     f"gymnasium's {len(gymnasium.registry)} registered ids")
+
+
+def load_hyperparams(env_id: str, conf: Union[str, Path] = "ppo", rule: Optional[str] = None) -> Hyperparams:
+    """The hyperparameters that ``sb3-spikeplastic train --env ENV_ID [--conf CONF] [--rule RULE]`` uses, as
+    arguments for Python.
+
+    :param env_id: a Gymnasium id. Its entry in the file is merged over ``default``; a registered id without an
+        entry (``CartPole-v1``) gets ``default`` alone, as on the command line.
+    :param conf: a packaged file by name (:data:`PACKAGED_HYPERPARAMS`: ``ppo``, ``paper``, ``mlp``,
+        ``ppo_lstm``) or the path of a hyperparameter file, e.g. a run's ``config.yml``.
+    :param rule: plasticity rule replacing the entry's ``policy_kwargs.rule`` (one of
+        :func:`sb3_spikeplastic.available_rules`); only for ``SpikePlasticPolicy`` entries.
+    :return: a :class:`Hyperparams` ``(policy, n_envs, n_timesteps, normalize, env_kwargs, model_kwargs, algo)``:
+        ``PPO(h.policy, env, **h.model_kwargs)`` builds the model on an environment made with ``h.n_envs``,
+        ``h.env_kwargs`` and, unless ``h.normalize`` is ``None``, ``VecNormalize(env, **h.normalize)``. Every
+        dictionary is a fresh copy: change it freely (e.g. ``h.model_kwargs["n_steps"] = 64``).
+    :raises ValueError: one line naming the bad environment id, file or rule and the accepted ones.
+    """
+    data = load_hyperparams_file(conf)
+    check_env_id(env_id, tuple(data))
+    resolved = resolve_hyperparams(env_id, conf, rule=rule)
+    policy, ppo_kwargs, policy_kwargs = model_arguments(resolved)
+    return Hyperparams(policy=policy, n_envs=resolved["n_envs"], n_timesteps=resolved["n_timesteps"],
+                       normalize=normalize_arguments(resolved), env_kwargs=copy.deepcopy(resolved["env_kwargs"]),
+                       model_kwargs={**ppo_kwargs, "policy_kwargs": policy_kwargs},
+                       algo=resolved.get("algo", "ppo"))
 
 
 def dump_yaml(data: Any) -> str:

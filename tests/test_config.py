@@ -9,6 +9,7 @@ import sb3_spikeplastic
 from sb3_spikeplastic import PPO, config
 from sb3_spikeplastic.config import (
     default_hyperparams_path,
+    load_hyperparams,
     load_hyperparams_file,
     model_arguments,
     normalize_arguments,
@@ -197,3 +198,57 @@ def test_accepted_keys_follow_the_signatures():
     assert {"bptt_steps", "n_steps", "batch_size", "learning_rate", "n_timesteps", "policy_kwargs", "normalize"} <= set(keys)
     assert "tensorboard_log" not in keys and "seed" not in keys
     assert {"rule", "hidden_sizes", "steps", "encoder_pop_size", "action_pop_size"} <= set(config.policy_kwarg_hints())
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# load_hyperparams: a packaged entry as Python arguments
+
+
+def test_load_hyperparams_returns_the_packaged_tmaze_entry():
+    raw = load_hyperparams_file("ppo")["TMazeCue-v0"]
+    h = load_hyperparams("TMazeCue-v0")
+    assert h.policy == "SpikePlasticPolicy" and h.algo == "ppo"
+    assert (h.n_envs, h.n_timesteps, h.normalize, h.env_kwargs) == (raw["n_envs"], raw["n_timesteps"], None, {})
+    kwargs = h.model_kwargs
+    assert kwargs["policy_kwargs"]["rule"] == raw["policy_kwargs"]["rule"] == "dp-oja"
+    assert kwargs["policy_kwargs"]["alpha_lr_scale"] == raw["policy_kwargs"]["alpha_lr_scale"]
+    for key in ("n_steps", "batch_size", "bptt_steps", "n_epochs", "learning_rate", "grad_clip", "use_action_masks"):
+        assert kwargs[key] == raw[key], key
+    assert not set(kwargs) & {"n_envs", "n_timesteps", "normalize", "env_kwargs", "policy", "algo"}
+
+
+def test_load_hyperparams_rule_and_other_files():
+    assert load_hyperparams("TMazeCue-v0", rule="ndp-bcm").model_kwargs["policy_kwargs"]["rule"] == "ndp-bcm"
+    cheetah = load_hyperparams("HalfCheetah-v5", "paper")
+    assert cheetah.normalize == {"gamma": 0.99} and cheetah.model_kwargs["learning_rate"](0.5) == pytest.approx(2.5e-4)
+    lstm = load_hyperparams("HalfCheetah-v5", "ppo_lstm")
+    assert (lstm.algo, lstm.policy) == ("ppo_lstm", "MlpLstmPolicy") and "algo" not in lstm.model_kwargs
+    # a registered id without an entry gets `default`, as on the command line
+    assert load_hyperparams("CartPole-v1").model_kwargs["policy_kwargs"] == {"rule": "dp-oja"}
+    # fresh copies: changing one result leaves the next alone
+    load_hyperparams("TMazeCue-v0").model_kwargs["policy_kwargs"]["hidden_sizes"].append(3)
+    assert load_hyperparams("TMazeCue-v0").model_kwargs["policy_kwargs"]["hidden_sizes"] == [64]
+
+
+@pytest.mark.parametrize("args, message", [
+    (("TMazeCu-v0",), r"^unknown environment id 'TMazeCu-v0'; accepted: an entry of the file \(TMazeCue-v0, "),
+    (("TMazeCue-v0", "ppo2"), r"^cannot read hyperparameter file 'ppo2'.*packaged files: ppo, paper, mlp, ppo_lstm"),
+    (("TMazeCue-v0", "ppo", "hebb"), r"^unknown rule 'hebb'; accepted: static, "),
+    (("HalfCheetah-v5", "mlp", "dp-oja"), r"^rule='dp-oja' needs policy SpikePlasticPolicy, not 'MlpPolicy'"),
+])
+def test_load_hyperparams_bad_input_is_one_line(args, message):
+    with pytest.raises(ValueError, match=message) as info:
+        load_hyperparams(*args)
+    assert "\n" not in str(info.value)
+
+
+def test_load_hyperparams_builds_and_trains_a_model():
+    h = load_hyperparams("TMazeCue-v0", rule="dp-linear")
+    env = DummyVecEnv([lambda: gym.make("TMazeCue-v0") for _ in range(2)])
+    model = PPO(h.policy, env, **{**h.model_kwargs, "n_steps": 16, "batch_size": 16, "bptt_steps": 8,
+                                  "n_epochs": 1}, device="cpu", seed=0)
+    assert model.policy.snn.rule_name == "dp-linear" and model.policy.snn_config["alpha_lr_scale"] == 30
+    assert model.use_action_masks is True and model.bptt_steps == 8
+    model.learn(32)
+    assert model.num_timesteps == 32
+    env.close()
