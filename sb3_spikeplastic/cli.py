@@ -9,18 +9,9 @@
     sb3-spikeplastic plot logs/ppo/TMazeCue-v0_1 logs/ppo/TMazeCue-v0_2 -o curves.png
     sb3-spikeplastic inspect --run logs/ppo/TMazeCue-v0_1
 
-``train`` writes an rl-zoo-like run folder ``<log folder>/ppo/<EnvId>_<n>/``:
-
-* ``<EnvId>.zip`` — the final model (also written on Ctrl-C), ``best_model.zip`` and ``evaluations.npz`` with
-  ``--eval-freq``, checkpoints ``rl_model_<steps>_steps.zip`` (+ ``rl_model_vecnormalize_<steps>_steps.pkl``)
-  every ``--save-freq`` steps (by default a tenth of a run of 100k steps or more; the latest 2 kept). Every model and statistics file is written to a temporary file and renamed into place, so a
-  crash never leaves a half-written one.
-* ``<EnvId>/config.yml`` — the resolved hyperparameters, itself a hyperparameter file (``--conf`` reproduces the
-  run), ``<EnvId>/args.yml`` — the command's arguments (with the seed actually used), ``<EnvId>/vecnormalize.pkl``
-  when normalising, ``command.txt`` — the command line.
-* ``<i>.monitor.csv`` — SB3 Monitor files (one per environment, with an ``is_success`` column, empty where the env
-  reports no success), ``progress.csv`` — the logger's scalars, and the TensorBoard events (here, or under
-  ``--tensorboard-log``).
+``train`` writes an rl-zoo-like run folder ``<log folder>/ppo/<EnvId>_<n>/`` (its layout:
+:mod:`sb3_spikeplastic.run_folder`; the run itself: :mod:`sb3_spikeplastic.experiment`). This module only parses
+the arguments, checks them and turns bad input into one line.
 
 Everything is validated before the run folder is created (environment id, rule, hyperparameter keys and values,
 and the model itself is constructed), so bad input writes nothing and fails with one line
@@ -37,15 +28,25 @@ import json
 import math
 import os
 import random
-import re
 import shlex
 import sys
-import traceback
 import warnings
 from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
 
 import gymnasium
+
+from .experiment import Experiment, check_spaces, rule_label
+from .run_folder import (
+    RunInfo,
+    atomic_write,
+    latest_checkpoint,
+    load_model,
+    locate_run,
+    make_eval_env,
+    read_run_args,
+    read_run_config,
+)
 
 PROG = "sb3-spikeplastic"
 
@@ -132,226 +133,32 @@ def _check_rule(rule: Optional[str]) -> None:
 
 
 # ----------------------------------------------------------------------------------------------------------------
-# Files
+# The run folder, with its errors as usage errors
 
 
-def atomic_write(path: os.PathLike, write: Callable[[Any], None], binary: bool = True) -> Path:
-    """Write ``path`` through ``write(file)`` into a temporary file beside it, then rename it into place."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+def _locate(path: str, best: bool = False) -> RunInfo:
     try:
-        with open(tmp, "wb" if binary else "w") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
+        return locate_run(path, best=best)
+    except (ValueError, FileNotFoundError) as exc:
+        raise UsageError(str(exc)) from None
 
 
-def save_model(model, path: os.PathLike) -> Path:
-    """``model.save`` to ``path`` atomically."""
-    return atomic_write(path, model.save)
-
-
-def save_vecnormalize(venv, path: os.PathLike) -> Path:
-    """``VecNormalize`` statistics to ``path`` atomically (the same pickle as ``VecNormalize.save``)."""
-    import pickle
-
-    return atomic_write(path, lambda f: pickle.dump(venv, f))
-
-
-def next_run_dir(root: Path, env_id: str) -> Path:
-    """Create and return ``root/<env_id>_<n>`` with ``n`` the next free integer (from 1)."""
-    root.mkdir(parents=True, exist_ok=True)
-    pattern = re.compile(rf"^{re.escape(env_id)}_(\d+)$")
-    n = max([int(m.group(1)) for p in root.iterdir() if (m := pattern.match(p.name))], default=0) + 1
-    while True:
-        candidate = root / f"{env_id}_{n}"
-        try:
-            candidate.mkdir()
-            return candidate
-        except FileExistsError:
-            n += 1
-
-
-class RunInfo:
-    """What a run folder (or a model file) holds: the model, its VecNormalize statistics, env id and config."""
-
-    def __init__(self, model_path: Path, env_id: Optional[str], vecnormalize: Optional[Path],
-                 config: Optional[dict], run_dir: Optional[Path]):
-        self.model_path, self.env_id, self.vecnormalize = model_path, env_id, vecnormalize
-        self.config, self.run_dir = config or {}, run_dir
-        self.tensorboard_dir: Optional[Path] = None
-
-    @property
-    def env_kwargs(self) -> dict:
-        return dict(self.config.get("env_kwargs") or {})
-
-
-def _read_run_config(run_dir: Path) -> tuple[Optional[str], Optional[dict]]:
-    from .config import yaml_load
-
-    for cfg in sorted(run_dir.glob("*/config.yml")):
-        data = yaml_load(cfg.read_text())
-        if isinstance(data, dict) and len(data) == 1:
-            env_id, config = next(iter(data.items()))
-            return env_id, config
-    return None, None
-
-
-def latest_checkpoint(run_dir: Path) -> Optional[Path]:
-    """The ``rl_model_<steps>_steps.zip`` of ``run_dir`` with the most steps (``None`` if there is none)."""
-    found = [(int(m.group(1)), p) for p in run_dir.glob("rl_model_*_steps.zip")
-             if (m := re.fullmatch(r"rl_model_(\d+)_steps\.zip", p.name))]
-    return max(found)[1] if found else None
-
-
-def locate_run(path: str, best: bool = False) -> RunInfo:
-    """Resolve a run folder or a model ``.zip`` into a :class:`RunInfo` (``UsageError`` if there is no model)."""
-    p = Path(path)
-    if p.is_dir():
-        env_id, config = _read_run_config(p)
-        if env_id is None:
-            raise UsageError(f"{path!r} is not a run folder of `{PROG} train` (no <EnvId>/config.yml in it)")
-        model = p / ("best_model.zip" if best else f"{env_id}.zip")
-        if not model.is_file():
-            failed = " (training failed: see FAILED.txt)" if (p / "FAILED.txt").exists() else ""
-            checkpoint = latest_checkpoint(p)
-            hint = f"; its latest checkpoint is --model {str(checkpoint)!r}" if checkpoint is not None else ""
-            raise UsageError(f"run folder {path!r} has no {model.name}{failed}{hint}")
-        vecnorm = p / env_id / "vecnormalize.pkl"
-        return RunInfo(model, env_id, vecnorm if vecnorm.is_file() else None, config, p)
-    if p.is_file() or Path(f"{path}.zip").is_file():
-        p = p if p.is_file() else Path(f"{path}.zip")
-        env_id, config = _read_run_config(p.parent)
-        candidates = []
-        m = re.match(r"^(.*)_(\d+)_steps$", p.stem)
-        if m:  # a checkpoint: its own statistics
-            candidates.append(p.parent / f"{m.group(1)}_vecnormalize_{m.group(2)}_steps.pkl")
-        candidates += [p.parent / p.stem / "vecnormalize.pkl", p.parent / "vecnormalize.pkl"]
-        if env_id is not None:
-            candidates.append(p.parent / env_id / "vecnormalize.pkl")
-        vecnorm = next((c for c in candidates if c.is_file()), None)
-        return RunInfo(p, env_id, vecnorm, config, p.parent if env_id else None)
-    raise UsageError(f"no run folder or model file {path!r}")
-
-
-def load_model(info: RunInfo, device: str = "cpu"):
-    from .config import algorithm_class
-
+def _load(info: RunInfo, device: str):
     try:
-        algorithm = algorithm_class(info.config.get("algo", "ppo"))
+        return load_model(info, device)
     except ValueError as exc:
-        raise UsageError(f"cannot load model {str(info.model_path)!r}: {exc}") from None
+        raise UsageError(str(exc)) from None
+
+
+def _check_spaces(model, env, env_id: str, model_path) -> None:
     try:
-        return algorithm.load(str(info.model_path), device=device)
-    except Exception as exc:  # a corrupt or foreign file
-        raise UsageError(f"cannot load model {str(info.model_path)!r}: {type(exc).__name__}: {exc}") from None
-
-
-def make_eval_env(env_id: str, n_envs: int, seed: int, env_kwargs: Optional[dict] = None,
-                  vecnormalize: Optional[Path] = None, make: Optional[Callable] = None):
-    """Monitored ``DummyVecEnv`` with frozen ``VecNormalize`` statistics (no reward normalisation) if given."""
-    from .robustness import frozen_eval_env
-
-    kwargs = dict(env_kwargs or {})
-    return frozen_eval_env(make or (lambda: gymnasium.make(env_id, **kwargs)), n_envs, seed, vecnormalize)
+        check_spaces(model, env, env_id, model_path)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
 
 
 # ----------------------------------------------------------------------------------------------------------------
 # train
-
-
-def _make_train_env(env_id: str, n_envs: int, env_kwargs: dict, monitor_dir: Optional[Path], vec_env: str = "dummy"):
-    """``n_envs`` monitored environments (Monitor CSVs in ``monitor_dir`` when given), stepped in this process
-    (``vec_env="dummy"``) or each in a process of its own (``"subproc"``)."""
-    from stable_baselines3.common.monitor import Monitor
-    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
-
-    def factory(rank: int):
-        def make():
-            env = SuccessColumn(gymnasium.make(env_id, **env_kwargs))
-            filename = None if monitor_dir is None else str(monitor_dir / str(rank))
-            return Monitor(env, filename=filename, info_keywords=("is_success",))
-
-        return make
-
-    factories = [factory(i) for i in range(n_envs)]
-    return SubprocVecEnv(factories) if vec_env == "subproc" else DummyVecEnv(factories)
-
-
-class SuccessColumn(gymnasium.Wrapper):
-    """Puts ``info["is_success"] = None`` at episode ends where the env reports no success, so that the Monitor
-    files always have an ``is_success`` column (empty for such envs; SB3 ignores ``None`` successes)."""
-
-    def step(self, action):
-        obs, reward, terminated, truncated, info = self.env.step(action)
-        if terminated or truncated:
-            info.setdefault("is_success", None)
-        return obs, reward, terminated, truncated, info
-
-
-def _callback_classes():
-    from stable_baselines3.common.callbacks import BaseCallback
-
-    class AtomicCheckpoint(BaseCallback):
-        """Every ``save_freq`` calls, ``rl_model_<steps>_steps.zip`` (+ VecNormalize statistics), atomically; only
-        the latest ``keep`` checkpoints stay (0: all)."""
-
-        def __init__(self, save_freq: int, save_dir: Path, keep: int = 0):
-            super().__init__()
-            self.save_freq, self.save_dir, self.keep = save_freq, save_dir, keep
-            self.saved: list[Path] = []
-
-        def _on_step(self) -> bool:
-            if self.n_calls % self.save_freq == 0:
-                steps = self.num_timesteps
-                venv = self.model.get_vec_normalize_env()
-                if venv is not None:  # statistics first: a checkpoint's zip never exists without them
-                    save_vecnormalize(venv, self.save_dir / f"rl_model_vecnormalize_{steps}_steps.pkl")
-                self.saved.append(save_model(self.model, self.save_dir / f"rl_model_{steps}_steps.zip"))
-                while self.keep and len(self.saved) > self.keep:
-                    old = self.saved.pop(0)
-                    old.unlink(missing_ok=True)
-                    old.with_name(old.name.replace("rl_model_", "rl_model_vecnormalize_")).with_suffix(
-                        ".pkl").unlink(missing_ok=True)
-            return True
-
-    class WallClockProgress(BaseCallback):
-        """A progress bar over environment steps whose rate is steps per second of wall time, updates included
-        (SB3's bar moves only during rollouts, so its rate is the rollout's alone)."""
-
-        def _on_training_start(self) -> None:
-            from tqdm.auto import tqdm
-
-            total = self.locals["total_timesteps"] - self.model.num_timesteps
-            self.bar = tqdm(total=total, unit="step", unit_scale=True, smoothing=0, dynamic_ncols=True)
-
-        def _on_step(self) -> bool:
-            self.bar.update(self.training_env.num_envs)
-            return True
-
-        def _on_training_end(self) -> None:
-            self.bar.close()
-
-    class SaveBest(BaseCallback):
-        """Called by ``EvalCallback`` on a new best mean reward: ``best_model.zip``, atomically."""
-
-        def __init__(self, path: Path):
-            super().__init__()
-            self.path = path
-            self.saved = False
-
-        def _on_step(self) -> bool:
-            save_model(self.model, self.path)
-            self.saved = True
-            return True
-
-    return AtomicCheckpoint, SaveBest, WallClockProgress
-
 
 #: ``train`` runs at least this long checkpoint every tenth of their steps unless ``--save-freq`` says otherwise.
 AUTO_CHECKPOINT_MIN_STEPS = 100_000
@@ -360,43 +167,31 @@ AUTO_CHECKPOINT_MIN_STEPS = 100_000
 def _continued_run(args: argparse.Namespace, env_id: str) -> RunInfo:
     """The model (final or checkpoint) that ``--trained-agent`` names, with its run's config, VecNormalize
     statistics and TensorBoard folder; ``UsageError`` if it cannot be continued as asked."""
-    from .config import yaml_load
-
     if args.hyperparams or args.rule or args.n_envs or args.conf or args.env_kwargs:
         raise UsageError("--trained-agent continues a run with its own configuration; only -n (the total "
                          "steps), --seed and the callback options may be given with it")
     folder = Path(args.trained_agent)
-    env_id_of_folder = _read_run_config(folder)[0] if folder.is_dir() else None
+    env_id_of_folder = read_run_config(folder)[0] if folder.is_dir() else None
     if env_id_of_folder and not (folder / f"{env_id_of_folder}.zip").is_file() and latest_checkpoint(folder):
         # A run killed before its end (no final model): continue from its latest checkpoint.
-        info = locate_run(str(latest_checkpoint(folder)))
+        info = _locate(str(latest_checkpoint(folder)))
         print(f"{PROG}: {str(folder)!r} has no final model; continuing from {info.model_path.name}")
     else:
-        info = locate_run(args.trained_agent)
+        info = _locate(args.trained_agent)
     if not info.model_path.is_file() or info.model_path.suffix != ".zip":
         raise UsageError(f"--trained-agent needs a model .zip or a run folder, got {args.trained_agent!r}")
     if info.env_id is not None and info.env_id != env_id:
         raise UsageError(f"--trained-agent {args.trained_agent!r} was trained on {info.env_id}, not {env_id}")
-    args_file = info.run_dir / info.env_id / "args.yml" if info.run_dir is not None else None
-    if args_file is not None and args_file.is_file():
-        tb = (yaml_load(args_file.read_text()) or {}).get("tensorboard_dir")
+    if info.run_dir is not None:
+        tb = read_run_args(info.run_dir, info.env_id).get("tensorboard_dir")
         info.tensorboard_dir = Path(tb) if tb else None
     return info
 
 
-def _rule_label(config: dict) -> str:
-    if config.get("policy") != "SpikePlasticPolicy":
-        return str(config.get("policy", "policy")).lower().replace("policy", "") or "policy"
-    return str((config.get("policy_kwargs") or {}).get("rule", "dp-oja"))
-
-
-def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
-    import torch
-
+def _train_config(args: argparse.Namespace) -> tuple[str, dict, Optional[RunInfo]]:
+    """``(env_id, resolved entry, model to continue)`` from the arguments of ``train``, every one checked."""
     from . import config as cfg
-    from ._fast.allocator import keep_freed_memory
 
-    # ---- validation: nothing is written before all of this passed ----
     try:
         conf_entries = list(cfg.load_hyperparams_file(args.conf))
     except ValueError as exc:
@@ -409,7 +204,7 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
                                  ("--figure-freq", args.figure_freq, 0),
                                  ("--torch-threads", args.torch_threads, 1)):
         _check_int(name, value, minimum)
-    device = _check_device(args.device)
+    _check_device(args.device)
     check_output_path(args.log_folder, "-f/--log-folder", directory=True)
     if args.tensorboard_log:
         check_output_path(args.tensorboard_log, "--tensorboard-log", directory=True)
@@ -426,176 +221,78 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
                                              n_timesteps=args.n_timesteps, n_envs=args.n_envs)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
+    if args.figure_freq and config["policy"] != "SpikePlasticPolicy":
+        raise UsageError(f"--figure-freq needs policy SpikePlasticPolicy, not {config['policy']!r}")
+    return env_id, config, source
+
+
+def _setup(experiment: Experiment) -> None:
+    """Build the model in memory: any error here is still bad input."""
+    try:
+        experiment.setup()
+    except (ValueError, TypeError, AssertionError) as exc:
+        message = " ".join(str(exc).split()) or type(exc).__name__
+        if experiment.source is not None:
+            raise UsageError(message) from None
+        raise UsageError(f"invalid configuration for {experiment.env_id}: {message}") from None
+    except Exception as exc:  # e.g. gymnasium errors from env_kwargs
+        if type(exc).__module__.startswith("gymnasium"):
+            raise UsageError(f"cannot make {experiment.env_id} with env_kwargs={experiment.env_kwargs}: {exc}") from None
+        raise
+
+
+def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
+    import torch
+
+    from ._fast.allocator import keep_freed_memory
+
+    env_id, config, source = _train_config(args)  # nothing is written before all of this passed
     # Checkpoints by default on long runs (a run killed outright keeps its latest tenth), none on short ones.
     save_freq = args.save_freq if args.save_freq is not None else (
         config["n_timesteps"] // 10 if config["n_timesteps"] >= AUTO_CHECKPOINT_MIN_STEPS else 0)
-    if args.figure_freq and config["policy"] != "SpikePlasticPolicy":
-        raise UsageError(f"--figure-freq needs policy SpikePlasticPolicy, not {config['policy']!r}")
     torch.set_num_threads(args.torch_threads)
     keep_freed_memory()
     seed = args.seed if args.seed is not None else random.SystemRandom().randrange(2**31 - 1)
-    policy, ppo_kwargs, policy_kwargs = cfg.model_arguments(config)
-    norm_kwargs = cfg.normalize_arguments(config)
-    n_envs, env_kwargs = config["n_envs"], dict(config["env_kwargs"])
-    from stable_baselines3.common.vec_env import VecNormalize
-
-    probe = None
-    try:  # construct the environments and the model once in memory: any error is still bad input
-        probe = _make_train_env(env_id, n_envs, env_kwargs, None)
-        if norm_kwargs is not None:
-            probe = VecNormalize(probe, **norm_kwargs)
-        if source is None:
-            algorithm = cfg.algorithm_class(config.get("algo", "ppo"))
-            model = algorithm(policy, probe, **ppo_kwargs, policy_kwargs=policy_kwargs, seed=seed, device=device,
-                              verbose=args.verbose)
-        else:
-            model = load_model(source, device=device)
-            _check_spaces(model, probe, env_id, source.model_path)
-            model.verbose = args.verbose
-            if model.num_timesteps >= config["n_timesteps"]:
-                raise UsageError(f"{str(source.model_path)!r} has trained {model.num_timesteps:,} of n_timesteps="
-                                 f"{config['n_timesteps']:,} steps already; pass a larger -n (the run's total)")
-    except UsageError:
-        if probe is not None:
-            probe.close()
-        raise
-    except (ValueError, TypeError, AssertionError) as exc:
-        if probe is not None:
-            probe.close()
-        message = " ".join(str(exc).split()) or type(exc).__name__
-        raise UsageError(f"invalid configuration for {env_id}: {message}") from None
-    except Exception as exc:  # e.g. gymnasium errors from env_kwargs
-        if probe is not None:
-            probe.close()
-        if type(exc).__module__.startswith("gymnasium"):
-            raise UsageError(f"cannot make {env_id} with env_kwargs={env_kwargs}: {exc}") from None
-        raise
-    probe.close()
-
-    # ---- the run folder ----
-    run_dir = next_run_dir(Path(args.log_folder) / "ppo", env_id)
-    meta_dir = run_dir / env_id
-    meta_dir.mkdir()
-    rule = _rule_label(config)
-    if args.tensorboard_log:
-        from stable_baselines3.common.utils import get_latest_run_id
-
-        tb_root = Path(args.tensorboard_log) / env_id
-        tb_root.mkdir(parents=True, exist_ok=True)
-        tb_dir = tb_root / f"ppo_{rule}_{get_latest_run_id(str(tb_root), f'ppo_{rule}') + 1}"
-    elif source is not None and source.tensorboard_dir is not None:
-        tb_dir = source.tensorboard_dir  # the same TensorBoard run, its step axis continued
-    else:
-        tb_dir = run_dir
-    command = shlex.join([PROG, *argv])
-    atomic_write(run_dir / "command.txt", lambda f: f.write(command + "\n"), binary=False)
-    atomic_write(meta_dir / "config.yml", lambda f: f.write(cfg.dump_yaml({env_id: config})), binary=False)
-    run_args = {k: v for k, v in sorted(vars(args).items()) if k != "func"}
-    run_args.update(seed=seed, env=env_id, run_dir=str(run_dir), tensorboard_dir=str(tb_dir))
-    if source is not None:
-        run_args.update(trained_agent=str(source.model_path), start_timesteps=model.num_timesteps)
-    atomic_write(meta_dir / "args.yml", lambda f: f.write(cfg.dump_yaml(run_args)), binary=False)
-
-    model_path = run_dir / f"{env_id}.zip"
-    vecnorm_path = meta_dir / "vecnormalize.pkl"
-    env = eval_env = None
-    saved: list[str] = []
-
-    def save_final() -> None:
-        saved.append(str(save_model(model, model_path)))
-        if model.get_vec_normalize_env() is not None:
-            saved.append(str(save_vecnormalize(model.get_vec_normalize_env(), vecnorm_path)))
-
+    experiment = Experiment(
+        env_id, config, seed, Path(args.log_folder), args.tensorboard_log, device=args.device, verbose=args.verbose,
+        eval_freq=args.eval_freq, eval_episodes=args.eval_episodes, save_freq=save_freq,
+        keep_checkpoints=args.keep_checkpoints, figure_freq=args.figure_freq, vec_env=args.vec_env,
+        progress=not args.no_progress, trained_agent=source)
+    _setup(experiment)
+    run_dir = experiment.create_run_folder(shlex.join([PROG, *argv]),
+                                           {k: v for k, v in sorted(vars(args).items()) if k != "func"})
+    algo_name = "RecurrentPPO" if config.get("algo") == "ppo_lstm" else "PPO"
+    print(f"Training {algo_name} ({config['policy']}, rule {rule_label(config)}) on {env_id} for "
+          f"{config['n_timesteps']:,} steps, seed {seed}")
+    print(f"Run folder:  {run_dir}")
+    print(f"TensorBoard: tensorboard --logdir {args.tensorboard_log or args.log_folder}")
+    sys.stdout.flush()
+    model = experiment.model
     try:
-        from stable_baselines3.common.callbacks import CallbackList, EvalCallback
-        from stable_baselines3.common.logger import Logger, make_output_format
-
-        from .monitoring import ActivityFigureCallback, write_hyperparameters
-
-        env = _make_train_env(env_id, n_envs, env_kwargs, run_dir, args.vec_env)
-        if norm_kwargs is not None:
-            if source is not None and source.vecnormalize is not None:
-                env = VecNormalize.load(str(source.vecnormalize), env)  # the statistics continue too
-                env.training = True
-            else:
-                env = VecNormalize(env, **norm_kwargs)
-        env.seed(seed)
-        model.set_random_seed(seed)
-        model.set_env(env)
-        formats = ["stdout"] if args.verbose >= 1 else []
-        outputs = [make_output_format(f, str(run_dir)) for f in formats + ["csv"]]
-        outputs.append(make_output_format("tensorboard", str(tb_dir)))
-        model.set_logger(Logger(str(run_dir), outputs))
-        write_hyperparameters(model.logger, {"env_id": env_id, "seed": seed, **config})
-
-        AtomicCheckpoint, SaveBest, WallClockProgress = _callback_classes()
-        callbacks = [] if args.no_progress else [WallClockProgress()]
-        if args.eval_freq:
-            eval_env = make_eval_env(env_id, 1, seed + n_envs, env_kwargs, None)
-            if norm_kwargs is not None:
-                eval_env = VecNormalize(eval_env, training=False, **{**norm_kwargs, "norm_reward": False})
-            callbacks.append(EvalCallback(
-                eval_env, callback_on_new_best=SaveBest(run_dir / "best_model.zip"),
-                n_eval_episodes=args.eval_episodes, eval_freq=max(args.eval_freq // n_envs, 1),
-                log_path=str(run_dir), best_model_save_path=None, deterministic=True, verbose=args.verbose))
-        if save_freq:
-            callbacks.append(AtomicCheckpoint(max(save_freq // n_envs, 1), run_dir, args.keep_checkpoints))
-        if args.figure_freq:
-            callbacks.append(ActivityFigureCallback(env_id, every=args.figure_freq, env_kwargs=env_kwargs, seed=seed))
-
-        algo_name = "RecurrentPPO" if config.get("algo") == "ppo_lstm" else "PPO"
-        print(f"Training {algo_name} ({config['policy']}, rule {rule}) on {env_id} for {config['n_timesteps']:,} steps, "
-              f"seed {seed}")
-        print(f"Run folder:  {run_dir}")
-        print(f"TensorBoard: tensorboard --logdir {args.tensorboard_log or args.log_folder}")
-        sys.stdout.flush()
-        start = model.num_timesteps
-        # Continuing: the remaining steps with the counter kept, so schedules resume where they stopped.
-        model.learn(config["n_timesteps"] - start, callback=CallbackList(callbacks), reset_num_timesteps=source is None)
-    except KeyboardInterrupt:
-        save_final()
-        note = (f"interrupted after {model.num_timesteps:,} of {config['n_timesteps']:,} steps; continue with\n"
-                f"{PROG} train --env {env_id} --trained-agent {shlex.quote(str(model_path))} -f "
-                f"{shlex.quote(str(args.log_folder))}\n")
-        atomic_write(run_dir / "INTERRUPTED.txt", lambda f: f.write(note), binary=False)
-        print(f"\nInterrupted after {model.num_timesteps:,} steps; saved:", *saved, sep="\n  ")
-        return 130
+        finished = experiment.learn()
     except BaseException:
-        failure = traceback.format_exc()
-        if model.num_timesteps == 0:
-            import shutil
-
-            shutil.rmtree(run_dir, ignore_errors=True)
-            if tb_dir != run_dir:
-                shutil.rmtree(tb_dir, ignore_errors=True)
-            print(f"{PROG}: training failed before its first environment step; removed {run_dir}", file=sys.stderr)
-        else:
-            atomic_write(run_dir / "FAILED.txt", lambda f: f.write(failure), binary=False)
+        if run_dir.exists():
             print(f"{PROG}: training failed after {model.num_timesteps:,} steps; logs kept in {run_dir} "
                   "(see FAILED.txt; no final model written)", file=sys.stderr)
+        else:
+            print(f"{PROG}: training failed before its first environment step; removed {run_dir}", file=sys.stderr)
         raise
-    finally:
-        for venv in (env, eval_env):
-            if venv is not None:
-                venv.close()
-        try:
-            model.logger.close()
-        except Exception:
-            pass
-
-    save_final()
+    if not finished:
+        print(f"\nInterrupted after {model.num_timesteps:,} steps; saved {experiment.model_path} (see "
+              f"{run_dir / 'INTERRUPTED.txt'})")
+        return 130
     print(f"\nDone: {model.num_timesteps:,} steps.")
-    print(f"  model:        {model_path}")
+    print(f"  model:        {experiment.model_path}")
     if model.get_vec_normalize_env() is not None:
-        print(f"  vecnormalize: {vecnorm_path}")
+        print(f"  vecnormalize: {experiment.vecnormalize_path}")
     if args.eval_freq:
         best = run_dir / "best_model.zip"
         print(f"  best model:   {best if best.exists() else '(no evaluation ran)'}; evaluations.npz")
     if save_freq:
         print(f"  checkpoints:  {run_dir}/rl_model_*_steps.zip")
-    print(f"  config:       {meta_dir / 'config.yml'}")
+    print(f"  config:       {run_dir / env_id / 'config.yml'}")
     print(f"  monitor:      {run_dir}/*.monitor.csv")
-    print(f"  tensorboard:  {tb_dir}")
+    print(f"  tensorboard:  {experiment.tb_dir}")
     print(f"Evaluate with: {PROG} evaluate --run {shlex.quote(str(run_dir))}")
     return 0
 
@@ -625,7 +322,7 @@ def _parse_env_kwargs(items: Optional[Sequence[str]]) -> Optional[dict]:
 def _resolve_model_args(args: argparse.Namespace) -> tuple[RunInfo, str]:
     if bool(args.run) == bool(args.model):
         raise UsageError("give either --run FOLDER or --model PATH (with --env)")
-    info = locate_run(args.run or args.model, best=getattr(args, "best", False))
+    info = _locate(args.run or args.model, best=getattr(args, "best", False))
     if args.model and getattr(args, "vecnormalize", None):
         vn = Path(args.vecnormalize)
         if not vn.is_file():
@@ -642,18 +339,6 @@ def _resolve_model_args(args: argparse.Namespace) -> tuple[RunInfo, str]:
     return info, check_env_id(env_id)
 
 
-def _check_spaces(model, env, env_id: str, model_path) -> None:
-    """``UsageError`` unless ``model`` was trained on ``env``'s observation and action spaces."""
-    from stable_baselines3.common.utils import check_for_correct_spaces
-
-    try:
-        check_for_correct_spaces(env, model.observation_space, model.action_space)
-    except ValueError:
-        raise UsageError(f"model {str(model_path)!r} (observations {model.observation_space}, actions "
-                         f"{model.action_space}) does not fit {env_id} (observations {env.observation_space}, "
-                         f"actions {env.action_space})") from None
-
-
 def cmd_evaluate(args: argparse.Namespace, argv: Sequence[str]) -> int:
     import numpy as np
     import torch
@@ -665,7 +350,7 @@ def cmd_evaluate(args: argparse.Namespace, argv: Sequence[str]) -> int:
         check_output_path(args.output, "-o/--output", directory=False)
     info, env_id = _resolve_model_args(args)
     torch.set_num_threads(args.torch_threads)
-    model = load_model(info, args.device)
+    model = _load(info, args.device)
     try:
         probe = gymnasium.make(env_id, **info.env_kwargs)
     except Exception as exc:
@@ -743,7 +428,7 @@ def cmd_robustness(args: argparse.Namespace, argv: Sequence[str]) -> int:
             raise UsageError(f"malformed --models entry {spec!r}; expected NAME=RUN_FOLDER_OR_ZIP")
         if name in infos:
             raise UsageError(f"model name {name!r} given twice in --models")
-        infos[name] = locate_run(path)
+        infos[name] = _locate(path)
     env_ids = {i.env_id for i in infos.values() if i.env_id}
     env_id = args.env
     if env_id is None:
@@ -758,7 +443,7 @@ def cmd_robustness(args: argparse.Namespace, argv: Sequence[str]) -> int:
     except (ValueError, TypeError) as exc:
         raise UsageError(f"{args.noise} noise cannot be applied to {env_id} (env_kwargs={env_kwargs}): {exc}") from None
     torch.set_num_threads(args.torch_threads)
-    models = {name: load_model(info, args.device) for name, info in infos.items()}
+    models = {name: _load(info, args.device) for name, info in infos.items()}
     probe = gymnasium.make(env_id, **env_kwargs)
     try:
         for name, model in models.items():
@@ -815,9 +500,9 @@ def cmd_plot(args: argparse.Namespace, argv: Sequence[str]) -> int:
         if len(data["r"]) == 0:
             raise UsageError(f"no finished episodes in the Monitor files of {folder!r}")
         label = p.name
-        env_id, config = _read_run_config(p)
+        env_id, config = read_run_config(p)
         if config:
-            label += f" ({_rule_label(config)})"
+            label += f" ({rule_label(config)})"
         if label in runs:
             label = str(p)
         runs[label] = data
@@ -854,7 +539,7 @@ def cmd_inspect(args: argparse.Namespace, argv: Sequence[str]) -> int:
         check_output_path(args.output, "-o/--output", directory=True)
     info, env_id = _resolve_model_args(args)
     torch.set_num_threads(args.torch_threads)
-    model = load_model(info, args.device)
+    model = _load(info, args.device)
     if not hasattr(model.policy, "snn"):
         raise UsageError(f"{str(info.model_path)!r} is not a SpikePlasticPolicy model")
     obs_transform = None

@@ -355,3 +355,12 @@ class MisusedSpikePlasticPolicy(SpikePlasticPolicy):
 
     def __init__(self, *args, **kwargs):
         raise TypeError(MISUSE_MESSAGE)
+
+
+# SB3 resolves a policy given by name only through the algorithm class's ``policy_aliases``; without an entry,
+# ``stable_baselines3.PPO("SpikePlasticPolicy", ...)`` fails with "unknown policy" and no hint. The entry (added
+# when this module is imported, never replacing another one) makes it fail with a pointer to sb3_spikeplastic.PPO.
+import stable_baselines3  # noqa: E402
+
+for _algorithm in (stable_baselines3.PPO, stable_baselines3.A2C):
+    _algorithm.policy_aliases.setdefault("SpikePlasticPolicy", MisusedSpikePlasticPolicy)

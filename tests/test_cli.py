@@ -14,6 +14,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from sb3_spikeplastic import PPO, cli
 from sb3_spikeplastic.config import load_hyperparams_file
+from sb3_spikeplastic.run_folder import load_model, locate_run
 
 TINY_TMAZE = ["n_envs=2", "n_steps=32", "batch_size=32", "bptt_steps=16", "n_epochs=1",
               "policy_kwargs.hidden_sizes=[16]"]
@@ -398,7 +399,7 @@ def test_baselines_train_and_evaluate_through_the_same_commands(conf, policy_cla
     assert config.get("algo", "ppo") == ("ppo_lstm" if conf == "ppo_lstm" else "ppo")
     code, out, err = run_cli(capsys, "evaluate", "--run", run, "--episodes", "2")
     assert code == 0 and "mean episode length 20.0" in out, err
-    model = cli.load_model(cli.locate_run(str(run)))
+    model = load_model(locate_run(run))
     assert type(model.policy).__name__ == policy_class and model.num_timesteps == 64
 
 
