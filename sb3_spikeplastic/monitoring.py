@@ -1,8 +1,9 @@
 """What the spiking network is doing: TensorBoard scalars (``snn/``, ``plasticity/``), figures and hyperparameters.
 
 * :class:`RolloutActivity` accumulates per-layer statistics over a rollout (cheap: the rates are computed
-  anyway) and records them, with the traces' state at the rollout's end, through SB3's logger.
-  :class:`sb3_spikeplastic.PPO` does this for every rollout.
+  anyway) and records them, with the traces' state at the rollout's end, through SB3's logger;
+  :class:`RolloutActivityCallback` does this for every rollout (:class:`sb3_spikeplastic.PPO` adds it to ``learn``
+  for spiking policies).
 * :func:`record_episode` runs one episode of a policy on a single environment and keeps everything the network did
   (input, hidden and output spikes, membrane potentials, modulation, traces) as an :class:`EpisodeActivity`;
   :func:`sb3_spikeplastic.figures.activity_figure` draws it.
@@ -93,6 +94,32 @@ class RolloutActivity:
             if rule.modulated:
                 logger.record(f"plasticity/layer{i}/modulation_mean", modulation)
                 logger.record(f"plasticity/layer{i}/modulation_std", max(modulation_sq - modulation**2, 0.0) ** 0.5)
+
+
+class RolloutActivityCallback(BaseCallback):
+    """:class:`RolloutActivity` of every rollout of a spiking policy, recorded at the rollout's end.
+
+    It reads the rollout loop's variables that :class:`sb3_spikeplastic.PPO` hands to its callbacks: ``out`` (the
+    step's :class:`~sb3_spikeplastic.network.NetworkOutput`) and ``state`` (the network state). For other policies
+    it does nothing.
+    """
+
+    def _on_training_start(self) -> None:
+        snn = getattr(self.model.policy, "snn", None)
+        self.activity = None if snn is None else RolloutActivity(snn, self.model.policy)
+
+    def _on_rollout_start(self) -> None:
+        if self.activity is not None:
+            self.activity.reset()
+
+    def _on_step(self) -> bool:
+        if self.activity is not None and "out" in self.locals:
+            self.activity.add(self.locals["out"])
+        return True
+
+    def _on_rollout_end(self) -> None:
+        if self.activity is not None and "state" in self.locals:
+            self.activity.record(self.logger, self.locals["state"])
 
 
 # --------------------------------------------------------------------------------------------------------------------

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from typing import Any, ClassVar, Generator, NamedTuple, Optional, Union
+from typing import Any, ClassVar, Optional, Union
 
 import numpy as np
 import torch
@@ -30,88 +30,10 @@ from stable_baselines3.common.vec_env import VecEnv
 from torch import Tensor
 from torch.nn import functional as F
 
+from .buffers import ChunkRolloutBuffer, ChunkSamples
 from .cuda_graphs import GraphedRolloutStep, GraphedSequenceEvaluation
-from .monitoring import RolloutActivity
-from .network import NetworkState, map_tensors
+from .network import NetworkState
 from .policy import SpikePlasticPolicy
-
-
-class ChunkSamples(NamedTuple):
-    """A minibatch of whole chunks, time-major ``(L, n_chunks, ...)``, and the chunks' start states."""
-
-    observations: Tensor
-    actions: Tensor
-    old_values: Tensor
-    old_log_prob: Tensor
-    advantages: Tensor
-    returns: Tensor
-    episode_starts: Tensor
-    states: NetworkState
-    action_masks: Optional[Tensor] = None
-
-
-class ChunkRolloutBuffer(RolloutBuffer):
-    """SB3's rollout buffer plus one network-state snapshot per ``chunk_len`` steps and environment, and (for
-    ``Discrete`` actions) the action masks the rollout used.
-
-    :param chunk_len: steps per chunk (``bptt_steps``); must divide ``buffer_size``.
-    Other parameters as :class:`~stable_baselines3.common.buffers.RolloutBuffer`.
-    """
-
-    def __init__(self, buffer_size: int, observation_space, action_space, device="auto", gae_lambda=1.0, gamma=0.99,
-                 n_envs=1, chunk_len: int = 32):
-        if buffer_size % chunk_len:
-            raise ValueError(f"n_steps={buffer_size} must be a multiple of bptt_steps={chunk_len}")
-        self.chunk_len = chunk_len
-        self.n_actions = int(action_space.n) if isinstance(action_space, spaces.Discrete) else 0
-        super().__init__(buffer_size, observation_space, action_space, device, gae_lambda, gamma, n_envs)
-
-    def reset(self) -> None:
-        super().reset()
-        self.snapshots: list[NetworkState] = []
-        self.action_masks = np.ones((self.buffer_size, self.n_envs, self.n_actions), dtype=bool)
-        self.masked = False
-
-    def add(self, *args, action_masks: Optional[np.ndarray] = None, **kwargs) -> None:
-        """SB3's ``add``, plus the step's action masks ``(n_envs, n_actions)`` (``None``: every action open)."""
-        if action_masks is not None:
-            self.action_masks[self.pos] = action_masks
-            self.masked = True
-        super().add(*args, **kwargs)
-
-    def add_snapshot(self, state: NetworkState) -> None:
-        """Store the state entering step ``self.pos`` (must be a chunk start)."""
-        if self.pos != len(self.snapshots) * self.chunk_len:
-            raise RuntimeError(f"snapshot at step {self.pos} is not at the start of chunk {len(self.snapshots)}")
-        self.snapshots.append(state.detach())
-
-    def snapshot_nbytes(self) -> int:
-        return sum(s.nbytes() for s in self.snapshots)
-
-    def get_chunks(self, chunks_per_batch: int) -> Generator[ChunkSamples, None, None]:
-        """Shuffled minibatches of ``chunks_per_batch`` whole chunks."""
-        if not self.full:
-            raise RuntimeError("the rollout buffer is not full")
-        n_chunks = self.buffer_size // self.chunk_len
-        total = n_chunks * self.n_envs
-        # Snapshots stacked to (n_chunks, n_envs, ...) then flattened to chunk index c * n_envs + e.
-        states = map_tensors(lambda x: x.flatten(0, 1), NetworkState.stack(self.snapshots))
-        offsets = np.arange(self.chunk_len)[:, None]
-        order = np.random.permutation(total)
-        for start in range(0, total, chunks_per_batch):
-            idx = order[start:start + chunks_per_batch]
-            times = (idx // self.n_envs)[None, :] * self.chunk_len + offsets  # (L, n)
-            envs = np.broadcast_to(idx % self.n_envs, times.shape)
-
-            def take(arr: np.ndarray) -> Tensor:
-                return self.to_torch(arr[times, envs])
-
-            yield ChunkSamples(
-                take(self.observations), take(self.actions), take(self.values), take(self.log_probs),
-                take(self.advantages), take(self.returns), take(self.episode_starts),
-                states.select(torch.as_tensor(idx, device=states.noise_key.device)),
-                take(self.action_masks).bool() if self.masked else None,
-            )
 
 
 #: Accepted values of ``PPO(grad_clip=...)``.
@@ -128,12 +50,10 @@ class PPO(SB3PPO):
     :param bptt_steps: environment steps per training chunk (truncated-BPTT length) for recurrent policies;
         must divide ``n_steps`` and ``batch_size``.
     :param grad_clip: how ``max_grad_norm`` applies: ``"global"`` (SB3: one norm over all parameters) or
-        ``"per-parameter"`` (each parameter tensor's gradient clipped to ``max_grad_norm`` on its own).
-        Backpropagation through plastic traces gives the input layer gradient norms of 1e8..1e10 while the
-        readout and the critic have norms below 1: a global clip then scales their gradients far below Adam's
-        ``eps`` and they stop learning. Per-parameter clipping keeps each tensor's update at its own scale
-        (in the spirit of the unit-wise clipping of Brock et al., 2021, "High-Performance Large-Scale Image
-        Recognition Without Normalization"). ``train/grad_norm`` logs the global pre-clip norm either way.
+        ``"per-parameter"`` (each parameter tensor's gradient clipped to ``max_grad_norm`` on its own, as the
+        unit-wise clipping of Brock et al. 2021). Backpropagation through plastic traces makes the input layers'
+        gradients orders of magnitude larger than the readout's and the critic's, which a global clip would shrink
+        until they stop learning. ``train/grad_norm`` logs the global pre-clip norm either way.
     :param use_action_masks: ask the environments for ``action_masks()`` (sb3-contrib ``MaskablePPO``'s
         convention: a boolean array of open actions) before every rollout step; a recurrent policy with
         ``Discrete`` actions then samples only open actions and is trained with the same masks. Where one action
@@ -248,11 +168,24 @@ class PPO(SB3PPO):
         self._skipped_steps, self._warned_nonfinite = 0, False
         if self.recurrent:
             self._last_network_state = self.policy.initial_state(self.n_envs, seed=self.seed or 0)
-            self.rollout_activity = RolloutActivity(self.policy.snn, self.policy)
+
+    def _init_callback(self, callback, progress_bar: bool = False) -> BaseCallback:
+        """SB3's callback setup, plus the ``snn/`` and ``plasticity/`` scalars of every rollout for spiking
+        policies (:class:`~sb3_spikeplastic.monitoring.RolloutActivityCallback`)."""
+        if self.recurrent:
+            from stable_baselines3.common.callbacks import ConvertCallback
+
+            from .monitoring import RolloutActivityCallback
+
+            if callback is not None and not isinstance(callback, (list, BaseCallback)):
+                callback = ConvertCallback(callback)  # a plain function, as SB3 accepts
+            given = [] if callback is None else callback if isinstance(callback, list) else [callback]
+            callback = [*given, RolloutActivityCallback()]
+        return super()._init_callback(callback, progress_bar)
 
     def _excluded_save_params(self) -> list[str]:
         # The rollout state belongs to the running environments, not to the model.
-        return [*super()._excluded_save_params(), "_last_network_state", "rollout_activity", "_graphed_evaluation",
+        return [*super()._excluded_save_params(), "_last_network_state", "_graphed_evaluation",
                 "_graphed_step", "_skipped_steps", "_warned_nonfinite"]
 
     def _training_evaluation(self):
@@ -293,7 +226,6 @@ class PPO(SB3PPO):
         self.policy.set_training_mode(False)
         n_steps = 0
         rollout_buffer.reset()
-        self.rollout_activity.reset()
         callback.on_rollout_start()
         state = self._last_network_state
         step = self._rollout_step()
@@ -306,7 +238,6 @@ class PPO(SB3PPO):
                 masks = np.stack(env.env_method("action_masks")) if self.use_action_masks else None
                 actions, values, log_probs, state, out = step(
                     obs_tensor, state, starts, action_masks=None if masks is None else torch.as_tensor(masks, device=self.device))
-            self.rollout_activity.add(out)
             actions = actions.cpu().numpy()
             clipped_actions = actions
             if isinstance(self.action_space, spaces.Box):
@@ -338,8 +269,7 @@ class PPO(SB3PPO):
                 obs_as_tensor(new_obs, self.device), state,
                 torch.as_tensor(dones, dtype=torch.float32, device=self.device))
         rollout_buffer.compute_returns_and_advantage(last_values=last_values, dones=dones)
-        self.rollout_activity.record(self.logger, state)
-        callback.update_locals(locals())
+        callback.update_locals(locals())  # `out` and `state` reach the callbacks (RolloutActivityCallback)
         callback.on_rollout_end()
         return True
 

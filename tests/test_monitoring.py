@@ -7,7 +7,7 @@ import matplotlib.image
 import numpy as np
 import pytest
 import torch
-from stable_baselines3.common.logger import Logger, make_output_format
+from stable_baselines3.common.logger import KVWriter, Logger, make_output_format
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
@@ -17,6 +17,7 @@ from sb3_spikeplastic.envs.tmaze import TMazeCueEnv
 from sb3_spikeplastic.figures import activity_figure
 from sb3_spikeplastic.monitoring import (
     ActivityFigureCallback,
+    RolloutActivity,
     hyperparameter_markdown,
     record_episode,
     write_hyperparameters,
@@ -48,12 +49,25 @@ class Capture:
         self.values[key] = value
 
 
+class Written(KVWriter):
+    """An SB3 logger output that keeps every value written."""
+
+    def __init__(self):
+        self.values = {}
+
+    def write(self, key_values, key_excluded, step=0):
+        self.values.update(key_values)
+
+
 def test_rollout_scalars_discrete():
+    """``learn`` logs the activity of every rollout (RolloutActivityCallback) beside the callbacks it is given."""
     model = tmaze_model("ndp-oja")
-    model.learn(64)
-    capture = Capture()
-    model.rollout_activity.record(capture, model._last_network_state)  # the last rollout's statistics
-    values = capture.values
+    written = Written()
+    model.set_logger(Logger(None, [written]))
+    calls = []
+    model.learn(64, callback=lambda _locals, _globals: calls.append(1) or True)
+    assert len(calls) == 64 // 2  # the user's callback ran at every rollout step
+    values = written.values
     assert 0.0 <= values["snn/layer0/spike_rate"] <= 1.0 and 0.0 <= values["snn/layer0/silent_fraction"] <= 1.0
     for key in ("snn/layer0/spike_rate", "snn/layer0/silent_fraction", "snn/layer1/spike_rate",
                 "plasticity/layer0/eta", "plasticity/layer0/trace_abs_mean", "plasticity/layer0/trace_clip_fraction",
@@ -67,10 +81,11 @@ def test_rollout_scalars_action_std_for_continuous_actions():
     env = DummyVecEnv([lambda: gym.make("Pendulum-v1", max_episode_steps=20)])
     model = PPO("SpikePlasticPolicy", env, n_steps=16, batch_size=16, bptt_steps=8, n_epochs=1, seed=0,
                 policy_kwargs=dict(rule="dp-oja", log_std_init=-0.5, **SMALL))
-    model.rollout_activity.add(model.policy.step(torch.zeros(1, 3, device=model.device), model.policy.initial_state(1),
-                                                 torch.ones(1, device=model.device))[-1])
+    activity = RolloutActivity(model.policy.snn, model.policy)
+    activity.add(model.policy.step(torch.zeros(1, 3, device=model.device), model.policy.initial_state(1),
+                                   torch.ones(1, device=model.device))[-1])
     capture = Capture()
-    model.rollout_activity.record(capture, model.policy.initial_state(1))
+    activity.record(capture, model.policy.initial_state(1))
     assert capture.values["snn/action_std"] == pytest.approx(np.exp(-0.5), rel=1e-6)
 
 
