@@ -15,6 +15,16 @@ from torch import Tensor
 from .network import NetworkState, map_tensors
 
 
+def check_chunking(bptt_steps: int, n_steps: int, batch_size: Optional[int] = None) -> None:
+    """``ValueError`` unless ``bptt_steps`` >= 1 divides the rollout length and the minibatch (in transitions)."""
+    if bptt_steps < 1:
+        raise ValueError(f"bptt_steps must be >= 1, got {bptt_steps}")
+    if n_steps % bptt_steps:
+        raise ValueError(f"n_steps={n_steps} must be a multiple of bptt_steps={bptt_steps}")
+    if batch_size is not None and batch_size % bptt_steps:
+        raise ValueError(f"batch_size={batch_size} (transitions) must be a multiple of bptt_steps={bptt_steps}")
+
+
 class ChunkSamples(NamedTuple):
     """A minibatch of whole chunks, time-major ``(L, n_chunks, ...)``, and the chunks' start states."""
 
@@ -39,8 +49,7 @@ class ChunkRolloutBuffer(RolloutBuffer):
 
     def __init__(self, buffer_size: int, observation_space, action_space, device="auto", gae_lambda=1.0, gamma=0.99,
                  n_envs=1, chunk_len: int = 32):
-        if buffer_size % chunk_len:
-            raise ValueError(f"n_steps={buffer_size} must be a multiple of bptt_steps={chunk_len}")
+        check_chunking(chunk_len, buffer_size)
         self.chunk_len = chunk_len
         self.n_actions = int(action_space.n) if isinstance(action_space, spaces.Discrete) else 0
         super().__init__(buffer_size, observation_space, action_space, device, gae_lambda, gamma, n_envs)

@@ -126,10 +126,13 @@ def check_output_path(path: os.PathLike, flag: str, directory: bool) -> Path:
 
 
 def _check_rule(rule: Optional[str]) -> None:
-    from .plasticity import available_rules
+    from .plasticity import get_rule_class
 
-    if rule is not None and rule not in available_rules():
-        raise UsageError(f"unknown rule {rule!r}; accepted: {', '.join(available_rules())}")
+    if rule is not None:
+        try:
+            get_rule_class(rule)
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -613,8 +616,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     def common(p: argparse.ArgumentParser) -> None:
         p.add_argument("--device", default="cpu",
-                       help="torch device (default: cpu); cuda runs the spike kernel and CUDA graphs: the paper's "
-                            "HalfCheetah network trains ~20x faster on an H100 than on one CPU core")
+                       help="torch device: cpu (default), cuda[:n] (the spike kernel and CUDA graphs; an error "
+                            "where there is no GPU), mps, or auto (cuda when available)")
         p.add_argument("--torch-threads", type=int, default=1, help="torch.set_num_threads (default: 1)")
 
     def model_source(p: argparse.ArgumentParser) -> None:

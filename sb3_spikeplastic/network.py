@@ -82,11 +82,20 @@ class NetworkState(NamedTuple):
 
 
 def map_tensors(fn: Callable[[Tensor], Tensor], tree):
-    """Apply ``fn`` to every tensor of a nest of (named) tuples, keeping the structure."""
+    """Apply ``fn`` to every tensor of a nest of (named) tuples that may hold ``None``, keeping the structure."""
     if isinstance(tree, Tensor):
         return fn(tree)
+    if tree is None:
+        return None
     items = [map_tensors(fn, x) for x in tree]
     return type(tree)(*items) if hasattr(tree, "_fields") else type(tree)(items)
+
+
+def tensor_leaves(tree) -> list[Tensor]:
+    """The tensors of a nest, in the order :func:`map_tensors` visits them."""
+    leaves: list[Tensor] = []
+    map_tensors(lambda x: leaves.append(x) or x, tree)
+    return leaves
 
 
 def zip_tensors(fn: Callable[[list[Tensor]], Tensor], trees: Sequence):
@@ -94,6 +103,8 @@ def zip_tensors(fn: Callable[[list[Tensor]], Tensor], trees: Sequence):
     first = trees[0]
     if isinstance(first, Tensor):
         return fn(list(trees))
+    if first is None:
+        return None
     items = [zip_tensors(fn, [t[i] for t in trees]) for i in range(len(first))]
     return type(first)(*items) if hasattr(first, "_fields") else type(first)(items)
 

@@ -66,21 +66,10 @@ class AlphaFilterState(NamedTuple):
     h2: Tensor
 
 
-def alpha_kernel(k: Tensor, tau: float, dt: float = 1.0) -> Tensor:
-    """The alpha kernel :math:`\\varepsilon(k) = (k\\,dt/\\tau)\\,e^{1-k\\,dt/\\tau}` for integer lags ``k >= 0``."""
-    x = k * dt / tau
-    return x * torch.exp(1.0 - x)
-
-
 def alpha_kernel_sum(tau: float, dt: float = 1.0) -> float:
     """:math:`\\sum_{k\\ge0} \\varepsilon(k)`, the PSP area of one spike (about ``e * tau / dt``); scales initial weights."""
     d, c = _decay_and_gain(tau, dt)
     return c * d / (1 - d) ** 2
-
-
-def refractory_kernel(k: Tensor, params: SRMParameters) -> Tensor:
-    """The refractory kernel :math:`\\nu(k) = -\\mathrm{scale_{ref}}\\,\\vartheta\\,\\varepsilon_{\\tau_{ref}}(k)`."""
-    return -params.scale_ref * params.theta * alpha_kernel(k, params.tau_ref, params.dt)
 
 
 def _decay_and_gain(tau: float, dt: float) -> tuple[float, float]:
@@ -122,19 +111,26 @@ def alpha_filter_matrices(length: int, tau: float, dt: float = 1.0, dtype=torch.
     return (*out, d**length)
 
 
-def alpha_filter_interval(
-    spikes: Tensor, state: AlphaFilterState, mats
-) -> tuple[Tensor, AlphaFilterState]:
+def alpha_filter_psp(spikes: Tensor, state: AlphaFilterState, mats) -> Tensor:
+    """The PSP ``(batch, length, n)`` of an interval of spikes ``(batch, length, n)`` and the carried state, with the
+    matrices of :func:`alpha_filter_matrices`: one Toeplitz product plus the carried state's decay."""
+    kernel, g1, g2 = mats[:3]
+    return kernel @ spikes + g1[:, None] * state.h1.unsqueeze(-2) + g2[:, None] * state.h2.unsqueeze(-2)
+
+
+def alpha_filter_end_state(spikes: Tensor, state: AlphaFilterState, mats) -> AlphaFilterState:
+    """The filter state after an interval of spikes ``(batch, length, n)`` (carried into the next interval)."""
+    v1, v2, d_len = mats[3:]
+    length = spikes.shape[-2]
+    return AlphaFilterState(v1 @ spikes + d_len * state.h1, v2 @ spikes + d_len * (state.h2 + length * state.h1))
+
+
+def alpha_filter_interval(spikes: Tensor, state: AlphaFilterState, mats) -> tuple[Tensor, AlphaFilterState]:
     """Filter an interval of spikes ``(batch, length, n)`` with the carried state; returns ``(psp, new_state)``.
 
     Equal to ``length`` calls of :func:`alpha_filter_step` (tested), computed with three matrix products.
     """
-    kernel, g1, g2, v1, v2, d_len = mats
-    length = spikes.shape[-2]
-    psp = kernel @ spikes + g1[:, None] * state.h1.unsqueeze(-2) + g2[:, None] * state.h2.unsqueeze(-2)
-    h1 = v1 @ spikes + d_len * state.h1
-    h2 = v2 @ spikes + d_len * (state.h2 + length * state.h1)
-    return psp, AlphaFilterState(h1, h2)
+    return alpha_filter_psp(spikes, state, mats), alpha_filter_end_state(spikes, state, mats)
 
 
 def slayer_surrogate(u: Tensor, params: SRMParameters) -> Tensor:

@@ -178,7 +178,7 @@ def get_rule_class(name: str) -> type["PlasticityRule"]:
     try:
         return RULES[name]
     except KeyError:
-        raise ValueError(f"unknown plasticity rule {name!r}; accepted: {', '.join(RULES)}") from None
+        raise ValueError(f"unknown rule {name!r}; accepted: {', '.join(RULES)}") from None
 
 
 def _logit(p: float) -> float:

@@ -80,12 +80,10 @@ class SpikePlasticPolicy(ActorCriticPolicy):
     :param log_std_init: initial log standard deviation of the Gaussian actions.
     :param alpha_lr_scale: learning-rate multiplier of the plasticity coefficients ``alpha`` (an optimizer
         parameter group; :class:`sb3_spikeplastic.PPO` keeps the ratio when the learning rate changes). Adam moves
-        every parameter by about the learning rate per update whatever its size, and ``alpha`` starts ~10x larger
-        than ``W`` (mean ``alpha_init_mean``, std 10 % of it): with one shared rate it keeps its initial values
-        (measured on the T-maze: std 1.02 after 200k steps from 1.0), so the network cannot learn which synapses'
-        traces to read. 1 is the plain shared rate; the T-maze entry of ``hyperparams/ppo.yml`` uses 30 (held-out
-        success on the high-noise maze after 200k steps: ndp-bcm+tanh 0.85-0.90 -> 0.96, dp-oja 0.91-0.93 ->
-        0.91-0.95; 100 made the NDP rules unstable).
+        every parameter by about the learning rate per update whatever its size, and ``alpha`` starts about ten
+        times larger than ``W``: with one shared rate it barely leaves its initial values, so the network cannot
+        learn which synapses' traces to read. 1 is the plain shared rate (the T-maze entry's value and its
+        measurements: ``docs/reproducing-tmaze.md``).
     :param kwargs: passed to :class:`~stable_baselines3.common.policies.ActorCriticPolicy` (optimizer etc.).
     """
 
@@ -333,12 +331,17 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         with torch.no_grad():
             masks = None if action_masks is None else torch.as_tensor(np.asarray(action_masks, dtype=bool), device=self.device)
             actions, _, _, state, _ = self.step(obs_tensor, state, starts.to(self.device), deterministic, masks)
-        actions = actions.cpu().numpy()
-        if isinstance(self.action_space, spaces.Box):
-            actions = np.clip(actions, self.action_space.low, self.action_space.high)
+        actions = self.clip_actions(actions.cpu().numpy())
         if not vectorized_env:
             actions = actions.squeeze(axis=0)
         return actions, state
+
+    def clip_actions(self, actions: np.ndarray) -> np.ndarray:
+        """Sampled actions as the environment accepts them: clipped to a ``Box`` action space's bounds (a
+        Gaussian sample can leave them), unchanged otherwise."""
+        if isinstance(self.action_space, spaces.Box):
+            return np.clip(actions, self.action_space.low, self.action_space.high)
+        return actions
 
     def _predict(self, observation: Tensor, deterministic: bool = False) -> Tensor:
         raise RuntimeError(MISUSE_MESSAGE)

@@ -30,7 +30,7 @@ from stable_baselines3.common.vec_env import VecEnv
 from torch import Tensor
 from torch.nn import functional as F
 
-from .buffers import ChunkRolloutBuffer, ChunkSamples
+from .buffers import ChunkRolloutBuffer, ChunkSamples, check_chunking
 from .cuda_graphs import GraphedRolloutStep, GraphedSequenceEvaluation
 from .network import NetworkState
 from .policy import SpikePlasticPolicy
@@ -114,7 +114,7 @@ class PPO(SB3PPO):
         policy_class = self.policy_aliases.get(policy, policy) if isinstance(policy, str) else policy
         if getattr(policy_class, "recurrent", False):
             # Before SB3's own checks, whose warnings about mini-batches do not apply to chunks.
-            self._check_chunking(n_steps, batch_size)
+            check_chunking(self.bptt_steps, n_steps, batch_size)
         super().__init__(
             policy, env, learning_rate=learning_rate, n_steps=n_steps, batch_size=batch_size, n_epochs=n_epochs,
             gamma=gamma, gae_lambda=gae_lambda, clip_range=clip_range, clip_range_vf=clip_range_vf,
@@ -138,14 +138,6 @@ class PPO(SB3PPO):
     @property
     def recurrent(self) -> bool:
         return bool(getattr(self.policy_class, "recurrent", False))
-
-    def _check_chunking(self, n_steps: int, batch_size: int) -> None:
-        if self.bptt_steps < 1:
-            raise ValueError(f"bptt_steps must be >= 1, got {self.bptt_steps}")
-        if n_steps % self.bptt_steps:
-            raise ValueError(f"n_steps={n_steps} must be a multiple of bptt_steps={self.bptt_steps}")
-        if batch_size % self.bptt_steps:
-            raise ValueError(f"batch_size={batch_size} (transitions) must be a multiple of bptt_steps={self.bptt_steps}")
 
     def _check_action_masks(self) -> None:
         if not self.recurrent:
@@ -239,10 +231,7 @@ class PPO(SB3PPO):
                 actions, values, log_probs, state, out = step(
                     obs_tensor, state, starts, action_masks=None if masks is None else torch.as_tensor(masks, device=self.device))
             actions = actions.cpu().numpy()
-            clipped_actions = actions
-            if isinstance(self.action_space, spaces.Box):
-                clipped_actions = np.clip(actions, self.action_space.low, self.action_space.high)
-            new_obs, rewards, dones, infos = env.step(clipped_actions)
+            new_obs, rewards, dones, infos = env.step(self.policy.clip_actions(actions))
             self.num_timesteps += env.num_envs
             callback.update_locals(locals())
             if not callback.on_step():

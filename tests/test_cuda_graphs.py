@@ -10,17 +10,16 @@ import pytest
 import torch
 from stable_baselines3.common.vec_env import DummyVecEnv
 
+from helpers import tmaze_model
+
 from sb3_spikeplastic import PPO
 from sb3_spikeplastic.cuda_graphs import GraphedRolloutStep, GraphedSequenceEvaluation, flatten_state
-from sb3_spikeplastic.envs.tmaze import TMazeCueEnv
 
 needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 
 
-def tmaze_model(device, **kw):
-    env = DummyVecEnv([lambda: TMazeCueEnv(neurons_per_population=4)] * 4)
-    return PPO("SpikePlasticPolicy", env, n_steps=32, batch_size=64, bptt_steps=16, n_epochs=2, seed=0,
-               use_action_masks=True, device=device, policy_kwargs=dict(rule="ndp-oja", hidden_sizes=(16,)), **kw)
+def cuda_tmaze_model(device, **kw):
+    return tmaze_model(n_envs=4, batch_size=64, n_epochs=2, use_action_masks=True, device=device, **kw)
 
 
 def pendulum_model(device, **kw):
@@ -39,7 +38,7 @@ def first_batches(model, n=2):
 
 
 def test_flatten_state_round_trip():
-    model = tmaze_model("cpu")
+    model = cuda_tmaze_model("cpu")
     state = model.policy.initial_state(3)
     leaves, rebuild = flatten_state(state)
     assert all(isinstance(t, torch.Tensor) for t in leaves)
@@ -50,7 +49,7 @@ def test_flatten_state_round_trip():
 
 
 def test_capture_failure_warns_once_and_falls_back(monkeypatch):
-    model = tmaze_model("cpu")
+    model = cuda_tmaze_model("cpu")
     batch = first_batches(model, 1)[0]
 
     def no_graphs(*args, **kwargs):
@@ -103,7 +102,7 @@ def test_graph_replay_equals_eager_values_and_gradients(make_model):
 def test_capture_after_an_eager_training_pass():
     """An eager backward pass before the first capture (SB3's ``action_dist`` keeps its last distribution, and
     with it that pass's autograd graph) must not break the capture."""
-    model = tmaze_model("cuda", cuda_graphs=False)
+    model = cuda_tmaze_model("cuda", cuda_graphs=False)
     model.learn(model.n_steps * model.n_envs)  # eager rollout and training
     batch = first_batches(model, 1)[0]
     args = (batch.observations, batch.actions, batch.episode_starts, batch.states, batch.action_masks)
@@ -143,7 +142,7 @@ def run_steps(step, model, deterministic):
 
 
 def test_rollout_capture_failure_warns_once_and_falls_back(monkeypatch):
-    model = tmaze_model("cpu")
+    model = cuda_tmaze_model("cpu")
 
     class NoGraph:
         def __init__(self):
@@ -176,7 +175,7 @@ def test_graphed_rollout_step_equals_eager_when_deterministic(make_model):
 
 @needs_cuda
 def test_graphed_rollout_step_samples_fresh_actions_and_respects_masks():
-    model = tmaze_model("cuda")
+    model = cuda_tmaze_model("cuda")
     graphed = GraphedRolloutStep(model.policy)
     obs, starts, masks = rollout_inputs(model)
     state = model.policy.initial_state(model.n_envs)
@@ -190,7 +189,7 @@ def test_graphed_rollout_step_samples_fresh_actions_and_respects_masks():
 def test_learning_with_graphs_replays_and_trains():
     """``learn`` on CUDA captures each graph once and then only replays; the model trains and stays finite. (Not
     bitwise reproducible between runs: the backward of a gather adds with atomics on the GPU, graphs or not.)"""
-    model = tmaze_model("cuda")
+    model = cuda_tmaze_model("cuda")
     before = {k: v.clone() for k, v in model.policy.state_dict().items()}
     model.learn(3 * model.n_steps * model.n_envs)
     assert model._graphed_step.error is None and len(model._graphed_step._graphs) == 1

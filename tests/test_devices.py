@@ -17,19 +17,11 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 from sb3_spikeplastic import PPO, _fast
 from sb3_spikeplastic.coding import ContinuousDecoder, PopulationEncoder
 from sb3_spikeplastic.envs.tmaze import TMazeCueEnv
-from sb3_spikeplastic.network import SpikingPlasticNetwork
+from sb3_spikeplastic.network import SpikingPlasticNetwork, tensor_leaves
 
 DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(),
                                                                  reason="needs a CUDA device"))]
 RULES = ["static", "dp-linear", "dp-oja", "dp-bcm", "ndp-oja", "ndp-bcm"]
-
-
-def leaves(tree):
-    if isinstance(tree, torch.Tensor):
-        return [tree]
-    if tree is None:
-        return []
-    return [t for x in tree for t in leaves(x)]
 
 
 def run_network(net: SpikingPlasticNetwork, device: str):
@@ -45,7 +37,7 @@ def run_network(net: SpikingPlasticNetwork, device: str):
     loss = sum((o.action * w).sum() + sum(r.sum() for r in o.rates) for o, w in zip(outputs, weights))
     loss.backward()
     return ([o.action.detach().cpu() for o in outputs], [r.detach().cpu() for o in outputs for r in o.rates],
-            [t.detach().cpu() for t in leaves(final)], {n: p.grad.cpu() for n, p in net.named_parameters()})
+            [t.detach().cpu() for t in tensor_leaves(final)], {n: p.grad.cpu() for n, p in net.named_parameters()})
 
 
 @pytest.mark.parametrize("device", DEVICES)

@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 import torch
 from stable_baselines3.common.logger import KVWriter, Logger, make_output_format
-from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from helpers import tmaze_model
 
 from sb3_spikeplastic import PPO
 from sb3_spikeplastic.envs.tmaze import TMazeCueEnv
@@ -24,12 +25,6 @@ from sb3_spikeplastic.monitoring import (
 )
 
 SMALL = dict(hidden_sizes=(16,), steps=10, encoder_pop_size=8, action_pop_size=4)
-
-
-def tmaze_model(rule="ndp-oja", n_envs=2, **kwargs):
-    env = DummyVecEnv([lambda: Monitor(TMazeCueEnv()) for _ in range(n_envs)])
-    return PPO("SpikePlasticPolicy", env, n_steps=32, batch_size=32, bptt_steps=16, n_epochs=1, seed=0,
-               policy_kwargs=dict(rule=rule, hidden_sizes=(16,)), **kwargs)
 
 
 def assert_png_nontrivial(data: bytes):
@@ -61,7 +56,7 @@ class Written(KVWriter):
 
 def test_rollout_scalars_discrete():
     """``learn`` logs the activity of every rollout (RolloutActivityCallback) beside the callbacks it is given."""
-    model = tmaze_model("ndp-oja")
+    model = tmaze_model("ndp-oja", env_kwargs={"neurons_per_population": 10})
     written = Written()
     model.set_logger(Logger(None, [written]))
     calls = []
@@ -90,7 +85,7 @@ def test_rollout_scalars_action_std_for_continuous_actions():
 
 
 def test_record_episode_tmaze_is_complete_and_leaves_global_rng_alone():
-    model = tmaze_model("dp-bcm", n_envs=1)
+    model = tmaze_model("dp-bcm", n_envs=1, env_kwargs={"neurons_per_population": 10})
     env = TMazeCueEnv()
     rng = torch.random.get_rng_state()
     activity = record_episode(model.policy, env, seed=3)
@@ -113,7 +108,7 @@ def test_record_episode_tmaze_is_complete_and_leaves_global_rng_alone():
 
 
 def test_activity_figure_png(tmp_path):
-    model = tmaze_model("ndp-oja", n_envs=1)
+    model = tmaze_model("ndp-oja", n_envs=1, env_kwargs={"neurons_per_population": 10})
     activity = record_episode(model.policy, TMazeCueEnv(), seed=0)
     assert activity.modulation[0] is not None
     fig = activity_figure(activity, title="test")
@@ -133,7 +128,7 @@ def test_activity_figure_png(tmp_path):
 
 
 def test_figure_callback_and_hyperparameter_text_reach_tensorboard(tmp_path):
-    model = tmaze_model("dp-oja")
+    model = tmaze_model("dp-oja", env_kwargs={"neurons_per_population": 10})
     model.set_logger(Logger(str(tmp_path), [make_output_format("tensorboard", str(tmp_path))]))
     config = {"n_steps": 32, "policy_kwargs": {"rule": "dp-oja", "hidden_sizes": [16]}, "normalize": False}
     assert write_hyperparameters(model.logger, config)

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from sb3_spikeplastic.coding import ContinuousDecoder, DiscreteDecoder, PopulationEncoder
-from sb3_spikeplastic.network import NetworkState, SpikingPlasticNetwork
+from sb3_spikeplastic.network import NetworkState, SpikingPlasticNetwork, tensor_leaves
 from sb3_spikeplastic.plasticity import (
     RULES,
     PlasticityRule,
@@ -35,12 +35,6 @@ def small_network(rule: str, **kw) -> SpikingPlasticNetwork:
     kw.setdefault("steps", 50)
     return SpikingPlasticNetwork(PopulationEncoder([-3] * 4, [3] * 4), ContinuousDecoder([-1] * 2, [1] * 2, pop_size=10),
                                  (32,), rule=rule, **kw)
-
-
-def all_tensors(tree):
-    if isinstance(tree, torch.Tensor):
-        return [tree]
-    return [t for x in tree for t in all_tensors(x)]
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -94,7 +88,7 @@ def test_reset_zeros_exactly_the_started_environments(rule):
     for episode_start in (started, started.bool()):
         reset = state.reset(episode_start)
         init = net.initial_state(B, seed=5)
-        tensors_before, tensors_after, tensors_init = map(all_tensors, (state.layers, reset.layers, init.layers))
+        tensors_before, tensors_after, tensors_init = map(tensor_leaves, (state.layers, reset.layers, init.layers))
         assert len(tensors_before) == len(tensors_after) == len(tensors_init)
         n_nonzero_before = 0
         for before, after, zero in zip(tensors_before, tensors_after, tensors_init):
@@ -120,7 +114,7 @@ def test_reset_zeros_exactly_the_started_environments(rule):
         assert torch.equal(out_r.action[b], out_f.action[b])
         for sr, sf in zip(out_r.record.spikes, out_f.record.spikes):
             assert torch.equal(sr[b], sf[b])
-        for tr, tf in zip(all_tensors(st_r), all_tensors(st_f)):
+        for tr, tf in zip(tensor_leaves(st_r), tensor_leaves(st_f)):
             assert torch.equal(tr[b], tf[b])
     # and differently from the unreset ones (otherwise the comparison above proves nothing)
     assert any(not torch.equal(sr[1], sf[1]) for sr, sf in zip(out_r.record.spikes, out_f.record.spikes))
@@ -134,10 +128,10 @@ def test_state_select_cat_stack_roundtrip():
         _, state = net(torch.rand(5, 4) * 6 - 3, state)
     parts = [state.select(slice(0, 2)), state.select(torch.tensor([2])), state.select(slice(3, 5))]
     joined = NetworkState.cat(parts)
-    for a, b in zip(all_tensors(joined), all_tensors(state)):
+    for a, b in zip(tensor_leaves(joined), tensor_leaves(state)):
         assert torch.equal(a, b)
     stacked = NetworkState.stack([state, state.reset(torch.ones(5))])
-    for s, a in zip(all_tensors(stacked), all_tensors(state)):
+    for s, a in zip(tensor_leaves(stacked), tensor_leaves(state)):
         assert s.shape == (2, *a.shape) and torch.equal(s[0], a)
 
 
@@ -308,7 +302,7 @@ def test_forward_sequence_equals_stepwise_forward_with_resets():
             assert torch.equal(out.action, outs[k].action)
             for a, b in zip(out.rates, outs[k].rates):
                 assert torch.equal(a, b)
-        for a, b in zip(all_tensors(final), all_tensors(state)):
+        for a, b in zip(tensor_leaves(final), tensor_leaves(state)):
             assert torch.equal(a, b)
         # without the resets the outputs differ (so the resets were applied)
         outs_nr, _ = net.forward_sequence(obs, torch.zeros(Lseq, B), state0)

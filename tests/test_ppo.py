@@ -7,24 +7,14 @@ import stable_baselines3
 import torch
 from stable_baselines3.common.callbacks import EvalCallback
 from stable_baselines3.common.evaluation import evaluate_policy
-from stable_baselines3.common.monitor import Monitor
-from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+from stable_baselines3.common.vec_env import VecNormalize
+
+from helpers import tmaze, vec
 
 from sb3_spikeplastic import PPO, SpikePlasticPolicy
-from sb3_spikeplastic.envs.tmaze import TMazeCueEnv
-from sb3_spikeplastic.network import map_tensors
+from sb3_spikeplastic.network import tensor_leaves
 
 SMALL = dict(hidden_sizes=(16,), steps=10, encoder_pop_size=8, action_pop_size=4)
-
-
-def vec(make, n, seed=0):
-    env = DummyVecEnv([lambda: Monitor(make()) for _ in range(n)])
-    env.seed(seed)
-    return env
-
-
-def tmaze(n=2):
-    return vec(lambda: TMazeCueEnv(neurons_per_population=4), n)
 
 
 def assert_replay_exact(model):
@@ -81,15 +71,9 @@ def test_rollout_state_reset_exactly_at_episode_starts():
             _, _, _, state, _ = policy.step(obs, state, torch.zeros(2, device=model.device))
         reset = state.reset(torch.tensor([1.0, 0.0], device=model.device))
     fresh = policy.initial_state(2)
-    for got, want, old in zip(_leaves(reset.layers), _leaves(fresh.layers), _leaves(state.layers)):
+    for got, want, old in zip(tensor_leaves(reset.layers), tensor_leaves(fresh.layers), tensor_leaves(state.layers)):
         assert torch.equal(got[0], want[0]) and torch.equal(got[1], old[1])
     assert torch.equal(reset.noise_key, state.noise_key)
-
-
-def _leaves(tree):
-    out = []
-    map_tensors(lambda x: out.append(x) or x, tree)
-    return out
 
 
 def test_snapshots_only_at_chunk_starts_and_memory():
@@ -171,7 +155,7 @@ def test_bad_chunking_is_a_clear_error(kwargs, message):
 
 
 def test_unknown_rule_is_a_clear_error():
-    with pytest.raises(ValueError, match="unknown plasticity rule 'hebb'.*dp-oja"):
+    with pytest.raises(ValueError, match="unknown rule 'hebb'.*dp-oja"):
         PPO("SpikePlasticPolicy", tmaze(1), n_steps=16, batch_size=16, bptt_steps=16,
             policy_kwargs=dict(rule="hebb"))
 
