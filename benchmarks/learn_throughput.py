@@ -5,7 +5,7 @@ All algorithms run in this one process, one after another, with the same PPO set
 the per-environment network state and chunk-snapshot memory of the paper-size plastic network, and the
 process's peak RSS after each run.
 
-Usage (documented in the README)::
+Usage (documented in benchmarks/README.md)::
 
     pip install -e ".[bench]"
     python benchmarks/learn_throughput.py                      # prints a table, writes benchmarks/results/learn_throughput.json

@@ -108,7 +108,8 @@ def first_reaching(run: dict, level: float) -> tuple[float, float]:
 
 
 def rule_table(summary: list[dict]) -> str:
-    """One row per (environment, rule): per-seed best / final success and steps to 0.9 / 0.97 (the README's table)."""
+    """One row per (environment, rule): per-seed best / final success and steps to 0.9 / 0.97 (the tables of
+    docs/reproducing-tmaze.md)."""
     def k(v):
         return "-" if v != v else f"{v / 1000:.0f}k"
 
