@@ -572,7 +572,11 @@ def cmd_inspect(args: argparse.Namespace, argv: Sequence[str]) -> int:
     from .figures import activity_figure
 
     out.mkdir(parents=True, exist_ok=True)
-    for name, make in episodes.items():
+    from tqdm.auto import tqdm
+
+    bar = tqdm(episodes.items(), total=len(episodes), unit="episode", disable=args.no_progress, dynamic_ncols=True,
+               leave=False)
+    for name, make in bar:
         env = make()
         try:
             activity = record_episode(model.policy, env, seed=args.seed, deterministic=args.deterministic,
@@ -584,7 +588,7 @@ def cmd_inspect(args: argparse.Namespace, argv: Sequence[str]) -> int:
         fig = activity_figure(activity, title=f"{env_id} · {name.replace('_', ' ')}")
         path = out / f"activity_{name}.png"
         fig.savefig(path, dpi=110)
-        print(f"{name:>9}: return {activity.episode_return:.3g} over {activity.n_steps} steps -> {path}")
+        bar.write(f"{name:>9}: return {activity.episode_return:.3g} over {activity.n_steps} steps -> {path}")
     return 0
 
 
@@ -711,6 +715,7 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--max-steps", type=int, help="environment steps shown (default: about 1 s of network time)")
     i.add_argument("--deterministic", dest="deterministic", action="store_true", default=True)
     i.add_argument("--stochastic", dest="deterministic", action="store_false")
+    i.add_argument("--no-progress", action="store_true", help="no progress bar")
     common(i)
     i.set_defaults(func=cmd_inspect)
     return parser

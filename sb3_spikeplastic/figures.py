@@ -38,12 +38,24 @@ def _raster(ax, spikes: np.ndarray, colour="k", groups=None, max_points: int = 4
             sel = (n >= first) & (n < stop)
             ax.scatter(t[sel], n[sel], s=size, marker="|" if spikes.shape[1] <= 80 else ".", linewidths=0.8,
                        color=_GROUP_COLOURS[k % len(_GROUP_COLOURS)], label=label, rasterized=True)
-        ax.legend(loc="upper right", fontsize=7, markerscale=3, ncol=len(groups), frameon=True)
+        # Above the axes, not over the raster's last steps (where the T-maze's decision cue fires).
+        ax.legend(loc="lower right", bbox_to_anchor=(1.0, 1.0), fontsize=7, markerscale=3, ncol=len(groups),
+                  frameon=False, borderaxespad=0.1)
     else:
         ax.scatter(t, n, s=size, marker="|" if spikes.shape[1] <= 80 else ".", linewidths=0.8, color=colour,
                    rasterized=True)
     ax.set_ylim(spikes.shape[1] - 0.5, -0.5)
     ax.yaxis.set_major_locator(MaxNLocator(nbins=4, integer=True))
+
+
+def _row_subset(spikes: np.ndarray, max_rows: int) -> tuple[np.ndarray, str]:
+    """At most ``max_rows`` evenly spaced neurons of ``(time, n)`` spikes (a raster of hundreds of rows at a few
+    hundred pixels is solid ink), and the count for the axis label."""
+    n = spikes.shape[1]
+    if n <= max_rows:
+        return spikes, str(n)
+    rows = np.unique(np.linspace(0, n - 1, max_rows).round().astype(int))
+    return spikes[:, rows], f"{len(rows)} of {n}"
 
 
 def _step_lines(ax, n_steps: int, T: int) -> None:
@@ -53,7 +65,7 @@ def _step_lines(ax, n_steps: int, T: int) -> None:
 
 
 def activity_figure(activity: "EpisodeActivity", title: Optional[str] = None, n_synapses: int = 5,
-                    n_membrane: int = 4, max_trace_layers: int = 3) -> Figure:
+                    n_membrane: int = 4, max_trace_layers: int = 3, max_rows: int = 150) -> Figure:
     """One episode's activity: input, hidden and output spike rasters, the membrane potential of a few output
     neurons, the traces ``E`` of the ``n_synapses`` synapses of each plastic layer that moved most, and the
     neuromodulatory signals (mean and range over neurons) of modulated layers. Faint vertical lines separate
@@ -64,6 +76,7 @@ def activity_figure(activity: "EpisodeActivity", title: Optional[str] = None, n_
     :param n_synapses: synapses shown per plastic layer.
     :param n_membrane: output neurons whose membrane potential is shown.
     :param max_trace_layers: plastic layers shown (the first ones).
+    :param max_rows: neurons shown per raster at most (evenly spaced; the axis label says how many of how many).
     """
     T, n_steps = activity.steps_per_env_step, activity.n_steps
     total = activity.input_spikes.shape[0]
@@ -72,28 +85,37 @@ def activity_figure(activity: "EpisodeActivity", title: Optional[str] = None, n_
     modulated = [i for i, m in enumerate(activity.modulation) if m is not None]
     heights = [2.0] + [1.6] * (n_layers - 1) + [1.3, 1.3] + [1.2] * len(trace_layers) + ([1.1] if modulated else [])
     height = sum(heights) + 0.3 * len(heights) + 0.9
-    fig = Figure(figsize=(11, height))
     # Fixed margins (in inches) instead of a layout engine: drawing this figure is on the training path.
-    fig.subplots_adjust(left=0.085, right=0.985, top=1 - 0.45 / height, bottom=0.5 / height, hspace=0.3)
+    # The title and the input raster's legend share a band above the first axes.
+    height += 0.3
+    fig = Figure(figsize=(11, height))
+    fig.subplots_adjust(left=0.085, right=0.985, top=1 - 0.75 / height, bottom=0.5 / height, hspace=0.3)
     axes = fig.subplots(len(heights), 1, sharex=True, gridspec_kw={"height_ratios": heights})
     axes = np.atleast_1d(axes)
     row = 0
 
     ax = axes[row]
-    _raster(ax, activity.input_spikes, groups=activity.input_groups)
-    ax.set_ylabel(f"input\n({activity.input_spikes.shape[1]})")
+    if activity.input_groups:  # coloured groups: every neuron, as the groups' bounds index them
+        _raster(ax, activity.input_spikes, groups=activity.input_groups)
+        shown_in = str(activity.input_spikes.shape[1])
+    else:
+        subset, shown_in = _row_subset(activity.input_spikes, max_rows)
+        _raster(ax, subset)
+    ax.set_ylabel(f"input\n({shown_in})")
     row += 1
     for i in range(n_layers - 1):
         ax = axes[row]
-        _raster(ax, activity.spikes[i], colour=_LAYER_COLOURS[i % len(_LAYER_COLOURS)])
+        subset, shown = _row_subset(activity.spikes[i], max_rows)
+        _raster(ax, subset, colour=_LAYER_COLOURS[i % len(_LAYER_COLOURS)])
         rate = activity.spikes[i].mean() if activity.spikes[i].size else 0.0
-        ax.set_ylabel(f"hidden {i + 1}\n({activity.spikes[i].shape[1]})")
+        ax.set_ylabel(f"hidden {i + 1}\n({shown})")
         ax.text(1.0, 1.0, f"{rate:.3f} spikes/ms", transform=ax.transAxes, ha="right", va="bottom", fontsize=7)
         row += 1
     out_spikes = activity.spikes[-1]
     ax = axes[row]
-    _raster(ax, out_spikes, colour="tab:purple")
-    ax.set_ylabel(f"output\n({out_spikes.shape[1]})")
+    subset, shown = _row_subset(out_spikes, max_rows)
+    _raster(ax, subset, colour="tab:purple")
+    ax.set_ylabel(f"output\n({shown})")
     row += 1
 
     ax = axes[row]
@@ -151,7 +173,7 @@ def activity_figure(activity: "EpisodeActivity", title: Optional[str] = None, n_
         if correct is not None:
             text += f" (correct: {side.get(correct, correct)})"
         parts.append(text)
-    fig.suptitle("  ·  ".join(parts), fontsize=10)
+    fig.suptitle("  ·  ".join(parts), fontsize=10, x=0.085, y=1 - 0.12 / height, ha="left", va="top")
     return fig
 
 
@@ -211,8 +233,8 @@ def training_curves_figure(runs: Mapping[str, Mapping[str, np.ndarray]], x: str 
         else:
             xs = np.asarray(df["t"]) / 3600.0
         returns = np.asarray(df["r"], dtype=float)
-        if smooth > 1:
-            axes[0].plot(xs, returns, color=colour, alpha=0.15, linewidth=0.6)
+        if smooth > 1:  # the raw returns, faint behind the average
+            axes[0].plot(xs, returns, color=colour, alpha=0.08, linewidth=0.5)
         axes[0].plot(xs, _moving_average(returns, smooth), color=colour, linewidth=1.4, label=label)
         if has_success and "is_success" in df:
             success = np.asarray(df["is_success"], dtype=float)
@@ -220,7 +242,8 @@ def training_curves_figure(runs: Mapping[str, Mapping[str, np.ndarray]], x: str 
             if valid.any():
                 axes[1].plot(xs[valid], _moving_average(success[valid], smooth), color=colour, linewidth=1.4,
                              label=label)
-    axes[0].set_ylabel("episode return" + (f"\n(moving average of {smooth})" if smooth > 1 else ""))
+    axes[0].set_ylabel("episode return" + (f"\n(moving average of {smooth};\nfaint: every episode)" if smooth > 1
+                                           else ""))
     axes[0].legend(loc="best", fontsize=8)
     axes[0].grid(alpha=0.3)
     if has_success:
