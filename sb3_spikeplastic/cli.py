@@ -66,22 +66,13 @@ def _use_agg() -> None:
 
 
 def check_env_id(env_id: str, conf_entries: Sequence[str] = ()) -> str:
-    """``env_id`` if Gymnasium knows it (after the plugin registered its environments), else a ``UsageError``."""
-    import difflib
+    """:func:`sb3_spikeplastic.config.check_env_id` with its error as a usage error."""
+    from .config import check_env_id as check
 
-    import sb3_spikeplastic  # noqa: F401  (registers TMazeCue-v0, TMazeCueNoisy-v0, NoisyHalfCheetah-v5)
-
-    if env_id in gymnasium.registry:
-        return env_id
-    known = sorted(gymnasium.registry)
-    close = difflib.get_close_matches(env_id, known, n=3, cutoff=0.6)
-    hint = f"did you mean {', '.join(close)}? " if close else ""
-    listed = [e for e in conf_entries if e != "default" and e in gymnasium.registry]
-    raise UsageError(
-        f"unknown environment id {env_id!r}; {hint}accepted: any of gymnasium's {len(known)} registered ids"
-        + (f", with tuned hyperparameters: {', '.join(listed)}" if listed else "")
-        + " (python -c 'import gymnasium, sb3_spikeplastic; gymnasium.pprint_registry()' lists them)"
-    )
+    try:
+        return check(env_id, conf_entries)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
 
 
 def _check_int(name: str, value: Optional[int], minimum: int) -> None:

@@ -682,17 +682,22 @@ class Hyperparams(NamedTuple):
 def check_env_id(env_id: str, entries: Sequence[str] = ()) -> str:
     """``env_id`` if Gymnasium knows it (the plugin's environments included) or ``entries`` lists it.
 
-    :raises ValueError: one line naming ``env_id`` and what is accepted.
+    :raises ValueError: one line naming ``env_id``, the closest registered ids and what is accepted.
     """
+    import difflib
+
     import gymnasium
 
     from . import envs  # noqa: F401  (registers TMazeCue-v0, TMazeCueNoisy-v0, NoisyHalfCheetah-v5)
 
     if env_id in gymnasium.registry or (env_id in entries and env_id != "default"):
         return env_id
+    close = difflib.get_close_matches(env_id, sorted(gymnasium.registry), n=3, cutoff=0.6)
+    hint = f"did you mean {', '.join(close)}? " if close else ""
     listed = ", ".join(e for e in entries if e != "default") or "none"
-    raise ValueError(f"unknown environment id {env_id!r}; accepted: an entry of the file ({listed}) or any of "
-                     f"gymnasium's {len(gymnasium.registry)} registered ids")
+    raise ValueError(f"unknown environment id {env_id!r}; {hint}accepted: an entry of the file ({listed}) or any "
+                     f"of gymnasium's {len(gymnasium.registry)} registered ids (python -c 'import gymnasium, "
+                     "sb3_spikeplastic; gymnasium.pprint_registry()' lists them)")
 
 
 def load_hyperparams(env_id: str, conf: Union[str, Path] = "ppo", rule: Optional[str] = None) -> Hyperparams:

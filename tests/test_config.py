@@ -231,7 +231,7 @@ def test_load_hyperparams_rule_and_other_files():
 
 
 @pytest.mark.parametrize("args, message", [
-    (("TMazeCu-v0",), r"^unknown environment id 'TMazeCu-v0'; accepted: an entry of the file \(TMazeCue-v0, "),
+    (("TMazeCu-v0",), r"^unknown environment id 'TMazeCu-v0'; did you mean TMazeCue-v0.*accepted: an entry of the file \(TMazeCue-v0, "),
     (("TMazeCue-v0", "ppo2"), r"^cannot read hyperparameter file 'ppo2'.*packaged files: ppo, paper, mlp, ppo_lstm"),
     (("TMazeCue-v0", "ppo", "hebb"), r"^unknown rule 'hebb'; accepted: static, "),
     (("HalfCheetah-v5", "mlp", "dp-oja"), r"^rule='dp-oja' needs policy SpikePlasticPolicy, not 'MlpPolicy'"),
