@@ -369,14 +369,21 @@ def cmd_evaluate(args: argparse.Namespace, argv: Sequence[str]) -> int:
             if value is not None:
                 successes.append(float(value))
 
+    import contextlib
+
+    from .monitoring import EnergyMeter
+
     torch.manual_seed(args.seed)
+    snn = getattr(model.policy, "snn", None)
     try:
-        returns, lengths = evaluate_policy(model, venv, n_eval_episodes=args.episodes,
-                                           deterministic=args.deterministic, return_episode_rewards=True,
-                                           callback=on_step)
+        with EnergyMeter(snn) if snn is not None else contextlib.nullcontext() as meter:
+            returns, lengths = evaluate_policy(model, venv, n_eval_episodes=args.episodes,
+                                               deterministic=args.deterministic, return_episode_rewards=True,
+                                               callback=on_step)
     finally:
         bar.close()
         venv.close()
+    energy = meter.summary() if meter is not None else None
     returns = np.asarray(returns, dtype=float)
     mode = "deterministic" if args.deterministic else "stochastic"
     print(f"{env_id}: {info.model_path}" + (f" (VecNormalize: {info.vecnormalize})" if info.vecnormalize else ""))
@@ -384,11 +391,15 @@ def cmd_evaluate(args: argparse.Namespace, argv: Sequence[str]) -> int:
           f"mean episode length {np.mean(lengths):.1f}")
     if successes:
         print(f"success rate {np.mean(successes):.3f} ({int(np.sum(successes))}/{len(successes)})")
+    if energy is not None:
+        layers = " / ".join(f"{x:,.0f}" for x in energy["synops_per_step"])
+        print(f"per environment step: {energy['total_spikes_per_step']:,.1f} spikes (input population: "
+              f"{energy['spikes_per_step'][0]:,.1f}), {energy['total_synops_per_step']:,.0f} SynOps ({layers} by layer)")
     if args.output:
         result = dict(env=env_id, model=str(info.model_path), episodes=len(returns), deterministic=args.deterministic,
                       seed=args.seed, mean_return=float(returns.mean()), std_return=float(returns.std()),
                       mean_length=float(np.mean(lengths)),
-                      success_rate=float(np.mean(successes)) if successes else None)
+                      success_rate=float(np.mean(successes)) if successes else None, energy=energy)
         atomic_write(args.output, lambda f: json.dump(result, f, indent=1), binary=False)
     return 0
 

@@ -167,7 +167,7 @@ class GraphedRolloutStep:
         actions, values, log_prob, new_state, out = self.policy._step(
             obs, rebuild(rest[:n_leaves]), starts, deterministic, masks, sync_free=True)
         # Only what rollouts use: the record is None outside monitoring.
-        return actions, values, log_prob, new_state, NetworkOutput(out.action, out.rates, None)
+        return actions, values, log_prob, new_state, NetworkOutput(out.action, out.rates, None, out.input_rate)
 
     def _capture(self, inputs: list[Tensor], rebuild, n_leaves: int, masked: bool, deterministic: bool) -> tuple:
         static_inputs = [t.clone() for t in inputs]

@@ -9,6 +9,8 @@
   :func:`sb3_spikeplastic.figures.activity_figure` draws it.
 * :class:`ActivityFigureCallback` logs that figure to TensorBoard (``snn/activity``) every few rollouts.
 * :func:`write_hyperparameters` writes a run's hyperparameters to TensorBoard once, as a Markdown table.
+* :func:`spike_counts` and :func:`synaptic_operations` give the energy proxies of one environment step (spikes and
+  SynOps per layer); :class:`EnergyMeter` averages them over any code that runs the network (e.g. an evaluation).
 
 Matplotlib is imported only when a figure is drawn, and only through ``matplotlib.figure.Figure`` (the Agg
 renderer, no GUI backend).
@@ -17,16 +19,82 @@ renderer, no GUI backend).
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, Mapping, Optional, Union
+from typing import Any, Callable, Mapping, Optional, Sequence, Union
 
 import gymnasium
 import numpy as np
 import torch
 from gymnasium import spaces
+from torch import Tensor
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import Figure, Logger, TensorBoardOutputFormat
 
 from .network import NetworkOutput, NetworkState, SpikingPlasticNetwork
+
+
+def spike_counts(out: NetworkOutput, steps: int) -> Tensor:
+    """Spikes per environment step and environment, averaged over the batch: ``(n_layers + 1,)``, the input
+    population first, then the hidden layers and the output population.
+
+    :param out: one environment step's output (with ``input_rate``).
+    :param steps: network steps per environment step ``T`` (the rates are means over them).
+    """
+    return torch.stack([r.sum(-1).mean() for r in (out.input_rate, *out.rates)]) * steps
+
+
+def synaptic_operations(spikes: Tensor, sizes: Sequence[int]) -> Tensor:
+    """Synaptic operations (SynOps) per layer, the neuromorphic convention for the energy of a spiking network: each
+    presynaptic spike is delivered to every neuron of the next layer, so SynOps = presynaptic spikes x fan-out.
+
+    :param spikes: :func:`spike_counts` ``(n_layers + 1,)``.
+    :param sizes: population sizes, input first (``SpikingPlasticNetwork.sizes``).
+    :return: ``(n_layers,)``, layer ``i``'s incoming synaptic events.
+    """
+    return spikes[:-1] * torch.as_tensor(sizes[1:], dtype=spikes.dtype, device=spikes.device)
+
+
+class EnergyMeter:
+    """Mean spikes and SynOps per environment step over every forward pass of ``network`` inside the ``with``
+    block (a forward hook: evaluation code, ``model.predict`` and rollouts are measured unchanged).
+
+    ::
+
+        with EnergyMeter(model.policy.snn) as meter:
+            evaluate_policy(model, env, n_eval_episodes=10)
+        print(meter.summary())
+
+    :param network: the policy's network (``policy.snn``).
+    """
+
+    def __init__(self, network: SpikingPlasticNetwork):
+        self.network = network
+        self.env_steps = 0
+        self._sums: Optional[Tensor] = None
+
+    def _hook(self, module, inputs, output) -> None:
+        out = output[0]
+        batch = out.action.shape[0]
+        counts = spike_counts(out, self.network.steps).detach() * batch
+        self._sums = counts if self._sums is None else self._sums + counts
+        self.env_steps += batch
+
+    def __enter__(self) -> "EnergyMeter":
+        self._handle = self.network.register_forward_hook(self._hook)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._handle.remove()
+
+    def summary(self) -> dict[str, Any]:
+        """``spikes_per_step`` (input first, then each layer), ``synops_per_step`` (per layer) and their totals
+        ``total_spikes_per_step`` / ``total_synops_per_step`` (without the input's spikes, which the encoder
+        makes), averaged over the environment steps measured."""
+        if not self.env_steps:
+            raise RuntimeError("no environment step was measured")
+        spikes = self._sums.double().cpu() / self.env_steps
+        synops = synaptic_operations(spikes, self.network.sizes)
+        return {"spikes_per_step": spikes.tolist(), "synops_per_step": synops.tolist(),
+                "total_spikes_per_step": float(spikes[1:].sum()), "total_synops_per_step": float(synops.sum())}
 
 
 class RolloutActivity:
@@ -40,6 +108,10 @@ class RolloutActivity:
 
     Also recorded: ``plasticity/layer{i}/alpha_abs_mean`` (mean ``|alpha|`` of plastic layers) and, when ``policy``
     has a Gaussian action distribution, ``snn/action_std`` (``exp(log_std)`` averaged over action dimensions).
+
+    Energy, per environment step and environment: ``snn/input/spikes_per_step``, ``snn/layer{i}/spikes_per_step``,
+    ``snn/layer{i}/synops_per_step`` (:func:`synaptic_operations`) and the totals ``snn/spikes_per_step`` and
+    ``snn/synops_per_step``.
 
     :param network: the policy's network.
     :param policy: the policy (optional; for ``snn/action_std``).
@@ -55,11 +127,15 @@ class RolloutActivity:
         # (n_layers, 4) sums on the network's device: rate, silent fraction, modulation, modulation squared. Kept
         # there until `record`, so that a rollout step never waits for the device (which would stall a GPU).
         self._sums: Optional[torch.Tensor] = None
+        self._spikes: Optional[torch.Tensor] = None
 
     @torch.no_grad()
     def add(self, out: NetworkOutput) -> None:
         """Accumulate one rollout step's rates (all environments)."""
         self.steps += 1
+        if out.input_rate is not None:
+            spikes = spike_counts(out, self.network.steps)
+            self._spikes = spikes if self._spikes is None else self._spikes + spikes
         rows = []
         for layer, r in zip(self.network.layers, out.rates):
             if layer.plastic and layer.rule.modulated:
@@ -77,6 +153,15 @@ class RolloutActivity:
         if self.steps == 0:
             return
         means = (self._sums.double() / self.steps).tolist()
+        if self._spikes is not None:
+            spikes = self._spikes.double() / self.steps
+            synops = synaptic_operations(spikes, self.network.sizes)
+            logger.record("snn/input/spikes_per_step", spikes[0].item())
+            logger.record("snn/spikes_per_step", spikes[1:].sum().item())
+            logger.record("snn/synops_per_step", synops.sum().item())
+            for i in range(len(self.network.layers)):
+                logger.record(f"snn/layer{i}/spikes_per_step", spikes[i + 1].item())
+                logger.record(f"snn/layer{i}/synops_per_step", synops[i].item())
         log_std = getattr(self.policy, "log_std", None)
         if isinstance(log_std, torch.Tensor):
             logger.record("snn/action_std", torch.exp(log_std).mean().item())

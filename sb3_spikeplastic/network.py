@@ -132,11 +132,14 @@ class NetworkOutput(NamedTuple):
     :param action: the decoder's output: mean actions (continuous) or logits (discrete), ``(batch, n_actions)``.
     :param rates: per layer (hidden layers, then the output population) the mean spike rate over the step.
     :param record: the full activity when requested, else ``None``.
+    :param input_rate: the input population's mean spike rate over the step ``(batch, n_in)`` (for spike and
+        synaptic-operation counts, :mod:`sb3_spikeplastic.monitoring`).
     """
 
     action: Tensor
     rates: tuple[Tensor, ...]
     record: Optional[NetworkRecord]
+    input_rate: Optional[Tensor] = None
 
 
 IntOrSeq = Union[float, Sequence[float]]
@@ -266,7 +269,7 @@ class SpikingPlasticNetwork(nn.Module):
                       for outs in outputs),
                 tuple(torch.stack(t, 1) if t else None for t in traces),
             )
-        return NetworkOutput(self.decoder(rates[-1]), rates, rec), new_state
+        return NetworkOutput(self.decoder(rates[-1]), rates, rec, spikes_in.mean(1)), new_state
 
     def forward_sequence(self, obs: Tensor, episode_start: Tensor, state: NetworkState,
                          sync_free: bool = False) -> tuple[list[NetworkOutput], NetworkState]:

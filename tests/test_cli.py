@@ -136,6 +136,9 @@ def test_evaluate(tmaze_run, cheetah_run, capsys, tmp_path):
     result = json.loads((tmp_path / "eval.json").read_text())
     assert result["episodes"] == 6 and result["deterministic"] and result["env"] == "TMazeCue-v0"
     assert f"success rate {result['success_rate']:.3f}" in out and f"mean return {result['mean_return']:.3f}" in out
+    energy = result["energy"]  # spikes and SynOps per environment step, input population first
+    assert len(energy["spikes_per_step"]) == len(energy["synops_per_step"]) + 1 and energy["total_synops_per_step"] > 0
+    assert f"{energy['total_synops_per_step']:,.0f} SynOps" in out
     code, out, _ = run_cli(capsys, "evaluate", "--model", tmaze_run / "best_model.zip", "--episodes", "2",
                            "--stochastic", "--n-envs", "2")
     assert code == 0 and "over 2 episodes (stochastic)" in out

@@ -154,3 +154,59 @@ def test_hyperparameter_markdown_flattens_and_escapes():
 def test_figure_callback_validates_its_interval():
     with pytest.raises(ValueError, match="every=0 must be >= 1"):
         ActivityFigureCallback("TMazeCue-v0", every=0)
+
+
+def test_spike_counts_and_synops_by_hand():
+    from sb3_spikeplastic.monitoring import spike_counts, synaptic_operations
+    from sb3_spikeplastic.network import NetworkOutput
+
+    # batch of 2, T = 10: input 3 neurons, one hidden layer of 2, output of 4
+    out = NetworkOutput(torch.zeros(2, 1),
+                        (torch.tensor([[0.1, 0.3], [0.0, 0.2]]), torch.tensor([[0.1, 0.0, 0.0, 0.1], [0.0] * 4])),
+                        None, torch.tensor([[0.5, 0.0, 0.1], [0.2, 0.2, 0.2]]))
+    spikes = spike_counts(out, steps=10)
+    # input: (6 + 6) / 2 = 6 spikes; hidden: (4 + 2) / 2 = 3; output: 2 / 2 = 1
+    assert spikes.tolist() == pytest.approx([6.0, 3.0, 1.0])
+    # each input spike reaches the 2 hidden neurons, each hidden spike the 4 output neurons
+    assert synaptic_operations(spikes, [3, 2, 4]).tolist() == pytest.approx([12.0, 12.0])
+
+
+def test_energy_meter_counts_every_spike_of_an_evaluation():
+    from sb3_spikeplastic.monitoring import EnergyMeter
+
+    model = tmaze_model("ndp-oja")
+    net = model.policy.snn
+    obs = torch.as_tensor(np.stack([TMazeCueEnv(neurons_per_population=4).observation_space.sample()
+                                    for _ in range(3)]), dtype=torch.float32)
+    state = net.initial_state(3)
+    recorded = []
+    with EnergyMeter(net) as meter:
+        for _ in range(4):
+            out, state = net(model.policy._preprocess(obs), state, record=True)
+            recorded.append(out.record)
+    net(model.policy._preprocess(obs), state)  # outside the block: not counted
+    assert meter.env_steps == 12
+    # independently: spikes counted in the recorded rasters, averaged over the 12 environment steps
+    spikes = [sum(r.input_spikes.sum().item() for r in recorded) / 12]
+    spikes += [sum(r.spikes[i].sum().item() for r in recorded) / 12 for i in range(len(net.layers))]
+    summary = meter.summary()
+    assert summary["spikes_per_step"] == pytest.approx(spikes, rel=1e-5)
+    sizes = net.sizes
+    assert summary["synops_per_step"] == pytest.approx([spikes[i] * sizes[i + 1] for i in range(len(net.layers))],
+                                                       rel=1e-5)
+    assert summary["total_spikes_per_step"] == pytest.approx(sum(spikes[1:]), rel=1e-5) and spikes[1] > 0
+
+
+def test_rollout_energy_scalars_agree_with_rates():
+    model = tmaze_model("dp-oja")
+    written = Written()
+    model.set_logger(Logger(None, [written]))
+    model.learn(64)
+    v, net = written.values, model.policy.snn
+    for i, layer in enumerate(net.layers):
+        assert v[f"snn/layer{i}/spikes_per_step"] == pytest.approx(v[f"snn/layer{i}/spike_rate"] * layer.n_out * net.steps,
+                                                                   rel=1e-4)
+    synops = [v["snn/input/spikes_per_step"] * net.sizes[1]] + [
+        v[f"snn/layer{i - 1}/spikes_per_step"] * net.sizes[i + 1] for i in range(1, len(net.layers))]
+    assert [v[f"snn/layer{i}/synops_per_step"] for i in range(len(net.layers))] == pytest.approx(synops, rel=1e-5)
+    assert v["snn/synops_per_step"] == pytest.approx(sum(synops), rel=1e-5)
