@@ -488,3 +488,11 @@ def test_progress_bars_count_environment_steps_and_episodes(tmp_path, capsys):
     assert code == 0 and "128/128" in err and "step/s" in err  # tqdm's line: steps over wall time
     code, _, err = run_cli(capsys, "evaluate", "--run", tmp_path / "logs" / "ppo" / "TMazeCue-v0_1", "--episodes", "3")
     assert code == 0 and "3/3" in err and "episode" in err
+
+
+def test_progress_bar_stops_at_the_requested_total(tmp_path, capsys):
+    """Whole rollouts run past -n (here 100 of 2 x 64 steps); the bar counts to -n, not beyond."""
+    argv = [a for a in _train_argv(tmp_path) if a != "--no-progress"]
+    argv[argv.index("-n") + 1] = "100"
+    code, out, err = run_cli(capsys, *argv)
+    assert code == 0 and "100/100" in err and "128/100" not in err and "Done: 128 steps" in out
