@@ -271,6 +271,24 @@ def tmaze_input_groups(env: gymnasium.Env) -> Optional[list[tuple[str, int, int]
     return [(label, i * n, (i + 1) * n) for i, label in enumerate(("left cue", "right cue", "decision", "noise"))]
 
 
+def inspection_episodes(env_id: str, env_kwargs: Mapping[str, Any]) -> dict[str, Callable[[], gymnasium.Env]]:
+    """The episodes ``sb3-spikeplastic inspect`` draws, as environment factories: ``typical``, and for the cue
+    T-maze also ``all_left`` and ``all_right`` (every cue on one side) and ``no_cue`` (every cue population,
+    the decision cue's too, at its rest rate throughout: the decision is made on the decision cue alone)."""
+    from .envs.tmaze import TMazeCueEnv
+
+    kwargs = dict(env_kwargs)
+    episodes = {"typical": lambda: gymnasium.make(env_id, **kwargs)}
+    probe = gymnasium.make(env_id, **kwargs)
+    maze = probe.unwrapped
+    probe.close()
+    if isinstance(maze, TMazeCueEnv):
+        episodes["all_left"] = lambda: gymnasium.make(env_id, **{**kwargs, "cues": [0] * maze.n_cues})
+        episodes["all_right"] = lambda: gymnasium.make(env_id, **{**kwargs, "cues": [1] * maze.n_cues})
+        episodes["no_cue"] = lambda: gymnasium.make(env_id, **{**kwargs, "p_cue_event": maze.p_cue_rest})
+    return episodes
+
+
 @torch.no_grad()
 def record_episode(
     policy,
