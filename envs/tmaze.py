@@ -93,7 +93,9 @@ class TMazeCueEnv(gymnasium.Env):
         random cues, e.g. all-left for figures. The random stream is consumed as with random cues, so for one seed
         the rest delay and the noise population's spikes do not depend on the cues.
     :param render_mode: ``None`` or ``"rgb_array"`` (the current frame's raster, white = spike, one 4x4 pixel block
-        per neuron-millisecond; time runs down). SB3 creates environments from an id with ``"rgb_array"``.
+        per neuron-millisecond; time runs down; once the decision is made, the decision frame's spikes turn green
+        if it was right and red if wrong; ``metadata["render_fps"]`` is real time, ``1000 / frame_ms``). SB3 creates
+        environments from an id with ``"rgb_array"``.
     """
 
     metadata = {"render_modes": ["rgb_array"]}
@@ -158,6 +160,8 @@ class TMazeCueEnv(gymnasium.Env):
         self.observation_space = spaces.Box(0.0, 1.0, shape=(self.frame_ms, self.n_inputs), dtype=np.float32)
         self.action_space = spaces.Discrete(2)
         self.render_mode = render_mode
+        # Real time: one frame of frame_ms per frame shown.
+        self.metadata = {**type(self).metadata, "render_fps": 1000 / self.frame_ms}
 
         #: Sides of the current episode's cues (0 = left, 1 = right), in order of presentation.
         self.cues: list[int] = []
@@ -165,6 +169,7 @@ class TMazeCueEnv(gymnasium.Env):
         self.rest_ms: int | None = None
         self._frames = np.zeros((0, self.frame_ms, self.n_inputs), dtype=np.float32)
         self._frame = 0
+        self._success: bool | None = None  # the decision of the current episode, once made
 
     def lead_in_ms(self, rest_ms: int) -> int:
         """Cue-rest lead-in before the first cue that makes an episode with rest delay ``rest_ms`` whole frames.
@@ -219,16 +224,22 @@ class TMazeCueEnv(gymnasium.Env):
         raster = self.np_random.random(p.shape) < p
         self._frames = raster.astype(np.float32).reshape(-1, self.frame_ms, self.n_inputs)
         self._frame = 0
+        self._success = None
         return self._frames[0].copy(), {}
 
     def render(self) -> np.ndarray | None:
-        """The current frame's spike raster as an RGB image (``render_mode="rgb_array"``), else ``None``."""
+        """The current frame's spike raster as an RGB image (``render_mode="rgb_array"``), else ``None``.
+
+        After the decision the decision frame is shown again, its spikes green (right) or red (wrong), so that a
+        video of the episode ends on its outcome.
+        """
         if self.render_mode != "rgb_array":
             return None
         frame = self._frames[min(self._frame, len(self._frames) - 1)] if len(self._frames) else np.zeros(
             (self.frame_ms, self.n_inputs), dtype=np.float32)
         pixels = np.kron(frame, np.ones((4, 4), dtype=np.float32))
-        return np.repeat((pixels * 255).astype(np.uint8)[..., None], 3, axis=-1)
+        colour = {None: (255, 255, 255), True: (0, 200, 0), False: (230, 0, 0)}[self._success]
+        return (pixels[..., None] * np.array(colour, dtype=np.float32)).astype(np.uint8)
 
     def action_masks(self) -> np.ndarray:
         """Which actions are open on the current frame, in sb3-contrib's ``MaskablePPO`` convention.
@@ -257,6 +268,7 @@ class TMazeCueEnv(gymnasium.Env):
         if self._frame < len(self._frames):
             return self._frames[self._frame].copy(), 0.0, False, False, {}
         success = int(action) == self.correct_action
+        self._success = success
         info = {"is_success": success, "correct_action": self.correct_action}
         terminal = np.zeros(self.observation_space.shape, dtype=np.float32)
         return terminal, 1.0 if success else -1.0, True, False, info

@@ -595,6 +595,37 @@ def cmd_inspect(args: argparse.Namespace, argv: Sequence[str]) -> int:
 
 
 # ----------------------------------------------------------------------------------------------------------------
+# enjoy
+
+
+def cmd_enjoy(args: argparse.Namespace, argv: Sequence[str]) -> int:
+    import torch
+
+    from .enjoy import Player, check_video_options
+
+    _check_int("--n-episodes", args.n_episodes, 1)
+    _check_int("--max-steps", args.max_steps, 1)
+    if args.video:
+        check_output_path(args.video, "--video", directory=False)
+    try:
+        check_video_options(args.video, args.fps, args.size, args.raster)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    info, env_id = _resolve_model_args(args)
+    torch.set_num_threads(args.torch_threads)
+    model = _load(info, args.device)
+    try:
+        player = Player(model, env_id, info.env_kwargs, info.vecnormalize, info.model_path, video=args.video,
+                        fps=args.fps, size=args.size, raster=args.raster)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    print(f"{env_id}: {info.model_path}" + (f" (VecNormalize: {info.vecnormalize})" if info.vecnormalize else ""))
+    torch.manual_seed(args.seed)
+    player.run(args.n_episodes, args.deterministic, args.seed, args.max_steps, progress=not args.no_progress)
+    return 0
+
+
+# ----------------------------------------------------------------------------------------------------------------
 # parser
 
 
@@ -720,6 +751,29 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--no-progress", action="store_true", help="no progress bar")
     common(i)
     i.set_defaults(func=cmd_inspect)
+
+    y = sub.add_parser("enjoy", help="play a trained model, print each episode and record a video",
+                       description="Play episodes of a trained model (its VecNormalize statistics frozen, its "
+                       "recurrent state carried) and optionally record them: one frame after each reset and each "
+                       "step.")
+    model_source(y)
+    y.add_argument("--n-episodes", type=int, default=1, help="episodes (default: 1)")
+    y.add_argument("--deterministic", dest="deterministic", action="store_true", default=True,
+                   help="mean / arg-max actions (default)")
+    y.add_argument("--stochastic", dest="deterministic", action="store_false", help="sampled actions")
+    y.add_argument("--seed", type=int, default=0, help="reset seed of the first episode (default: 0)")
+    y.add_argument("--max-steps", type=int, help="at most N steps per episode (default: until the env ends it)")
+    y.add_argument("--video", metavar="FILE", help="record the episodes to FILE: .mp4 or .gif (needs "
+                   "pip install \"sb3-spikeplastic[video]\"; MuJoCo renders with MUJOCO_GL, else egl or osmesa)")
+    y.add_argument("--fps", type=float, help="frames per second of the video (default: the env's render_fps, "
+                   "else 30)")
+    y.add_argument("--size", type=int, nargs=2, metavar=("W", "H"), help="frame size of the video (default: the "
+                   "env's, 480 480 for MuJoCo)")
+    y.add_argument("--raster", action="store_true", help="draw the hidden layers' spikes of the last 200 ms beside "
+                   "each frame (SpikePlasticPolicy)")
+    y.add_argument("--no-progress", action="store_true", help="no progress bar")
+    common(y)
+    y.set_defaults(func=cmd_enjoy)
     return parser
 
 
