@@ -32,7 +32,7 @@ import shlex
 import sys
 import warnings
 from pathlib import Path
-from typing import Any, Callable, Optional, Sequence
+from typing import Any, Optional, Sequence
 
 import gymnasium
 
@@ -334,9 +334,9 @@ def _resolve_model_args(args: argparse.Namespace) -> tuple[RunInfo, str]:
 
 
 def cmd_evaluate(args: argparse.Namespace, argv: Sequence[str]) -> int:
-    import numpy as np
     import torch
-    from stable_baselines3.common.evaluation import evaluate_policy
+
+    from .evaluation import evaluate_model
 
     _check_int("--episodes", args.episodes, 1)
     _check_int("--n-envs", args.n_envs, 1)
@@ -357,50 +357,27 @@ def cmd_evaluate(args: argparse.Namespace, argv: Sequence[str]) -> int:
         venv = make_eval_env(env_id, args.n_envs, args.seed, info.env_kwargs, info.vecnormalize)
     except Exception as exc:
         raise UsageError(f"cannot make {env_id} with the statistics {str(info.vecnormalize)!r}: {exc}") from None
-    from tqdm.auto import tqdm
-
-    successes: list[float] = []
-    bar = tqdm(total=args.episodes, unit="episode", disable=args.no_progress, dynamic_ncols=True)
-
-    def on_step(local_vars: dict, _globals: dict) -> None:
-        if local_vars["done"] and "episode" in local_vars["info"]:
-            bar.update(1)
-            value = local_vars["info"].get("is_success")
-            if value is not None:
-                successes.append(float(value))
-
-    import contextlib
-
-    from .monitoring import EnergyMeter
-
-    torch.manual_seed(args.seed)
-    snn = getattr(model.policy, "snn", None)
     try:
-        with EnergyMeter(snn) if snn is not None else contextlib.nullcontext() as meter:
-            returns, lengths = evaluate_policy(model, venv, n_eval_episodes=args.episodes,
-                                               deterministic=args.deterministic, return_episode_rewards=True,
-                                               callback=on_step)
+        result = evaluate_model(model, venv, args.episodes, args.deterministic, args.seed,
+                                progress=not args.no_progress)
     finally:
-        bar.close()
         venv.close()
-    energy = meter.summary() if meter is not None else None
-    returns = np.asarray(returns, dtype=float)
+    summary = result.as_dict()
     mode = "deterministic" if args.deterministic else "stochastic"
     print(f"{env_id}: {info.model_path}" + (f" (VecNormalize: {info.vecnormalize})" if info.vecnormalize else ""))
-    print(f"mean return {returns.mean():.3f} ± {returns.std():.3f} over {len(returns)} episodes ({mode}); "
-          f"mean episode length {np.mean(lengths):.1f}")
-    if successes:
-        print(f"success rate {np.mean(successes):.3f} ({int(np.sum(successes))}/{len(successes)})")
+    print(f"mean return {summary['mean_return']:.3f} ± {summary['std_return']:.3f} over {summary['episodes']} "
+          f"episodes ({mode}); mean episode length {summary['mean_length']:.1f}")
+    if result.successes:
+        print(f"success rate {result.success_rate:.3f} ({int(sum(result.successes))}/{len(result.successes)})")
+    energy = result.energy
     if energy is not None:
         layers = " / ".join(f"{x:,.0f}" for x in energy["synops_per_step"])
         print(f"per environment step: {energy['total_spikes_per_step']:,.1f} spikes (input population: "
               f"{energy['spikes_per_step'][0]:,.1f}), {energy['total_synops_per_step']:,.0f} SynOps ({layers} by layer)")
     if args.output:
-        result = dict(env=env_id, model=str(info.model_path), episodes=len(returns), deterministic=args.deterministic,
-                      seed=args.seed, mean_return=float(returns.mean()), std_return=float(returns.std()),
-                      mean_length=float(np.mean(lengths)),
-                      success_rate=float(np.mean(successes)) if successes else None, energy=energy)
-        atomic_write(args.output, lambda f: json.dump(result, f, indent=1), binary=False)
+        record = dict(env=env_id, model=str(info.model_path), deterministic=args.deterministic, seed=args.seed,
+                      **summary)
+        atomic_write(args.output, lambda f: json.dump(record, f, indent=1), binary=False)
     return 0
 
 
@@ -537,8 +514,7 @@ def cmd_plot(args: argparse.Namespace, argv: Sequence[str]) -> int:
 def cmd_inspect(args: argparse.Namespace, argv: Sequence[str]) -> int:
     import torch
 
-    from .envs.tmaze import TMazeCueEnv
-    from .monitoring import record_episode
+    from .monitoring import inspection_episodes, record_episode
 
     if args.output:
         check_output_path(args.output, "-o/--output", directory=True)
@@ -558,13 +534,7 @@ def cmd_inspect(args: argparse.Namespace, argv: Sequence[str]) -> int:
         probe = gymnasium.make(env_id, **kwargs)
     except Exception as exc:
         raise UsageError(f"cannot make {env_id}: {exc}") from None
-    episodes: dict[str, Callable[[], gymnasium.Env]] = {"typical": lambda: gymnasium.make(env_id, **kwargs)}
-    if isinstance(probe.unwrapped, TMazeCueEnv):
-        n_cues, rest = probe.unwrapped.n_cues, probe.unwrapped.p_cue_rest
-        episodes["all_left"] = lambda: gymnasium.make(env_id, **{**kwargs, "cues": [0] * n_cues})
-        episodes["all_right"] = lambda: gymnasium.make(env_id, **{**kwargs, "cues": [1] * n_cues})
-        # No cue: every cue population (the decision cue's too) fires at its rest rate throughout.
-        episodes["no_cue"] = lambda: gymnasium.make(env_id, **{**kwargs, "p_cue_event": rest})
+    episodes = inspection_episodes(env_id, kwargs)
     try:
         _check_spaces(model, probe, env_id, info.model_path)
     finally:
