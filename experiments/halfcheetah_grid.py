@@ -269,7 +269,10 @@ def main(argv=None) -> int:
         def launch(job):
             run = latest_run(*job, args)
             if run is not None and (run / f"{ENV}.zip").exists():
-                return 0  # finished before: the grid resumes where it stopped
+                # finished before: the grid resumes where it stopped (with the final evaluation, if it is missing)
+                if (run / "final_eval.json").exists():
+                    return 0
+                return run_one([lambda: final_command(*job, args)], args.out / "logs" / f"{job[0]}_{job[1]}.log")
             commands = [lambda: train_command(*job, args), lambda: final_command(*job, args)]
             return run_one(commands, args.out / "logs" / f"{job[0]}_{job[1]}.log")
 
