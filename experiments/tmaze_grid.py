@@ -1,8 +1,10 @@
 """The cue-association experiment (paper §3.1, Fig. 2): every rule on both noise levels over several seeds.
 
-Runs ``sb3-spikeplastic train`` for each (environment, rule, seed) in parallel processes, one torch thread each
-(a thread pool that waits on subprocesses: standard tools only), with a deterministic 100-episode evaluation
-every ``--eval-freq`` steps, then aggregates the run folders into ``--out``:
+The grid is ``experiments/tmaze_grid.yml`` (8 variants x 2 mazes x 3 seeds, 200k steps, a deterministic
+100-episode evaluation every 5000 steps, the final and best models on 1000 held-out episodes); this script selects
+part of it from its flags, runs it with ``sb3-spikeplastic grid``'s workers (``--jobs`` processes, one torch
+thread each, sharing an Optuna study in ``--out``: an interrupted grid continues where it stopped, and a killed
+worker's cell is run again), then aggregates the run folders into ``--out``:
 
 * ``success_curves.png`` / ``curves.csv`` — evaluation success rate vs environment steps, mean and min-max band
   over seeds, one panel per noise level (paper Fig. 2 A-B);
@@ -10,7 +12,8 @@ every ``--eval-freq`` steps, then aggregates the run folders into ``--out``:
 * ``summary.csv`` / ``summary.md`` — per environment and rule: final and best success, environment steps and
   minutes to 0.9 and 0.97 (per seed; "-" where never reached), and the success of the final model and of the
   best evaluated model (``best_model.zip``) on ``--heldout-episodes`` (1000) episodes of seeds no evaluation during
-  training saw; ``table.md`` the same, one row per rule.
+  training saw; ``table.md`` the same, one row per rule;
+* the grid's own ``grid.csv`` / ``grid.md`` (final held-out return and success per cell).
 
 Usage::
 
@@ -26,48 +29,30 @@ import csv
 import json
 import os
 import sys
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import yaml
-from grid_common import cli, run_one
 
-#: The neuromodulation stabiliser (bounded modulation, see plasticity.modulatory_signal) with W_m starting at
-#: 5 I, so that M = tanh(W_m r_post) ~ 0.6-0.8 at the initial hidden rates (with the paper's W_m ~ I, M ~ r_post
-#: ~ 0.2 makes the Hebbian term 5x weaker than the DP rules' at initialisation).
-STABILISED = ["policy_kwargs.rule_kwargs.modulation=tanh", "policy_kwargs.rule_kwargs.wm_init_gain=5"]
-#: Grid entries: a rule name, or ``<rule>+tanh`` for that rule with the stabiliser's overrides.
-VARIANTS = {"static": [], "dp-linear": [], "dp-oja": [], "dp-bcm": [], "ndp-oja": [], "ndp-bcm": [],
-            "ndp-oja+tanh": STABILISED, "ndp-bcm+tanh": STABILISED}
-RULES = tuple(VARIANTS)
+from sb3_spikeplastic import grid as grid_mod
+
+GRID_FILE = Path(__file__).resolve().parent / "tmaze_grid.yml"
+#: The grid's variants: a rule name, or ``<rule>+tanh`` for that rule with the NDP stabiliser.
+RULES = tuple(grid_mod.load_grid(GRID_FILE).variants)
 ENVS = ("TMazeCue-v0", "TMazeCueNoisy-v0")
-#: First environment seed of the held-out evaluation (EvalCallback's evaluations use the training seed's range).
-HELDOUT_SEED = 1_000_000
 
 
-
-def run_folder(env: str, variant: str, seed: int, args: argparse.Namespace) -> Path:
-    return args.out / "runs" / f"{env}_{variant}_{seed}"
-
-
-def train_command(env: str, variant: str, seed: int, args: argparse.Namespace) -> list[str]:
-    overrides = [*VARIANTS[variant], *args.hyperparams]
-    return [cli(), "train", "--env", env, "--rule", variant.split("+")[0], "--seed", str(seed),
-            "-n", str(args.n_timesteps), "-f", str(run_folder(env, variant, seed, args)),
-            "--eval-freq", str(args.eval_freq), "--eval-episodes", "100", "--torch-threads", "1",
-            "--no-progress", "-v", "0", *(["--hyperparams", *overrides] if overrides else [])]
-
-
-def heldout_command(env: str, variant: str, seed: int, args: argparse.Namespace, best: bool = False) -> list[str]:
-    """Evaluate the run's final model (``best``: its ``best_model.zip``) on ``--heldout-episodes`` episodes from
-    seeds the training's evaluations never used: 100-episode evaluations have a standard error of ~0.02 near
-    0.95, so the best of several of them overstates the selected model's success rate."""
-    (run,) = sorted(run_folder(env, variant, seed, args).glob("ppo/*_*"))[-1:]
-    return [cli(), "evaluate", "--run", str(run), *(["--best"] if best else []), "--episodes",
-            str(args.heldout_episodes), "--n-envs", "10", "--seed", str(HELDOUT_SEED), "--torch-threads", "1",
-            "-o", str(run / ("heldout_best.json" if best else "heldout.json"))]
-
+def selected_grid(args: argparse.Namespace) -> grid_mod.Grid:
+    """The part of ``--grid`` that the flags select, with their settings."""
+    grid = grid_mod.load_grid(args.grid)
+    final = grid.final_eval
+    if args.heldout_episodes is not None:
+        final = grid_mod.FinalEval(args.heldout_episodes, final.seed, final.n_envs,
+                                   final.best_model and args.heldout_episodes > 0)
+    return grid.select(envs=args.envs, variants=args.rules, seeds=args.seeds, final_eval=final,
+                       hyperparams=[*grid.hyperparams, *args.hyperparams],
+                       **({"n_timesteps": args.n_timesteps} if args.n_timesteps else {}),
+                       **({"eval_freq": args.eval_freq} if args.eval_freq is not None else {}))
 
 
 def read_progress(run: Path) -> dict[str, np.ndarray]:
@@ -78,6 +63,15 @@ def read_progress(run: Path) -> dict[str, np.ndarray]:
         return np.array([float(r[name]) if r.get(name) not in (None, "") else np.nan for r in rows])
 
     return {k: column(k) for k in ("time/total_timesteps", "time/time_elapsed", "snn/layer0/spike_rate")}
+
+
+def read_heldout(run: Path, name: str) -> dict:
+    """A held-out evaluation of a run: ``final_eval[_best].json`` written by the grid (``heldout[_best].json`` in
+    older results folders); ``{}`` if there is none."""
+    for file in (run / f"{name.replace('heldout', 'final_eval')}.json", run / f"{name}.json"):
+        if file.exists():
+            return json.loads(file.read_text())
+    return {}
 
 
 def load_run(folder: Path) -> dict | None:
@@ -93,8 +87,7 @@ def load_run(folder: Path) -> dict | None:
     steps = evaluations["timesteps"]
     known = ~np.isnan(progress["time/total_timesteps"]) & ~np.isnan(progress["time/time_elapsed"])
     minutes = np.interp(steps, progress["time/total_timesteps"][known], progress["time/time_elapsed"][known]) / 60
-    heldout = {name: json.loads((run / f"{name}.json").read_text()) if (run / f"{name}.json").exists() else {}
-               for name in ("heldout", "heldout_best")}
+    heldout = {name: read_heldout(run, name) for name in ("heldout", "heldout_best")}
     return dict(env=env_id, rule=variant, seed=meta["seed"], steps=steps, minutes=minutes,
                 success=evaluations["successes"].mean(axis=1), progress=progress,
                 heldout=heldout["heldout"].get("success_rate", np.nan),
@@ -200,38 +193,36 @@ def aggregate(out: Path) -> None:
     print(f"wrote {out}/success_curves.png, firing_rates.png, summary.csv, summary.md, curves.csv")
 
 
-def main(argv=None) -> int:
+def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--rules", nargs="+", default=list(RULES), choices=RULES)
-    parser.add_argument("--envs", nargs="+", default=list(ENVS), choices=ENVS)
-    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    parser.add_argument("-n", "--n-timesteps", type=int, default=200_000)
-    parser.add_argument("--eval-freq", type=int, default=5_000, help="environment steps between evaluations")
-    parser.add_argument("--jobs", type=int, default=os.cpu_count(), help="parallel training processes")
+    parser.add_argument("--grid", type=Path, default=GRID_FILE, help="grid file (default: tmaze_grid.yml)")
+    parser.add_argument("--rules", nargs="+", choices=RULES, help="variants (default: the grid's)")
+    parser.add_argument("--envs", nargs="+", choices=ENVS, help="default: the grid's")
+    parser.add_argument("--seeds", nargs="+", type=int, help="default: the grid's (0 1 2)")
+    parser.add_argument("-n", "--n-timesteps", type=int, help="default: the grid's (200000)")
+    parser.add_argument("--eval-freq", type=int, help="environment steps between evaluations (default: the grid's, "
+                        "5000)")
+    parser.add_argument("--jobs", type=int, default=os.cpu_count(), help="parallel training processes (workers)")
     parser.add_argument("--hyperparams", nargs="*", default=[], help="overrides passed to every run")
-    parser.add_argument("--out", type=Path, default=Path("results/tmaze"))
-    parser.add_argument("--heldout-episodes", type=int, default=1000,
-                        help="episodes of the final model's held-out evaluation (0: none)")
+    parser.add_argument("--out", type=Path, default=Path("results/tmaze"), help="the grid's folder; its name is "
+                        "the study's")
+    parser.add_argument("--storage", help="a study shared with workers elsewhere (default: SQLite in --out)")
+    parser.add_argument("--heldout-episodes", type=int, help="episodes of the final and best models' held-out "
+                        "evaluations (default: the grid's, 1000; 0: none)")
     parser.add_argument("--aggregate-only", action="store_true")
-    args = parser.parse_args(argv)
-    if not args.aggregate_only:
-        # Seed-major order: a grid stopped early still has every rule on both mazes for the first seeds.
-        jobs = [(e, r, s) for s in args.seeds for e in args.envs for r in args.rules]
-        print(f"{len(jobs)} runs, {args.jobs} at a time; logs under {args.out / 'logs'}")
-        def launch(job):
-            commands = [lambda: train_command(*job, args)]
-            if args.heldout_episodes:
-                commands += [lambda: heldout_command(*job, args), lambda: heldout_command(*job, args, best=True)]
-            env, rule, seed = job
-            return run_one(commands, args.out / "logs" / f"{env}_{rule}_{seed}.log")
+    return parser.parse_args(argv)
 
-        with ThreadPoolExecutor(args.jobs) as pool:
-            codes = list(pool.map(launch, jobs))
-        failed = [job for job, code in zip(jobs, codes) if code]
-        if failed:
-            print(f"failed runs (see their logs): {failed}", file=sys.stderr)
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    status = 0
+    if not args.aggregate_only:
+        job = grid_mod.prepare(selected_grid(args), args.out, args.out.name, args.storage)
+        status = grid_mod.run(job, workers=args.jobs)
+        if status:
+            print(f"the grid stopped with status {status}: see {args.out / 'grid.md'}", file=sys.stderr)
     aggregate(args.out)
-    return 0
+    return status
 
 
 if __name__ == "__main__":

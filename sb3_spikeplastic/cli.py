@@ -292,6 +292,56 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
 
 
 # ----------------------------------------------------------------------------------------------------------------
+# optimize and grid (their logic: optimize.py, grid.py and studies.py)
+
+
+def _check_storage(storage: Optional[str]) -> None:
+    from .studies import is_url
+
+    if storage is not None and not is_url(storage):  # a journal file
+        check_output_path(storage, "--storage", directory=False)
+
+
+def cmd_optimize(args: argparse.Namespace, argv: Sequence[str]) -> int:
+    from . import optimize
+
+    _check_int("--torch-threads", args.torch_threads, 1)
+    _check_device(args.device)
+    check_output_path(args.log_folder, "-f/--log-folder", directory=True)
+    _check_storage(args.storage)
+    settings = optimize.OptimizeSettings(
+        args.env, args.conf, args.rule, args.hyperparams or (), args.n_timesteps, args.n_trials, args.sampler,
+        args.pruner, args.n_startup_trials, args.n_evaluations, args.eval_episodes, args.seeds_per_trial,
+        args.storage, args.study_name, Path(args.log_folder), args.seed, args.device, args.torch_threads,
+        args.search_space)
+    try:
+        search = optimize.prepare(settings)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    return optimize.run(search)
+
+
+def cmd_grid(args: argparse.Namespace, argv: Sequence[str]) -> int:
+    from . import grid
+
+    for name, value, minimum in (("--workers", args.workers, 1), ("--heartbeat-interval", args.heartbeat_interval, 1),
+                                 ("--grace-period", args.grace_period, args.heartbeat_interval + 1),
+                                 ("--torch-threads", args.torch_threads, 1)):
+        _check_int(name, value, minimum)
+    _check_device(args.device)
+    check_output_path(args.log_folder, "-f/--log-folder", directory=True)
+    _check_storage(args.storage)
+    name = args.study_name or Path(args.grid_file).stem
+    try:
+        job = grid.prepare(grid.load_grid(args.grid_file), Path(args.log_folder) / "grid" / name, name, args.storage,
+                           args.summary_only, heartbeat_interval=args.heartbeat_interval,
+                           grace_period=args.grace_period, device=args.device, torch_threads=args.torch_threads)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    return grid.run(job, args.workers, args.retry_failed, args.summary_only)
+
+
+# ----------------------------------------------------------------------------------------------------------------
 # evaluate
 
 
@@ -627,6 +677,12 @@ def build_parser() -> argparse.ArgumentParser:
                             "where there is no GPU), mps, or auto (cuda when available)")
         p.add_argument("--torch-threads", type=int, default=1, help="torch.set_num_threads (default: 1)")
 
+    def study_options(p: argparse.ArgumentParser, command: str, default_name: str) -> None:
+        p.add_argument("--storage", help="RDB URL (sqlite:///f.db, postgresql://...) or journal file path, shared by "
+                       f"processes on any machine (default: <log folder>/{command}/<study>/study.db)")
+        p.add_argument("--study-name", help=f"default: {default_name}; an existing study is continued")
+        p.add_argument("-f", "--log-folder", default="logs", help="log folder (default: logs)")
+
     def model_source(p: argparse.ArgumentParser) -> None:
         p.add_argument("--run", help="run folder written by `train` (uses its <EnvId>.zip, config, VecNormalize)")
         p.add_argument("--model", help="a model .zip (with --env); VecNormalize statistics beside it are found")
@@ -669,6 +725,48 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     common(t)
     t.set_defaults(func=cmd_train)
+
+    o = sub.add_parser("optimize", help="hyperparameter search with Optuna (rl-zoo style); writes the best trial "
+                       "as a hyperparameter file", description="Search hyperparameters of an entry with Optuna: "
+                       "each trial samples the packaged search space, trains like `train` and is evaluated "
+                       "n-evaluations times (pruning); the best trial becomes <log folder>/optimize/<study>/best.yml.")
+    o.add_argument("--env", required=True, help="Gymnasium id")
+    o.add_argument("--conf", help="hyperparameter file the trials start from (default: ppo)")
+    o.add_argument("--rule", help="fixed plasticity rule (default: the rule is searched)")
+    o.add_argument("--hyperparams", nargs="+", metavar="KEY=VALUE", help="fixed overrides (not searched)")
+    o.add_argument("-n", "--n-timesteps", type=_count, help="environment steps per trial and seed (default: the "
+                   "entry's)")
+    o.add_argument("--n-trials", type=int, default=20, help="trials this process runs (default: 20)")
+    o.add_argument("--sampler", default="tpe", help="tpe (default) or random")
+    o.add_argument("--pruner", default="median", help="median (default) or none")
+    o.add_argument("--n-startup-trials", type=int, default=5, help="random trials before TPE, and trials before "
+                   "the median pruner prunes (default: 5)")
+    o.add_argument("--n-evaluations", type=int, default=5, help="evaluations per trial and seed, reported to the "
+                   "pruner (default: 5)")
+    o.add_argument("--eval-episodes", type=int, default=10, help="episodes per evaluation (default: 10)")
+    o.add_argument("--seeds-per-trial", type=int, default=1, help="train each trial on seeds 0..N-1; its value is "
+                   "the mean (default: 1)")
+    study_options(o, "optimize", "<EnvId>_<conf>[_<rule>]")
+    o.add_argument("--seed", type=int, help="seed of the sampler (default: random; give each process sharing a "
+                   "study its own)")
+    o.add_argument("--search-space", help="search-space file (default: the packaged search_space.yml)")
+    common(o)
+    o.set_defaults(func=cmd_optimize)
+
+    g = sub.add_parser("grid", help="train each cell (variant x env x seed) of a grid file once, by workers on any "
+                       "machines sharing an Optuna study", description="A killed worker's cell is run again. "
+                       "Writes <log folder>/grid/<study>/: runs/, grid.csv and grid.md.")
+    study_options(g, "grid", "the grid file's name without .yml")
+    g.add_argument("grid_file", metavar="GRID_FILE", help="the grid (YAML; see docs/cli.md)")
+    g.add_argument("--workers", type=int, default=1, help="worker processes on this machine (default: 1)")
+    g.add_argument("--heartbeat-interval", type=int, default=60, help="seconds between heartbeats of a running "
+                   "cell (default: 60)")
+    g.add_argument("--grace-period", type=int, help="seconds without a heartbeat after which a cell is run again "
+                   "(default: twice the interval)")
+    g.add_argument("--retry-failed", action="store_true", help="first queue again the cells whose training failed")
+    g.add_argument("--summary-only", action="store_true", help="only write the summary of the study as it stands")
+    common(g)
+    g.set_defaults(func=cmd_grid)
 
     e = sub.add_parser("evaluate", help="mean return (and success rate) of a trained model")
     model_source(e)

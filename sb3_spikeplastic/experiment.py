@@ -90,18 +90,22 @@ class Experiment:
     :param vec_env: ``dummy`` (environments in this process) or ``subproc``
     :param progress: show a progress bar
     :param trained_agent: a model to continue (its run's VecNormalize statistics and TensorBoard folder too)
+    :param after_eval: a callback run after each evaluation (SB3's ``callback_after_eval``: it reads the result
+        from its ``parent``, the ``EvalCallback``, and stops training by returning ``False``), e.g. to report
+        evaluations to an Optuna trial
     """
 
     def __init__(self, env_id: str, config: dict, seed: int, log_folder: Path, tensorboard_log: Optional[Path] = None,
                  device: str = "cpu", verbose: int = 1, eval_freq: int = 0, eval_episodes: int = 20,
                  save_freq: int = 0, keep_checkpoints: int = 2, figure_freq: int = 0, vec_env: str = "dummy",
-                 progress: bool = True, trained_agent: Optional[RunInfo] = None):
+                 progress: bool = True, trained_agent: Optional[RunInfo] = None, after_eval=None):
         self.env_id, self.config, self.seed = env_id, config, seed
         self.log_folder, self.tensorboard_log = Path(log_folder), tensorboard_log
         self.device, self.verbose, self.vec_env, self.progress = device, verbose, vec_env, progress
         self.eval_freq, self.eval_episodes, self.figure_freq = eval_freq, eval_episodes, figure_freq
         self.save_freq, self.keep_checkpoints = save_freq, keep_checkpoints
         self.source = trained_agent
+        self.after_eval = after_eval
         self.model = None
         self.run_dir: Optional[Path] = None
         self.tb_dir: Optional[Path] = None
@@ -190,7 +194,8 @@ class Experiment:
             callbacks.append(EvalCallback(
                 eval_env, callback_on_new_best=SaveBest(self.run_dir / "best_model.zip"),
                 n_eval_episodes=self.eval_episodes, eval_freq=max(self.eval_freq // self.n_envs, 1),
-                log_path=str(self.run_dir), best_model_save_path=None, deterministic=True, verbose=self.verbose))
+                log_path=str(self.run_dir), best_model_save_path=None, deterministic=True, verbose=self.verbose,
+                callback_after_eval=self.after_eval))
         if self.save_freq:
             callbacks.append(AtomicCheckpoint(max(self.save_freq // self.n_envs, 1), self.run_dir,
                                               self.keep_checkpoints))

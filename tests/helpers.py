@@ -37,3 +37,24 @@ def deterministic_success(model, env, n_episodes):
         obs, _, starts, infos = env.step(actions)
         successes += [infos[i]["is_success"] for i in np.flatnonzero(starts)]
     return float(np.mean(successes[:n_episodes]))
+
+
+#: A CartPole hyperparameter file of a few hundred steps (MlpPolicy: no spike kernels to compile), for commands
+#: that train many short runs (optimize, grid).
+TINY_CARTPOLE = """CartPole-v1:
+  policy: MlpPolicy
+  n_timesteps: 512
+  n_envs: 2
+  n_steps: 32
+  batch_size: 32
+  n_epochs: 1
+"""
+
+
+def run_cli(capsys, *argv):
+    """``sb3-spikeplastic ARGV`` in this process: ``(exit status, stdout, stderr)``."""
+    from sb3_spikeplastic import cli
+
+    code = cli.main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
