@@ -48,9 +48,9 @@ def run(name: str, make_model, timesteps: int, warmup: int) -> dict:
     seconds = time.perf_counter() - start
     row = dict(name=name, timesteps=timesteps, seconds=seconds, env_steps_per_s=timesteps / seconds,
                peak_rss_mb=peak_rss_mb())
-    if hasattr(model, "_last_network_state") and model._last_network_state is not None:
+    if getattr(model, "network_state", None) is not None:
         n_envs = model.n_envs
-        row["state_bytes_per_env"] = model._last_network_state.nbytes() / n_envs
+        row["state_bytes_per_env"] = model.network_state.nbytes() / n_envs
         row["snapshot_bytes_per_rollout"] = model.rollout_buffer.snapshot_nbytes()
     print(f"{name:36s} {row['env_steps_per_s']:8.1f} env-steps/s  ({seconds:.1f} s)  peak RSS {row['peak_rss_mb']:.0f} MB",
           flush=True)

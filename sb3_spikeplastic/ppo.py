@@ -136,6 +136,12 @@ class PPO(SB3PPO):
             self._setup_model()
 
     @property
+    def network_state(self) -> Optional[NetworkState]:
+        """The per-environment network state (filters, traces, noise keys) that the next rollout continues from;
+        ``None`` for feed-forward policies."""
+        return self._last_network_state
+
+    @property
     def recurrent(self) -> bool:
         return bool(getattr(self.policy_class, "recurrent", False))
 

@@ -214,7 +214,7 @@ def test_compiled_sampler_is_bit_identical_to_the_eager_hash(monkeypatch, dtype)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         if _fast.load_ops() is None:
-            pytest.skip(f"compiled ops unavailable: {_fast._error}")
+            pytest.skip(f"compiled ops unavailable: {_fast.build_error()}")
     sampler = CounterBernoulli()
     keys = torch.tensor([0, -1, 2**31 - 1, -(2**31), 12345, -987654], dtype=torch.int32)
     p = torch.rand(6, 37, generator=torch.Generator().manual_seed(0), dtype=dtype)

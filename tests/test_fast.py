@@ -46,7 +46,7 @@ def compiled(monkeypatch):
         warnings.simplefilter("ignore", RuntimeWarning)
         ops = _fast.load_ops()
     if ops is None:
-        pytest.skip(f"compiled ops unavailable: {_fast._error}")
+        pytest.skip(f"compiled ops unavailable: {_fast.build_error()}")
     return ops.srm_loop
 
 
@@ -244,7 +244,7 @@ def compiled_cuda(monkeypatch):
         warnings.simplefilter("ignore", RuntimeWarning)
         ops = _fast.load_cuda_ops()
     if ops is None:
-        pytest.skip(f"CUDA op unavailable: {_fast._cuda_error}")
+        pytest.skip(f"CUDA op unavailable: {_fast.build_error(cuda=True)}")
     return ops.srm_loop
 
 

@@ -82,7 +82,7 @@ def test_snapshots_only_at_chunk_starts_and_memory():
     model.learn(64)
     buf = model.rollout_buffer
     assert len(buf.snapshots) == 32 // 16
-    per_env = model._last_network_state.nbytes() / 2
+    per_env = model.network_state.nbytes() / 2
     assert buf.snapshot_nbytes() == pytest.approx(2 * 2 * per_env)
 
 

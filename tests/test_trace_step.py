@@ -35,7 +35,7 @@ def fused(monkeypatch):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         if _fast.load_ops() is None:
-            pytest.skip(f"compiled ops unavailable: {_fast._error}")
+            pytest.skip(f"compiled ops unavailable: {_fast.build_error()}")
 
 
 def case(dtype, B=3, O=5, I=9, seed=0, scale=3.0):

@@ -226,6 +226,12 @@ def load_cuda_ops() -> Optional[Any]:
     return _cuda_ops
 
 
+def build_error(cuda: bool = False) -> Optional[str]:
+    """Why the compiled CPU ops (``cuda``: the CUDA op) are unavailable: the build's error, or ``None`` when they
+    loaded or no build was tried yet."""
+    return _cuda_error if cuda else _error
+
+
 def _enabled_ops() -> Optional[Any]:
     if NO_COMPILE_ENV in os.environ and compiled_disabled():
         return None
