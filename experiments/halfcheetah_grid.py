@@ -12,7 +12,8 @@ model), and aggregates into ``--out``:
 * ``robustness.png`` — per noise type, the return ratio to sigma = 0 against sigma, mean and standard deviation
   over seeds (Fig. 4 F-H);
 * ``table.md`` / ``summary.csv`` / ``robustness_summary.csv`` — per variant: final deterministic return per seed,
-  steps and minutes per run; per group of models and noise type, the area under the ratio curve (trapezoid over
+  steps, the gradient norm's median over the second half of training, skipped updates and wall-clock minutes per
+  run; per group of models and noise type, the area under the ratio curve (trapezoid over
   sigma, divided by the sigma range: 1 = no loss) and the worst ratio, mean ± standard deviation over the models.
 
 Variants: the rules of ``ppo.yml``'s HalfCheetah entry (``static``, ``dp-oja``...), ``<rule>+tanh`` (the
@@ -201,14 +202,20 @@ def aggregate(args: argparse.Namespace) -> None:
     for name, run in runs.items():
         final = run / "final_eval.json"
         meta = yaml.safe_load((run / ENV / "args.yml").read_text())
-        minutes, steps = 0.0, 0
+        minutes, steps, grad_norms, skipped = 0.0, 0, [], 0
         for folder in sorted(run.parent.glob(f"{ENV}_*")):  # the run and the runs it continued
             with open(folder / "progress.csv") as f:
-                rows = [r for r in csv.DictReader(f) if r.get("time/time_elapsed")]
+                progress = list(csv.DictReader(f))
+            rows = [r for r in progress if r.get("time/time_elapsed")]
             if rows:
                 minutes += float(rows[-1]["time/time_elapsed"]) / 60
                 steps = max(steps, int(float(rows[-1]["time/total_timesteps"])))
+            grad_norms += [float(r["train/grad_norm"]) for r in progress if r.get("train/grad_norm")]
+            skipped += sum(int(float(r["train/skipped_steps"])) for r in progress if r.get("train/skipped_steps"))
+        # The gradient norm's scale over the second half of training: where a rule's loop makes it explode.
+        late_norm = float(np.median(grad_norms[len(grad_norms) // 2:])) if grad_norms else np.nan
         summary.append(dict(variant=variant_of(name), seed=meta["seed"], steps=steps, minutes=minutes,
+                            grad_norm=late_norm, skipped_steps=skipped,
                             final_return=json.loads(final.read_text())["mean_return"] if final.exists() else np.nan))
     for name, rows in (("summary.csv", summary), ("robustness_summary.csv", robustness_summary), ("curves.csv", curves)):
         if rows:
@@ -221,12 +228,14 @@ def aggregate(args: argparse.Namespace) -> None:
         values = [v for v in values if v == v]
         return " / ".join(fmt.format(v) for v in values) or "-"
 
-    lines = ["| variant | seeds | deterministic return, 10 episodes (per seed) | steps | minutes per run |",
-             "|---|---|---|---|---|"]
+    lines = ["| variant | seeds | deterministic return, 10 episodes (per seed) | steps | gradient norm, median of the "
+             "second half | skipped updates | wall-clock minutes (shared machine) |", "|---|---|---|---|---|---|---|"]
     for variant in variants:
         rows = sorted((r for r in summary if r["variant"] == variant), key=lambda r: r["seed"])
         lines.append(f"| {variant} | {len(rows)} | {cell([r['final_return'] for r in rows], '{:.0f}')} | "
-                     f"{cell([r['steps'] for r in rows], '{:,}')} | {cell([r['minutes'] for r in rows], '{:.0f}')} |")
+                     f"{cell([r['steps'] for r in rows], '{:,}')} | {cell([r['grad_norm'] for r in rows], '{:.3g}')} "
+                     f"| {cell([r['skipped_steps'] for r in rows], '{}')} | "
+                     f"{cell([r['minutes'] for r in rows], '{:.0f}')} |")
     if robustness_summary:
         lines += ["", "| models | n | " + " | ".join(f"{n}: AUC | {n}: worst" for n in noises) + " |",
                   "|---|---|" + "---|---|" * len(noises)]
