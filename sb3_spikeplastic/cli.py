@@ -692,6 +692,11 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--env-kwargs", nargs="+", metavar="KEY=VALUE", help="gymnasium.make arguments, values as "
                        "YAML (default: the run's env_kwargs), e.g. max_episode_steps=200")
 
+    def action_mode(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--deterministic", dest="deterministic", action="store_true", default=True,
+                       help="mean / arg-max actions (default)")
+        p.add_argument("--stochastic", dest="deterministic", action="store_false", help="sampled actions")
+
     t = sub.add_parser("train", help="train a policy (rl-zoo style hyperparameters and log folder)",
                        description="Train sb3_spikeplastic.PPO with hyperparameters from hyperparams/ppo.yml.")
     t.add_argument("--env", required=True, help="Gymnasium id, e.g. TMazeCue-v0, HalfCheetah-v5")
@@ -771,9 +776,7 @@ def build_parser() -> argparse.ArgumentParser:
     e = sub.add_parser("evaluate", help="mean return (and success rate) of a trained model")
     model_source(e)
     e.add_argument("--episodes", type=int, default=100, help="episodes (default: 100)")
-    e.add_argument("--deterministic", dest="deterministic", action="store_true", default=True,
-                   help="mean / arg-max actions (default)")
-    e.add_argument("--stochastic", dest="deterministic", action="store_false", help="sampled actions")
+    action_mode(e)
     e.add_argument("--seed", type=int, default=0, help="environment seed (default: 0)")
     e.add_argument("--n-envs", type=int, default=1, help="environments side by side (default: 1)")
     e.add_argument("-o", "--output", help="also write the result as JSON to this file")
@@ -793,8 +796,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--env-kwargs", nargs="+", metavar="KEY=VALUE", help="gymnasium.make arguments of the "
                    "noise-free environment, values as YAML (e.g. max_episode_steps=200)")
     r.add_argument("--friction-target", default="damping", help="damping (default) or geom_friction")
-    r.add_argument("--deterministic", dest="deterministic", action="store_true", default=True)
-    r.add_argument("--stochastic", dest="deterministic", action="store_false")
+    action_mode(r)
     r.add_argument("-o", "--output", default="robustness", help="output folder (default: robustness)")
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
     common(r)
@@ -814,8 +816,7 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("-o", "--output", help="output folder (default: <run>/figures)")
     i.add_argument("--seed", type=int, default=0, help="episode seed (default: 0)")
     i.add_argument("--max-steps", type=int, help="environment steps shown (default: about 1 s of network time)")
-    i.add_argument("--deterministic", dest="deterministic", action="store_true", default=True)
-    i.add_argument("--stochastic", dest="deterministic", action="store_false")
+    action_mode(i)
     i.add_argument("--no-progress", action="store_true", help="no progress bar")
     common(i)
     i.set_defaults(func=cmd_inspect)
@@ -826,9 +827,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "step.")
     model_source(y)
     y.add_argument("--n-episodes", type=int, default=1, help="episodes (default: 1)")
-    y.add_argument("--deterministic", dest="deterministic", action="store_true", default=True,
-                   help="mean / arg-max actions (default)")
-    y.add_argument("--stochastic", dest="deterministic", action="store_false", help="sampled actions")
+    action_mode(y)
     y.add_argument("--seed", type=int, default=0, help="reset seed of the first episode (default: 0)")
     y.add_argument("--max-steps", type=int, help="at most N steps per episode (default: until the env ends it)")
     y.add_argument("--video", metavar="FILE", help="record the episodes to FILE: .mp4 or .gif (needs "
