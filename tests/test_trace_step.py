@@ -7,6 +7,8 @@ gradchecked in float64. The rules themselves are checked against NumPy in ``test
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import warnings
 
 import pytest
@@ -151,6 +153,29 @@ def test_fused_plastic_linear_equals_eager(fused, dtype, x_grad):
     assert _fast.plastic_linear(x[:1], W, alpha, E) is None  # a batch that would broadcast
 
 
+@pytest.mark.parametrize("threads", [1, 2])
+def test_fused_plastic_linear_splits_environments_between_threads(fused, threads):
+    """Environments big enough to be split between threads (each thread sums its own dW and dalpha): values and
+    gradients equal the eager ops for any thread count, and ``x``'s gradient comes out even though the pool's
+    threads start with autograd on."""
+    g = torch.Generator().manual_seed(3)
+    x = (torch.rand(5, 16, 256, generator=g, dtype=torch.float64) < 0.2).double().requires_grad_()
+    W, alpha = (torch.randn(64, 256, generator=g, dtype=torch.float64).requires_grad_() for _ in range(2))
+    E = torch.randn(5, 64, 256, generator=g, dtype=torch.float64).requires_grad_()
+    upstream = torch.randn(5, 16, 64, generator=g, dtype=torch.float64)
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        out = _fast.plastic_linear(x, W, alpha, E)
+        grads = torch.autograd.grad((out * upstream).sum(), (x, W, alpha, E))
+    finally:
+        torch.set_num_threads(before)
+    ref = x @ torch.addcmul(W, alpha, E).transpose(1, 2)
+    torch.testing.assert_close(out, ref, **TOL[torch.float64])
+    for a, b in zip(grads, torch.autograd.grad((ref * upstream).sum(), (x, W, alpha, E))):
+        torch.testing.assert_close(a, b, **TOL[torch.float64])
+
+
 @pytest.mark.parametrize("rule", ["dp-oja", "ndp-bcm"])
 def test_network_gradients_with_and_without_compiled_ops(fused, monkeypatch, rule):
     """A 4-step BPTT sequence through a 2-layer plastic network (float64, so that no spike flips on rounding):
@@ -209,3 +234,22 @@ def test_user_rule_with_hebbian_terms_runs_the_fused_update(fused, monkeypatch):
     stepped = rule.step(r_pre, r_post, state).trace
     assert calls == [1]
     torch.testing.assert_close(stepped, rule.update(r_pre, r_post, state).trace.clamp(-0.2, 0.2), rtol=1e-12, atol=1e-12)
+
+
+def test_pool_threads_follow_the_callers_flush_denormal_mode(fused):
+    """Products whose sums are subnormal floats: after ``torch.set_flush_denormal(True)`` every environment's
+    result is 0, whichever thread computed it (the pool's threads are started before the mode is set). In a
+    subprocess: the mode and the pool are process-wide."""
+    code = """
+import torch
+from sb3_spikeplastic import _fast
+torch.set_num_threads(2)
+x = torch.full((4, 16, 256), 1e-21)
+W, alpha, E = torch.full((64, 256), 1e-21), torch.zeros(64, 256), torch.zeros(4, 64, 256)
+kept = bool((_fast.plastic_linear(x, W, alpha, E) > 0).all())  # also starts the pool's threads
+torch.set_flush_denormal(True)
+print(kept, bool((_fast.plastic_linear(x, W, alpha, E) == 0).all()))
+"""
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert result.stdout.split() == ["True", "True"]

@@ -59,7 +59,7 @@ _SOURCES = [Path(__file__).with_name(name)
 
 _CUDA_EXTENSION = "sb3_spikeplastic_fast_cuda"
 _CUDA_SOURCES = [Path(__file__).with_name("srm_loop_cuda.cu")]
-_HEADERS = [Path(__file__).with_name("srm_loop_checks.h")]
+_HEADERS = [Path(__file__).with_name(name) for name in ("srm_loop_checks.h", "denormal_mode.h")]
 
 _lock = threading.Lock()
 _tried = False
@@ -323,8 +323,9 @@ def trace_step(E: Tensor, post: Tensor, pre: Tensor, eta: Tensor, e_max: float, 
 
 
 class _PlasticLinear(torch.autograd.Function):
-    """``X[b] (W + alpha * E[b])^T`` per environment, one environment's efficacy at a time (see
-    ``plastic_linear.cpp``); the gradient of ``X`` is computed only when it is needed."""
+    """``X[b] (W + alpha * E[b])^T`` per environment, one environment's efficacy at a time, environments split
+    between torch's threads (see ``plastic_linear.cpp``); the gradient of ``X`` is computed only when it is
+    needed."""
 
     @staticmethod
     def forward(ctx, x: Tensor, weight: Tensor, alpha: Tensor, E: Tensor) -> Tensor:

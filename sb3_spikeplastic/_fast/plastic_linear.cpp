@@ -1,29 +1,36 @@
 // The plastic layer's synaptic product (CPU fast path of sb3_spikeplastic.layers.PlasticSRMLayer.project):
 //
-//     Y[b] = X[b] (W + alpha * E[b])^T          X (B, L, n_in), W, alpha (n_out, n_in), E (B, n_out, n_in)
+//     Y[b] = X[b] (W + alpha * E[b])^T          X (B, R, n_in), W, alpha (n_out, n_in), E (B, n_out, n_in)
 //
 // Eager PyTorch materialises the per-environment efficacy W_eff (B, n_out, n_in) for a batched matmul, and in
 // the backward its gradient dW_eff of the same size, then reads both again for dW, dalpha and dE: four extra
-// passes over trace-sized arrays, which at the paper's sizes do not fit in cache. Here one environment's W_eff[b]
-// (or its gradient) is built in a single (n_out, n_in) buffer that stays in cache, used by one matrix product and
-// overwritten by the next environment's:
+// passes over trace-sized arrays. Here one environment's W_eff[b] (or its gradient) is built in a single
+// (n_out, n_in) buffer that stays in cache, used by one matrix product and overwritten by the next environment's:
 //
-//     forward:   buf = W + alpha * E[b];          Y[b] = X[b] buf^T
+//     forward:   eff = W + alpha * E[b];          Y[b] = X[b] eff^T
 //     backward:  G = dY[b]^T X[b]                 (the gradient of W_eff[b], in W's layout)
 //                dE[b] = alpha * G,   dW += G,   dalpha += E[b] * G       (one pass over G and E[b])
 //                dX[b] = dY[b] (W + alpha * E[b])                         (only when X needs a gradient)
 //
-// Equal to the eager ops to float rounding (the matrix products may sum in another order).
+// Environments are independent, so they are split between threads (dW and dalpha are summed per thread, then
+// added). The products stay dense: X's rows are binary spikes, but skipping the silent inputs (gathering the
+// efficacy's columns of the firing ones) needs the efficacy transposed per environment, which costs more than it
+// saves at these sizes (benchmarks/README.md, "Sparse products").
+//
+// Equal to the eager ops to float rounding (sums run in another order).
 
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
+#include <ATen/core/grad_mode.h>
 #include <ATen/core/Tensor.h>
 #include <ATen/ops/empty.h>
 #include <ATen/ops/empty_like.h>
 #include <ATen/ops/mm.h>
-#include <ATen/ops/zeros_like.h>
+#include <ATen/ops/zeros.h>
 #include <c10/core/ScalarType.h>
 #include <torch/library.h>
+
+#include "denormal_mode.h"
 
 #include <algorithm>
 #include <tuple>
@@ -40,21 +47,23 @@ void check_operands(const at::Tensor& X, const at::Tensor& W, const at::Tensor& 
               "plastic_linear: float32 or float64 tensors of one dtype");
 }
 
-// buf = W + alpha * E_b over n values, rows split between threads.
-template <typename scalar_t>
-void efficacy_into(const scalar_t* __restrict w, const scalar_t* __restrict a, const scalar_t* __restrict e,
-                   scalar_t* __restrict buf, int64_t n) {
-  at::parallel_for(0, n, 16384, [&](int64_t begin, int64_t end) {
-#pragma omp simd
-    for (int64_t k = begin; k < end; ++k) buf[k] = w[k] + a[k] * e[k];
-  });
+// Environments per task: enough work per task (~64k multiply-adds) that a thread's start-up does not dominate.
+int64_t batch_grain(int64_t rows, int64_t n_out, int64_t n_in) {
+  return std::max<int64_t>(1, 65536 / std::max<int64_t>(1, rows * n_out * n_in / 4));
 }
 
-// One row of the efficacy's gradient g: dE = g * alpha, and the batch sums dW += g, dalpha += g * E. (A function
-// of its own: a #pragma cannot stand inside AT_DISPATCH's macro argument.)
 template <typename scalar_t>
-void efficacy_grad_row(const scalar_t* __restrict g, const scalar_t* __restrict e, const scalar_t* __restrict a,
-                       scalar_t* __restrict de, scalar_t* __restrict dw, scalar_t* __restrict da, int64_t n) {
+inline void efficacy_into(const scalar_t* __restrict w, const scalar_t* __restrict a, const scalar_t* __restrict e,
+                          scalar_t* __restrict out, int64_t n) {
+#pragma omp simd
+  for (int64_t k = 0; k < n; ++k) out[k] = w[k] + a[k] * e[k];
+}
+
+// One row of the efficacy's gradient g: dE = g * alpha, and the batch sums dW += g, dalpha += g * E.
+template <typename scalar_t>
+inline void efficacy_grad_row(const scalar_t* __restrict g, const scalar_t* __restrict e,
+                              const scalar_t* __restrict a, scalar_t* __restrict de, scalar_t* __restrict dw,
+                              scalar_t* __restrict da, int64_t n) {
 #pragma omp simd
   for (int64_t i = 0; i < n; ++i) {
     de[i] = g[i] * a[i];
@@ -67,16 +76,21 @@ at::Tensor plastic_linear_forward(const at::Tensor& X_in, const at::Tensor& W_in
                                   const at::Tensor& E_in) {
   check_operands(X_in, W_in, alpha_in, E_in);
   const at::Tensor X = X_in.contiguous(), W = W_in.contiguous(), alpha = alpha_in.contiguous(), E = E_in.contiguous();
-  const int64_t B = X.size(0), L = X.size(1), O = W.size(0), N = W.numel();
-  at::Tensor Y = at::empty({B, L, O}, X.options());
-  at::Tensor buf = at::empty({O, W.size(1)}, W.options());
+  const int64_t B = X.size(0), R = X.size(1), O = W.size(0), I = W.size(1), N = W.numel();
+  at::Tensor Y = at::empty({B, R, O}, X.options());
   AT_DISPATCH_FLOATING_TYPES(E.scalar_type(), "plastic_linear_forward", [&] {
-    for (int64_t b = 0; b < B; ++b) {
-      efficacy_into<scalar_t>(W.data_ptr<scalar_t>(), alpha.data_ptr<scalar_t>(), E.data_ptr<scalar_t>() + b * N,
-                              buf.data_ptr<scalar_t>(), N);
-      at::Tensor y = Y.select(0, b);
-      at::mm_out(y, X.select(0, b), buf.t());
-    }
+    const scalar_t *w_p = W.data_ptr<scalar_t>(), *a_p = alpha.data_ptr<scalar_t>(), *e_p = E.data_ptr<scalar_t>();
+    const CallerDenormalMode mode;
+    at::parallel_for(0, B, batch_grain(R, O, I), [&](int64_t begin, int64_t end) {
+      const DenormalModeScope denormals(mode);
+      at::NoGradGuard no_grad;  // grad mode is per thread: the pool's threads would record the products below
+      at::Tensor buf = at::empty({O, I}, W.options());
+      for (int64_t b = begin; b < end; ++b) {
+        efficacy_into<scalar_t>(w_p, a_p, e_p + b * N, buf.data_ptr<scalar_t>(), N);
+        at::Tensor y = Y.select(0, b);
+        at::mm_out(y, X.select(0, b), buf.t());
+      }
+    });
   });
   return Y;
 }
@@ -88,39 +102,45 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> plastic_linear_backwa
   check_operands(X_in, W_in, alpha_in, E_in);
   const at::Tensor g = grad_in.contiguous(), X = X_in.contiguous(), W = W_in.contiguous(),
                    alpha = alpha_in.contiguous(), E = E_in.contiguous();
-  const int64_t B = X.size(0), O = W.size(0), I = W.size(1), N = W.numel();
-  TORCH_CHECK(g.dim() == 3 && g.size(0) == B && g.size(1) == X.size(1) && g.size(2) == O &&
+  const int64_t B = X.size(0), R = X.size(1), O = W.size(0), I = W.size(1), N = W.numel();
+  TORCH_CHECK(g.dim() == 3 && g.size(0) == B && g.size(1) == R && g.size(2) == O &&
                   g.scalar_type() == E.scalar_type(),
               "plastic_linear: the gradient does not match Y (B, L, o)");
   at::Tensor dE = at::empty_like(E, at::MemoryFormat::Contiguous);
-  at::Tensor dW = at::zeros_like(W, at::MemoryFormat::Contiguous);
-  at::Tensor dalpha = at::zeros_like(W, at::MemoryFormat::Contiguous);
+  // Per-thread sums of dW and dalpha, added up at the end.
+  at::Tensor acc = at::zeros({at::get_num_threads(), 2, O, I}, W.options());
   at::Tensor dX = need_x_grad ? at::empty_like(X, at::MemoryFormat::Contiguous) : at::empty({0}, X.options());
-  at::Tensor G = at::empty({O, I}, W.options());
-  at::Tensor buf = need_x_grad ? at::empty({O, I}, W.options()) : at::empty({0}, W.options());
   AT_DISPATCH_FLOATING_TYPES(E.scalar_type(), "plastic_linear_backward", [&] {
-    const scalar_t *a_p = alpha.data_ptr<scalar_t>(), *w_p = W.data_ptr<scalar_t>();
-    scalar_t *g_p = G.data_ptr<scalar_t>(), *dw_p = dW.data_ptr<scalar_t>(), *da_p = dalpha.data_ptr<scalar_t>();
-    for (int64_t b = 0; b < B; ++b) {
-      const at::Tensor g_b = g.select(0, b);
-      at::mm_out(G, g_b.t(), X.select(0, b));
-      const scalar_t* e_b = E.data_ptr<scalar_t>() + b * N;
-      scalar_t* de_b = dE.data_ptr<scalar_t>() + b * N;
-      // Rows of W are independent, so threads split them without sharing an accumulator.
-      at::parallel_for(0, O, std::max<int64_t>(1, 16384 / std::max<int64_t>(I, 1)), [&](int64_t begin, int64_t end) {
-        for (int64_t o = begin; o < end; ++o) {
+    const scalar_t *w_p = W.data_ptr<scalar_t>(), *a_p = alpha.data_ptr<scalar_t>(), *e_p = E.data_ptr<scalar_t>();
+    scalar_t *de_p = dE.data_ptr<scalar_t>(), *acc_p = acc.data_ptr<scalar_t>();
+    const CallerDenormalMode mode;
+    at::parallel_for(0, B, batch_grain(R, O, I), [&](int64_t begin, int64_t end) {
+      const DenormalModeScope denormals(mode);
+      at::NoGradGuard no_grad;
+      scalar_t* dw_t = acc_p + at::get_thread_num() * 2 * N;
+      scalar_t* da_t = dw_t + N;
+      at::Tensor G = at::empty({O, I}, W.options());
+      at::Tensor buf = need_x_grad ? at::empty({O, I}, W.options()) : at::Tensor();
+      const scalar_t* G_p = G.data_ptr<scalar_t>();
+      for (int64_t b = begin; b < end; ++b) {
+        const at::Tensor gy = g.select(0, b);
+        at::mm_out(G, gy.t(), X.select(0, b));
+        const scalar_t* e_b = e_p + b * N;
+        scalar_t* de_b = de_p + b * N;
+        for (int64_t o = 0; o < O; ++o) {
           const int64_t off = o * I;
-          efficacy_grad_row<scalar_t>(g_p + off, e_b + off, a_p + off, de_b + off, dw_p + off, da_p + off, I);
+          efficacy_grad_row<scalar_t>(G_p + off, e_b + off, a_p + off, de_b + off, dw_t + off, da_t + off, I);
         }
-      });
-      if (need_x_grad) {
-        efficacy_into<scalar_t>(w_p, a_p, e_b, buf.data_ptr<scalar_t>(), N);
-        at::Tensor dx = dX.select(0, b);
-        at::mm_out(dx, g_b, buf);
+        if (need_x_grad) {
+          efficacy_into<scalar_t>(w_p, a_p, e_b, buf.data_ptr<scalar_t>(), N);
+          at::Tensor dx = dX.select(0, b);
+          at::mm_out(dx, gy, buf);
+        }
       }
-    }
+    });
   });
-  return std::make_tuple(dX, dW, dalpha, dE);
+  const at::Tensor sums = acc.sum(0);
+  return std::make_tuple(dX, sums.select(0, 0), sums.select(0, 1), dE);
 }
 
 }  // namespace

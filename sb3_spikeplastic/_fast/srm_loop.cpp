@@ -23,6 +23,8 @@
 #include <c10/core/ScalarType.h>
 #include <torch/library.h>
 
+#include "denormal_mode.h"
+
 #include "srm_loop_checks.h"
 
 #include <algorithm>
@@ -83,7 +85,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> srm_loop_cpu(const at
     scalar_t* h2_p = new_h2.data_ptr<scalar_t>();
     scalar_t* s_p = spikes.data_ptr<scalar_t>();
     scalar_t* u_p = membrane.data_ptr<scalar_t>();
+    const CallerDenormalMode mode;
     at::parallel_for(0, batch, grain, [&](int64_t begin, int64_t end) {
+      const DenormalModeScope denormals(mode);
       for (int64_t b = begin; b < end; ++b) {
         srm_rows<scalar_t>(syn_p + b * row, h1_p + b * n, h2_p + b * n, s_p + b * row, u_p + b * row, length, n,
                            d_s, kappa_s, theta_s);

@@ -29,6 +29,8 @@
 #include <c10/core/ScalarType.h>
 #include <torch/library.h>
 
+#include "denormal_mode.h"
+
 #include <algorithm>
 #include <tuple>
 #include <utility>
@@ -114,7 +116,9 @@ std::tuple<at::Tensor, at::Tensor> trace_step_forward(const at::Tensor& E_in, co
     const scalar_t hi = static_cast<scalar_t>(e_max), lo = -hi;
     const scalar_t *e_p = E.data_ptr<scalar_t>(), *post_p = post.data_ptr<scalar_t>(), *q_p = pre.data_ptr<scalar_t>();
     scalar_t *o_p = out.data_ptr<scalar_t>(), *pp = p_out.data_ptr<scalar_t>();
+    const CallerDenormalMode mode;
     at::parallel_for(0, B * O, std::max<int64_t>(1, 16384 / std::max<int64_t>(I, 1)), [&](int64_t begin, int64_t end) {
+      const DenormalModeScope denormals(mode);
       for (int64_t r = begin; r < end; ++r) {
         pp[r] = forward_row<scalar_t>(e_p + r * I, q_p + (r / O) * I, o_p + r * I, I, post_p[r], eta_s, keep, lo, hi,
                                       oja);
@@ -144,7 +148,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> trace_step_backward(
     scalar_t *de_p = dE.data_ptr<scalar_t>(), *dpost_p = dpost.data_ptr<scalar_t>(), *dq_p = dpre.data_ptr<scalar_t>();
     double* deta_p = deta_rows.data_ptr<double>();
     // One task per batch row: dq[b] is accumulated over that row's n_out trace rows without races.
+    const CallerDenormalMode mode;
     at::parallel_for(0, B, 1, [&](int64_t begin, int64_t end) {
+      const DenormalModeScope denormals(mode);
       for (int64_t b = begin; b < end; ++b) {
         double deta = 0;
         for (int64_t o = 0; o < O; ++o) {
