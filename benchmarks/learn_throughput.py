@@ -1,16 +1,26 @@
 """Training throughput of ``learn`` on HalfCheetah-v5: SpikePlasticPolicy vs SB3 MlpPolicy vs sb3-contrib RecurrentPPO.
 
-All algorithms run in this one process, one after another, with the same PPO settings (8 envs, ``n_steps``
-256, 10 epochs, batch 2048 transitions = 64 chunks of 32), so their env-steps/s are comparable. Also reports
-the per-environment network state and chunk-snapshot memory of the paper-size plastic network, and the
-process's peak RSS after each run.
+Two groups of rows, each algorithm at one and at every other requested torch thread count:
+
+* the paper network (``paper.yml``: 12 x 50 inputs, 64-64 hidden, 6 x 100 outputs, T = 50; ``static`` and
+  ``ndp-oja``) against ``mlp`` and ``recurrent``, all with the same PPO settings (8 envs, ``n_steps`` 256, 10
+  epochs, batch 2048 transitions = 64 chunks of 32);
+* the shipped CPU entry (``entry``: ``ppo.yml``'s HalfCheetah-v5, 17 x 10 inputs, T = 10, its own settings)
+  against ``entry-recurrent`` (``ppo_lstm.yml``: RecurrentPPO with the same PPO settings as the entry).
+
+Every row runs in a process of its own (its thread count set first; its peak RSS its own), times ``--rollouts``
+rollouts + updates after one warm-up rollout + update, and reports env-steps/s, peak RSS and a roofline line:
+the dense multiply-adds of its networks per training env step (rollout forward + ``n_epochs`` x forward and
+backward, counting a backward pass as two forwards; for the spiking network ``T`` products per layer), as
+GFLOP/s achieved, against the machine's dense float32 matrix-product rate at the same thread count.
 
 Usage (documented in benchmarks/README.md)::
 
     pip install -e ".[bench]"
     python benchmarks/learn_throughput.py                      # prints a table, writes benchmarks/results/learn_throughput.json
-    python benchmarks/learn_throughput.py --check              # compare the spiking/RecurrentPPO ratio with the committed result
-    python benchmarks/learn_throughput.py --device cuda        # all of them on the GPU (+ ndp-oja without CUDA graphs);
+    python benchmarks/learn_throughput.py --only entry entry-recurrent --threads 1 2
+    python benchmarks/learn_throughput.py --check              # compare the spiking/RecurrentPPO ratios with the committed result
+    python benchmarks/learn_throughput.py --device cuda        # on the GPU (+ ndp-oja without CUDA graphs);
                                                                # writes benchmarks/results/learn_throughput_cuda.json
 """
 
@@ -18,101 +28,199 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
+import subprocess
 import sys
 import time
 from pathlib import Path
 
-import torch
-from machine import describe_machine, write_result  # benchmarks/machine.py (the script's folder is on sys.path)
-from sb3_spikeplastic._fast.allocator import keep_freed_memory
-from stable_baselines3.common.env_util import make_vec_env
-
-import sb3_spikeplastic  # noqa: F401  (registers the environments)
-from sb3_spikeplastic import PPO
-
 RESULTS = Path(__file__).parent / "results" / "learn_throughput.json"
 RESULTS_CUDA = RESULTS.with_name("learn_throughput_cuda.json")  # --device cuda
-PAPER_NET = dict(hidden_sizes=[64, 64], steps=50, encoder_pop_size=50, action_pop_size=100)
+ENV_ID = "HalfCheetah-v5"
+COMMON = dict(n_steps=256, batch_size=2048, n_epochs=10, learning_rate=5e-4, gamma=0.99, gae_lambda=0.97,
+              max_grad_norm=1.0, seed=0)
+LABELS = {
+    "mlp": "SB3 PPO MlpPolicy",
+    "recurrent": "sb3-contrib RecurrentPPO",
+    "static": "SpikePlastic static, paper network",
+    "ndp-oja": "SpikePlastic ndp-oja, paper network",
+    "ndp-oja-eager": "SpikePlastic ndp-oja, paper network, no CUDA graphs",
+    "entry": "SpikePlastic CPU entry (ppo.yml, dp-oja)",
+    "entry-recurrent": "RecurrentPPO, the entry's settings (ppo_lstm.yml)",
+}
+#: (spiking row, baseline row) pairs whose throughput ratio is reported and checked
+RATIOS = {"ndp-oja / recurrent": ("ndp-oja", "recurrent"), "entry / entry-recurrent": ("entry", "entry-recurrent")}
 
 
 def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def run(name: str, make_model, timesteps: int, warmup: int) -> dict:
-    model = make_model()
-    model.learn(warmup)  # first rollout + update: allocations, lazy compilation
+def dense_macs_per_step(model) -> float:
+    """Multiply-adds of one forward pass per environment step: every weight matrix once, a spiking layer's
+    ``T`` times (its product runs on every network step)."""
+    from sb3_spikeplastic.policy import SpikePlasticPolicy
+
+    policy = model.policy
+    snn_weights = set()
+    macs = 0.0
+    if isinstance(policy, SpikePlasticPolicy):
+        for layer in policy.snn.layers:
+            macs += policy.snn.steps * layer.weight.numel()
+            snn_weights.update(id(p) for p in layer.parameters())
+    for p in policy.parameters():
+        if p.dim() >= 2 and id(p) not in snn_weights:
+            macs += p.numel()
+    return macs
+
+
+def matmul_gflops(device: str) -> float:
+    """The machine's dense float32 matrix-product rate at the current thread count (n = 1024)."""
+    import torch
+
+    a = torch.randn(1024, 1024, device=device)
+    b = torch.randn(1024, 1024, device=device)
+    for _ in range(3):
+        a @ b
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+    start, repeats = time.perf_counter(), 20
+    for _ in range(repeats):
+        a @ b
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+    return 2 * 1024**3 * repeats / (time.perf_counter() - start) / 1e9
+
+
+def make_model(key: str, device: str):
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    from sb3_spikeplastic import PPO
+    from sb3_spikeplastic.config import load_hyperparams
+
+    if key in ("entry", "entry-recurrent"):
+        h = load_hyperparams(ENV_ID, "ppo" if key == "entry" else "ppo_lstm")
+        env = make_vec_env(ENV_ID, n_envs=h.n_envs, seed=0, env_kwargs=h.env_kwargs)
+        if h.normalize is not None:
+            env = VecNormalize(env, **h.normalize)
+        if key == "entry":
+            return PPO(h.policy, env, seed=0, device=device, **h.model_kwargs)
+        from sb3_contrib import RecurrentPPO
+
+        return RecurrentPPO(h.policy, env, seed=0, device=device, **h.model_kwargs)
+    env = make_vec_env(ENV_ID, n_envs=8, seed=0)
+    common = dict(COMMON, device=device)
+    if key == "mlp":
+        return PPO("MlpPolicy", env, **common)
+    if key == "recurrent":
+        from sb3_contrib import RecurrentPPO
+
+        return RecurrentPPO("MlpLstmPolicy", env, **common)
+    paper = load_hyperparams(ENV_ID, "paper").model_kwargs["policy_kwargs"]
+    for name in ("critic", "log_std_init"):  # the same value and critic heads as the baselines
+        paper.pop(name, None)
+    rule = "static" if key == "static" else "ndp-oja"
+    return PPO("SpikePlasticPolicy", env, bptt_steps=32, cuda_graphs=key != "ndp-oja-eager",
+               policy_kwargs=dict(paper, rule=rule), **common)
+
+
+def run_row(key: str, threads: int, device: str, rollouts: int) -> dict:
+    """One row, in this process: build, warm up (first rollout + update: allocations, lazy compilation), time."""
+    import torch
+
+    torch.set_num_threads(threads)
+    from sb3_spikeplastic._fast.allocator import keep_freed_memory
+
+    keep_freed_memory()  # as `sb3-spikeplastic train` does
+    model = make_model(key, device)
+    per_rollout = model.n_steps * model.n_envs
+    model.learn(per_rollout)
     start = time.perf_counter()
-    model.learn(timesteps, reset_num_timesteps=False)
+    model.learn(rollouts * per_rollout, reset_num_timesteps=False)
     seconds = time.perf_counter() - start
-    row = dict(name=name, timesteps=timesteps, seconds=seconds, env_steps_per_s=timesteps / seconds,
-               peak_rss_mb=peak_rss_mb())
+    steps_per_s = rollouts * per_rollout / seconds
+    flops = 2 * dense_macs_per_step(model) * (1 + 3 * model.n_epochs)
+    row = dict(key=key, name=LABELS[key], threads=threads, timesteps=rollouts * per_rollout, seconds=seconds,
+               env_steps_per_s=steps_per_s, peak_rss_mb=peak_rss_mb(), train_flops_per_step=flops,
+               achieved_gflops=flops * steps_per_s / 1e9, matmul_gflops=matmul_gflops(device))
     if getattr(model, "network_state", None) is not None:
-        n_envs = model.n_envs
-        row["state_bytes_per_env"] = model.network_state.nbytes() / n_envs
+        row["state_bytes_per_env"] = model.network_state.nbytes() / model.n_envs
         row["snapshot_bytes_per_rollout"] = model.rollout_buffer.snapshot_nbytes()
-    print(f"{name:36s} {row['env_steps_per_s']:8.1f} env-steps/s  ({seconds:.1f} s)  peak RSS {row['peak_rss_mb']:.0f} MB",
-          flush=True)
     return row
+
+
+def run_in_subprocess(key: str, threads: int, args) -> dict:
+    command = [sys.executable, __file__, "--row", key, "--threads", str(threads), "--device", args.device,
+               "--rollouts", str(args.rollouts)]
+    result = subprocess.run(command, capture_output=True, text=True)
+    if result.returncode != 0:
+        raise RuntimeError(f"{key} with {threads} threads failed:\n{result.stderr[-3000:]}")
+    return json.loads(result.stdout.strip().splitlines()[-1])
+
+
+def ratios(rows: list[dict]) -> dict:
+    """Per pair of :data:`RATIOS`, the spiking row's env-steps/s over the baseline's, each at its best thread
+    count."""
+    best = {}
+    for row in rows:
+        if row["key"] not in best or row["env_steps_per_s"] > best[row["key"]]["env_steps_per_s"]:
+            best[row["key"]] = row
+    return {name: best[a]["env_steps_per_s"] / best[b]["env_steps_per_s"]
+            for name, (a, b) in RATIOS.items() if a in best and b in best}
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--rollouts", type=int, default=2, help="timed rollouts+updates per algorithm")
-    parser.add_argument("--n-envs", type=int, default=8)
-    parser.add_argument("--n-steps", type=int, default=256)
-    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--rollouts", type=int, default=2, help="timed rollouts+updates per row")
+    parser.add_argument("--threads", type=int, nargs="+",
+                        help="torch thread counts to run every row at (default: 1 and the number of CPUs)")
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--only", nargs="*", help="subset of: mlp recurrent static ndp-oja ndp-oja-eager (CUDA only)")
+    parser.add_argument("--only", nargs="*", choices=list(LABELS), help="a subset of the rows")
     parser.add_argument("--output", type=Path, help=f"default: {RESULTS} ({RESULTS_CUDA.name} with --device cuda)")
     parser.add_argument("--check", action="store_true",
-                        help="exit 1 if the spiking/RecurrentPPO ratio falls > 30%% below the committed baseline")
+                        help="exit 1 if a spiking/RecurrentPPO ratio falls > 30%% below the committed result")
+    parser.add_argument("--row", help=argparse.SUPPRESS)  # internal: run one row in this process, print JSON
     args = parser.parse_args(argv)
-    if args.output is None:
-        args.output = RESULTS_CUDA if args.device.startswith("cuda") else RESULTS
-    torch.set_num_threads(args.threads)
-    keep_freed_memory()  # as `sb3-spikeplastic train` does
-    per_rollout = args.n_envs * args.n_steps
-    common = dict(n_steps=args.n_steps, batch_size=2048, n_epochs=10, learning_rate=5e-4, gamma=0.99,
-                  gae_lambda=0.97, max_grad_norm=1.0, seed=0, device=args.device)
-
-    def env():
-        return make_vec_env("HalfCheetah-v5", n_envs=args.n_envs, seed=0)
-
-    candidates = {
-        "mlp": lambda: PPO("MlpPolicy", env(), **common),
-        "static": lambda: PPO("SpikePlasticPolicy", env(), bptt_steps=32, policy_kwargs=dict(rule="static", **PAPER_NET), **common),
-        "ndp-oja": lambda: PPO("SpikePlasticPolicy", env(), bptt_steps=32, policy_kwargs=dict(rule="ndp-oja", **PAPER_NET), **common),
-    }
-    if args.device.startswith("cuda"):  # what the CUDA graphs (sb3_spikeplastic.cuda_graphs) buy
-        candidates["ndp-oja-eager"] = lambda: PPO("SpikePlasticPolicy", env(), bptt_steps=32, cuda_graphs=False,
-                                                  policy_kwargs=dict(rule="ndp-oja", **PAPER_NET), **common)
-    try:
-        from sb3_contrib import RecurrentPPO
-
-        candidates["recurrent"] = lambda: RecurrentPPO("MlpLstmPolicy", env(), **common)
-    except ImportError:
-        print("sb3-contrib not installed (pip install -e '.[bench]'): RecurrentPPO skipped", file=sys.stderr)
-    labels = {"mlp": "SB3 PPO MlpPolicy", "recurrent": "sb3-contrib RecurrentPPO", "static": "SpikePlastic static",
-              "ndp-oja": "SpikePlastic ndp-oja", "ndp-oja-eager": "SpikePlastic ndp-oja, no CUDA graphs"}
-    rows = [run(labels[k], candidates[k], args.rollouts * per_rollout, per_rollout)
-            for k in labels if k in candidates and (not args.only or k in args.only)]
-    by_name = {r["name"]: r for r in rows}
-    ratio = None
-    if labels["recurrent"] in by_name and labels["ndp-oja"] in by_name:
-        ratio = by_name[labels["ndp-oja"]]["env_steps_per_s"] / by_name[labels["recurrent"]]["env_steps_per_s"]
-        print(f"ndp-oja / RecurrentPPO throughput ratio: {ratio:.2f}")
-    result = dict(machine=describe_machine(args.threads), settings=dict(vars(args), output=str(args.output)), rows=rows,
-                  ratio_ndp_oja_vs_recurrent=ratio)
-    if args.check:
-        baseline_file = RESULTS_CUDA if args.device.startswith("cuda") else RESULTS
-        baseline = json.loads(baseline_file.read_text())["ratio_ndp_oja_vs_recurrent"]
-        if ratio is None or ratio < 0.7 * baseline:
-            print(f"REGRESSION: ratio {ratio} vs committed baseline {baseline:.2f} (allowed down to {0.7 * baseline:.2f})")
-            return 1
-        print(f"ok: ratio {ratio:.2f} vs committed baseline {baseline:.2f}")
+    cuda = args.device.startswith("cuda")
+    if args.row:
+        print(json.dumps(run_row(args.row, args.threads[0], args.device, args.rollouts)))
         return 0
+    from machine import describe_machine, write_result  # benchmarks/machine.py (the script's folder is on sys.path)
+
+    if args.output is None:
+        args.output = RESULTS_CUDA if cuda else RESULTS
+    threads = args.threads or sorted({1, os.cpu_count() or 1})
+    keys = [k for k in LABELS if (not args.only or k in args.only) and (cuda or k != "ndp-oja-eager")]
+    try:
+        import sb3_contrib  # noqa: F401
+    except ImportError:
+        print("sb3-contrib not installed (pip install -e '.[bench]'): RecurrentPPO rows skipped", file=sys.stderr)
+        keys = [k for k in keys if "recurrent" not in k]
+    print(f"{'row':52s} {'threads':>7s} {'env-steps/s':>11s} {'peak RSS':>9s} {'GFLOP/s':>8s} {'of matmul':>9s}")
+    rows = []
+    for key in keys:
+        for n in threads:
+            row = run_in_subprocess(key, n, args)
+            rows.append(row)
+            print(f"{row['name']:52s} {n:7d} {row['env_steps_per_s']:11.1f} {row['peak_rss_mb']:7.0f} MB "
+                  f"{row['achieved_gflops']:8.1f} {row['achieved_gflops'] / row['matmul_gflops']:8.1%}", flush=True)
+    found = ratios(rows)
+    for name, value in found.items():
+        print(f"{name} (each at its best thread count): {value:.3f}")
+    result = dict(machine=describe_machine(max(threads)), settings=dict(vars(args), output=str(args.output),
+                                                                        threads=threads),
+                  rows=rows, ratios=found)
+    if args.check:
+        baseline = json.loads((RESULTS_CUDA if cuda else RESULTS).read_text()).get("ratios", {})
+        failed = [name for name, value in found.items() if name in baseline and value < 0.7 * baseline[name]]
+        for name in failed:
+            print(f"REGRESSION: {name} = {found[name]:.3f} vs committed {baseline[name]:.3f} "
+                  f"(allowed down to {0.7 * baseline[name]:.3f})")
+        if not failed:
+            print("ok: " + ", ".join(f"{n} {found[n]:.3f} vs committed {baseline[n]:.3f}" for n in found if n in baseline))
+        return 1 if failed else 0
     write_result(result, args.output)
     return 0
 

@@ -36,7 +36,7 @@ from typing import Any, Optional, Sequence
 
 import gymnasium
 
-from .experiment import Experiment, check_spaces, rule_label
+from .experiment import Experiment, check_spaces, rule_label, training_threads
 from .run_folder import (
     RunInfo,
     atomic_write,
@@ -78,6 +78,19 @@ def check_env_id(env_id: str, conf_entries: Sequence[str] = ()) -> str:
 def _check_int(name: str, value: Optional[int], minimum: int) -> None:
     if value is not None and value < minimum:
         raise UsageError(f"{name}={value} must be >= {minimum}")
+
+
+def _threads(value: str):
+    """``--torch-threads`` of ``train``: ``auto`` or a positive number."""
+    if value == "auto":
+        return value
+    try:
+        number = int(value)
+    except ValueError:
+        number = 0
+    if number < 1:
+        raise argparse.ArgumentTypeError(f"{value!r} is not a positive number of threads or 'auto'")
+    return number
 
 
 def _check_device(device: str) -> str:
@@ -195,8 +208,7 @@ def _train_config(args: argparse.Namespace) -> tuple[str, dict, Optional[RunInfo
     for name, value, minimum in (("--n-timesteps", args.n_timesteps, 1), ("--n-envs", args.n_envs, 1),
                                  ("--eval-freq", args.eval_freq, 0), ("--eval-episodes", args.eval_episodes, 1),
                                  ("--save-freq", args.save_freq, 0), ("--keep-checkpoints", args.keep_checkpoints, 0),
-                                 ("--figure-freq", args.figure_freq, 0),
-                                 ("--torch-threads", args.torch_threads, 1)):
+                                 ("--figure-freq", args.figure_freq, 0)):
         _check_int(name, value, minimum)
     _check_device(args.device)
     check_output_path(args.log_folder, "-f/--log-folder", directory=True)
@@ -244,7 +256,9 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
     # Checkpoints by default on long runs (a run killed outright keeps its latest tenth), none on short ones.
     save_freq = args.save_freq if args.save_freq is not None else (
         config["n_timesteps"] // 10 if config["n_timesteps"] >= AUTO_CHECKPOINT_MIN_STEPS else 0)
-    torch.set_num_threads(args.torch_threads)
+    cores = torch.get_num_threads()  # torch's default: the physical cores
+    if args.torch_threads != "auto":
+        torch.set_num_threads(args.torch_threads)
     keep_freed_memory()
     seed = args.seed if args.seed is not None else random.SystemRandom().randrange(2**31 - 1)
     experiment = Experiment(
@@ -253,11 +267,13 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
         keep_checkpoints=args.keep_checkpoints, figure_freq=args.figure_freq, vec_env=args.vec_env,
         progress=not args.no_progress, trained_agent=source)
     _setup(experiment)
+    if args.torch_threads == "auto":
+        torch.set_num_threads(training_threads(experiment.model.policy, cores))
     run_dir = experiment.create_run_folder(shlex.join([PROG, *argv]),
                                            {k: v for k, v in sorted(vars(args).items()) if k != "func"})
     algo_name = "RecurrentPPO" if config.get("algo") == "ppo_lstm" else "PPO"
     print(f"Training {algo_name} ({config['policy']}, rule {rule_label(config)}) on {env_id} for "
-          f"{config['n_timesteps']:,} steps, seed {seed}")
+          f"{config['n_timesteps']:,} steps, seed {seed}, {torch.get_num_threads()} torch thread(s)")
     print(f"Run folder:  {run_dir}")
     print(f"TensorBoard: tensorboard --logdir {args.tensorboard_log or args.log_folder}")
     sys.stdout.flush()
@@ -671,11 +687,16 @@ def build_parser() -> argparse.ArgumentParser:
                      "plasticity (SpikePropamine) with Stable-Baselines3's PPO.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
 
-    def common(p: argparse.ArgumentParser) -> None:
+    def common(p: argparse.ArgumentParser, auto_threads: bool = False) -> None:
         p.add_argument("--device", default="cpu",
                        help="torch device: cpu (default), cuda[:n] (the spike kernel and CUDA graphs; an error "
                             "where there is no GPU), mps, or auto (cuda when available)")
-        p.add_argument("--torch-threads", type=int, default=1, help="torch.set_num_threads (default: 1)")
+        if auto_threads:
+            p.add_argument("--torch-threads", type=_threads, default="auto",
+                           help="torch.set_num_threads: a number, or auto (default): every core for policies big "
+                                "enough to gain from it (the HalfCheetah entries, LSTMs), one for small ones")
+        else:
+            p.add_argument("--torch-threads", type=int, default=1, help="torch.set_num_threads (default: 1)")
 
     def study_options(p: argparse.ArgumentParser, command: str, default_name: str) -> None:
         p.add_argument("--storage", help="RDB URL (sqlite:///f.db, postgresql://...) or journal file path, shared by "
@@ -728,7 +749,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "TensorBoard run, up to -n total steps (default: the run's n_timesteps); writes a new run folder")
     t.add_argument("-v", "--verbose", type=int, default=1, help="0: quiet, 1: SB3's table every rollout (default)")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
-    common(t)
+    common(t, auto_threads=True)
     t.set_defaults(func=cmd_train)
 
     o = sub.add_parser("optimize", help="hyperparameter search with Optuna (rl-zoo style); writes the best trial "

@@ -64,6 +64,20 @@ def check_spaces(model, env, env_id: str, model_path) -> None:
                          f"actions {env.action_space})") from None
 
 
+#: ``train --torch-threads auto``: a policy with a weight matrix of at least this many entries trains on every core,
+#: a smaller one on one (its products are too small to split; threads then only add synchronisation). Measured on
+#: 2 cores: the HalfCheetah entry (170 x 64 input layer) and RecurrentPPO (1024 x 256) train faster on two
+#: threads, MlpPolicy (64 x 64) and the T-maze entry (40 x 64) slower (``benchmarks/README.md``).
+AUTO_THREADS_MIN_WEIGHTS = 8192
+
+
+def training_threads(policy, cores: int) -> int:
+    """The torch thread count that ``train --torch-threads auto`` uses for ``policy``: ``cores`` or 1 (see
+    :data:`AUTO_THREADS_MIN_WEIGHTS`)."""
+    largest = max((p.numel() for p in policy.parameters() if p.dim() >= 2), default=0)
+    return cores if largest >= AUTO_THREADS_MIN_WEIGHTS else 1
+
+
 def rule_label(config: dict) -> str:
     """Short name of a run's policy for folder names and messages: the rule, or ``mlp``, ``mlplstm``..."""
     if config.get("policy") != "SpikePlasticPolicy":

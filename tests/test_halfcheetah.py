@@ -143,3 +143,21 @@ def test_short_run_of_the_shipped_entry_runs_forward():
             done = terminated or truncated
         random_returns.append(total)
     assert trained > max(200.0, np.mean(random_returns) + 400.0), (trained, random_returns)
+
+
+def test_auto_threads_split_the_halfcheetah_entry_but_not_small_policies():
+    """``train --torch-threads auto``: every core for the HalfCheetah entry (a 170 x 64 input layer) and for an
+    LSTM's 1024 x 256 matrices, one for the T-maze entry's 40 x 64 layer and SB3's 64 x 64 MlpPolicy."""
+    from sb3_contrib import RecurrentPPO
+
+    from sb3_spikeplastic.envs.tmaze import TMazeCueEnv
+    from sb3_spikeplastic.experiment import training_threads
+
+    small = dict(n_envs=1, n_steps=32, batch_size=32)
+    assert training_threads(shipped_model(**small, bptt_steps=16).policy, 4) == 4
+    assert training_threads(shipped_model(conf="mlp", **small).policy, 4) == 1
+    assert training_threads(RecurrentPPO("MlpLstmPolicy", ENV_ID, n_steps=32, batch_size=32).policy, 4) == 4
+    policy, ppo_kwargs, policy_kwargs = model_arguments(resolve_hyperparams("TMazeCue-v0", None, []))
+    tmaze = PPO(policy, make_vec_env(TMazeCueEnv, 1), **{**ppo_kwargs, "n_steps": 64, "batch_size": 64},
+                policy_kwargs=policy_kwargs)
+    assert training_threads(tmaze.policy, 4) == 1
