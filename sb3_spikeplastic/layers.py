@@ -18,9 +18,7 @@ from . import _fast
 from .neurons import (
     AlphaFilterState,
     SRMParameters,
-    alpha_filter_end_state,
-    alpha_filter_matrices,
-    alpha_filter_psp,
+    alpha_filter_operator,
     alpha_kernel_sum,
     srm_spikes,
 )
@@ -115,10 +113,13 @@ class PlasticSRMLayer(nn.Module):
             return (w_eff @ x.transpose(-1, -2)).transpose(-1, -2)
         return x @ w_eff.transpose(-1, -2)
 
-    def _psp_filter(self, length: int, dtype, device):
+    def _psp_filter(self, length: int, dtype, device) -> tuple[Tensor, Tensor, Tensor]:
+        """:func:`~sb3_spikeplastic.neurons.alpha_filter_operator` for ``length`` steps, and its PSP rows and
+        end-state rows as contiguous blocks."""
         key = (length, dtype, device)
         if key not in self._filters:
-            self._filters[key] = alpha_filter_matrices(length, self.neuron.tau_s, self.neuron.dt, dtype, device)
+            op = alpha_filter_operator(length, self.neuron.tau_s, self.neuron.dt, dtype, device)
+            self._filters[key] = (op, op[:length].contiguous(), op[length:].contiguous())
         return self._filters[key]
 
     def forward(self, spikes_in: Tensor, state: LayerState, monitor: bool = False) -> tuple[LayerOutput, LayerState]:
@@ -129,24 +130,25 @@ class PlasticSRMLayer(nn.Module):
 
         The synaptic input ``K (S W_eff^T)`` (plus the decayed carried PSP) is associated so that the Toeplitz
         product ``K`` runs over the narrower side: ``(K S) W_eff^T`` when ``n_in <= n_out`` (e.g. the 64 -> 600
-        output layer), ``K (S W_eff^T)`` otherwise (e.g. the 850 -> 64 input layer). Both equal filtering the
+        output layer), ``K (S W_eff^T)`` otherwise (e.g. the 600 -> 64 input layer). Both equal filtering the
         presynaptic spikes first, because the filter is linear and ``W_eff`` is constant within the interval.
         Then ``E`` is updated from the interval's rates and acts from the next interval on.
         """
-        mats = self._psp_filter(spikes_in.shape[1], spikes_in.dtype, spikes_in.device)
-        trace = state.plastic.trace
-        h1, h2 = state.psp
         length = spikes_in.shape[1]
+        operator, psp_rows, end_rows = self._psp_filter(length, spikes_in.dtype, spikes_in.device)
+        trace = state.plastic.trace
+        # The interval's spikes and the carried PSP state (h1, h2) as L + 2 rows: one product filters them all.
+        rows = torch.cat([spikes_in, state.psp.h1.unsqueeze(1), state.psp.h2.unsqueeze(1)], 1)
         if self.n_in <= self.n_out:
-            synaptic = self.project(alpha_filter_psp(spikes_in, state.psp, mats), trace)
+            filtered = operator @ rows  # (B, L + 2, n_in): the PSP of each step, then the end state
+            synaptic = self.project(filtered[:, :length], trace)
+            psp_state = AlphaFilterState(filtered[:, length], filtered[:, length + 1])
         else:
-            # The carried PSP state rides along as two extra rows of the same product: projecting h1 and h2 on
-            # their own would cost two trace-sized outer products (and their sum) in the backward pass.
-            rows = torch.cat([spikes_in, h1.unsqueeze(1), h2.unsqueeze(1)], 1)  # (B, L + 2, n_in)
-            projected = self.project(rows, trace, efficacy_left=True)  # (B, L + 2, n_out)
-            carried = AlphaFilterState(projected[:, length], projected[:, length + 1])
-            synaptic = alpha_filter_psp(projected[:, :length], carried, mats)
-        psp_state = alpha_filter_end_state(spikes_in, state.psp, mats)
+            # The carried state rides along in the product: projecting h1 and h2 on their own would cost two
+            # trace-sized outer products (and their sum) in the backward pass.
+            synaptic = psp_rows @ self.project(rows, trace, efficacy_left=True)
+            end = end_rows @ rows
+            psp_state = AlphaFilterState(end[:, 0], end[:, 1])
         spikes, membrane, refractory = srm_spikes(synaptic, state.refractory, self.neuron)
         modulation = None
         plastic = state.plastic

@@ -24,7 +24,7 @@ The kernels are infinite, so they are computed recursively. For :math:`d = e^{-d
 
 reproduce it exactly, so the state carried between environment steps is two numbers per neuron and kernel.
 Within an interval of ``L`` steps the same recursion is a linear map of the interval's spikes and the carried
-state (:func:`alpha_filter_matrices`), which lets a layer filter a whole interval with one matrix product.
+state (:func:`alpha_filter_operator`), which lets a layer filter a whole interval with one matrix product.
 """
 
 from __future__ import annotations
@@ -111,26 +111,30 @@ def alpha_filter_matrices(length: int, tau: float, dt: float = 1.0, dtype=torch.
     return (*out, d**length)
 
 
-def alpha_filter_psp(spikes: Tensor, state: AlphaFilterState, mats) -> Tensor:
-    """The PSP ``(batch, length, n)`` of an interval of spikes ``(batch, length, n)`` and the carried state, with the
-    matrices of :func:`alpha_filter_matrices`: one Toeplitz product plus the carried state's decay."""
-    kernel, g1, g2 = mats[:3]
-    return kernel @ spikes + g1[:, None] * state.h1.unsqueeze(-2) + g2[:, None] * state.h2.unsqueeze(-2)
+def alpha_filter_operator(length: int, tau: float, dt: float = 1.0, dtype=torch.float32, device=None) -> Tensor:
+    """The alpha filter over an interval of ``length`` steps as one ``(length + 2, length + 2)`` matrix ``M``.
+
+    For rows ``X = [S; h1; h2]`` (the interval's spikes ``(..., length, n)``, then the carried state's ``h1`` and
+    ``h2`` as two more rows), ``M @ X = [psp; h1_end; h2_end]``: the PSP of every step, then the state carried into
+    the next interval (the maps of :func:`alpha_filter_matrices` in one block matrix, so that a layer filters an
+    interval, carried state included, with one matrix product).
+    """
+    kernel, g1, g2, v1, v2, d_len = alpha_filter_matrices(length, tau, dt, torch.float64)
+    op = torch.zeros(length + 2, length + 2, dtype=torch.float64)
+    op[:length, :length], op[:length, length], op[:length, length + 1] = kernel, g1, g2
+    op[length, :length], op[length, length] = v1, d_len
+    op[length + 1, :length], op[length + 1, length], op[length + 1, length + 1] = v2, length * d_len, d_len
+    return op.to(dtype=dtype, device=device)
 
 
-def alpha_filter_end_state(spikes: Tensor, state: AlphaFilterState, mats) -> AlphaFilterState:
-    """The filter state after an interval of spikes ``(batch, length, n)`` (carried into the next interval)."""
-    v1, v2, d_len = mats[3:]
-    length = spikes.shape[-2]
-    return AlphaFilterState(v1 @ spikes + d_len * state.h1, v2 @ spikes + d_len * (state.h2 + length * state.h1))
-
-
-def alpha_filter_interval(spikes: Tensor, state: AlphaFilterState, mats) -> tuple[Tensor, AlphaFilterState]:
+def alpha_filter_interval(spikes: Tensor, state: AlphaFilterState, operator: Tensor) -> tuple[Tensor, AlphaFilterState]:
     """Filter an interval of spikes ``(batch, length, n)`` with the carried state; returns ``(psp, new_state)``.
 
-    Equal to ``length`` calls of :func:`alpha_filter_step` (tested), computed with three matrix products.
+    Equal to ``length`` calls of :func:`alpha_filter_step` (tested); ``operator`` is :func:`alpha_filter_operator`.
     """
-    return alpha_filter_psp(spikes, state, mats), alpha_filter_end_state(spikes, state, mats)
+    length = spikes.shape[-2]
+    out = operator @ torch.cat([spikes, state.h1.unsqueeze(-2), state.h2.unsqueeze(-2)], -2)
+    return out[..., :length, :], AlphaFilterState(out[..., length, :], out[..., length + 1, :])
 
 
 def slayer_surrogate(u: Tensor, params: SRMParameters) -> Tensor:

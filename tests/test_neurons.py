@@ -19,7 +19,7 @@ from sb3_spikeplastic.neurons import (
     SRMParameters,
     SRMSpikeRecursion,
     alpha_filter_interval,
-    alpha_filter_matrices,
+    alpha_filter_operator,
     alpha_filter_step,
     srm_spike_loop,
 )
@@ -92,8 +92,8 @@ def test_alpha_filter_interval_with_carried_state_equals_explicit_convolution(ta
     state = zeros_state(B, n)
     pieces, start = [], 0
     for L in lengths:
-        mats = alpha_filter_matrices(L, tau, dt, dtype=torch.float64)
-        psp, state = alpha_filter_interval(torch.from_numpy(x[:, start:start + L]), state, mats)
+        operator = alpha_filter_operator(L, tau, dt, dtype=torch.float64)
+        psp, state = alpha_filter_interval(torch.from_numpy(x[:, start:start + L]), state, operator)
         pieces.append(psp.numpy())
         start += L
     np.testing.assert_allclose(np.concatenate(pieces, 1), expected, rtol=0, atol=1e-9)
@@ -239,13 +239,13 @@ def test_srm_spike_recursion_gradient_is_elementwise_surrogate(params):
 def test_alpha_filter_interval_gradcheck(tau, dt):
     g = torch.Generator().manual_seed(5)
     L = 9
-    mats = alpha_filter_matrices(L, tau, dt, dtype=torch.float64)
+    operator = alpha_filter_operator(L, tau, dt, dtype=torch.float64)
     x = torch.rand(2, L, 3, generator=g, dtype=torch.float64).requires_grad_()
     h1 = torch.rand(2, 3, generator=g, dtype=torch.float64).requires_grad_()
     h2 = torch.rand(2, 3, generator=g, dtype=torch.float64).requires_grad_()
 
     def f(x, h1, h2):
-        psp, st = alpha_filter_interval(x, AlphaFilterState(h1, h2), mats)
+        psp, st = alpha_filter_interval(x, AlphaFilterState(h1, h2), operator)
         return psp, st.h1, st.h2
 
     assert torch.autograd.gradcheck(f, (x, h1, h2))
