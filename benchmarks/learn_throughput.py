@@ -6,7 +6,9 @@ Two groups of rows, each algorithm at one and at every other requested torch thr
   ``ndp-oja``) against ``mlp`` and ``recurrent``, all with the same PPO settings (8 envs, ``n_steps`` 256, 10
   epochs, batch 2048 transitions = 64 chunks of 32);
 * the shipped CPU entry (``entry``: ``ppo.yml``'s HalfCheetah-v5, 17 x 10 inputs, T = 10, its own settings)
-  against ``entry-recurrent`` (``ppo_lstm.yml``: RecurrentPPO with the same PPO settings as the entry).
+  against ``entry-recurrent`` (``ppo_lstm.yml``: RecurrentPPO with the same PPO settings as the entry);
+* ``tmaze``: the T-maze entry (``ppo.yml``'s TMazeCue-v0), the small network that ``train --torch-threads auto``
+  keeps on one thread.
 
 Every row runs in a process of its own (its thread count set first; its peak RSS its own), times ``--rollouts``
 rollouts + updates after one warm-up rollout + update, and reports env-steps/s, peak RSS and a roofline line:
@@ -48,6 +50,7 @@ LABELS = {
     "ndp-oja-eager": "SpikePlastic ndp-oja, paper network, no CUDA graphs",
     "entry": "SpikePlastic CPU entry (ppo.yml, dp-oja)",
     "entry-recurrent": "RecurrentPPO, the entry's settings (ppo_lstm.yml)",
+    "tmaze": "SpikePlastic T-maze entry (ppo.yml, TMazeCue-v0)",
 }
 #: (spiking row, baseline row) pairs whose throughput ratio is reported and checked
 RATIOS = {"ndp-oja / recurrent": ("ndp-oja", "recurrent"), "entry / entry-recurrent": ("entry", "entry-recurrent")}
@@ -100,12 +103,13 @@ def make_model(key: str, device: str):
     from sb3_spikeplastic import PPO
     from sb3_spikeplastic.config import load_hyperparams
 
-    if key in ("entry", "entry-recurrent"):
-        h = load_hyperparams(ENV_ID, "ppo" if key == "entry" else "ppo_lstm")
-        env = make_vec_env(ENV_ID, n_envs=h.n_envs, seed=0, env_kwargs=h.env_kwargs)
+    if key in ("entry", "entry-recurrent", "tmaze"):
+        env_id = "TMazeCue-v0" if key == "tmaze" else ENV_ID
+        h = load_hyperparams(env_id, "ppo_lstm" if key == "entry-recurrent" else "ppo")
+        env = make_vec_env(env_id, n_envs=h.n_envs, seed=0, env_kwargs=h.env_kwargs)
         if h.normalize is not None:
             env = VecNormalize(env, **h.normalize)
-        if key == "entry":
+        if key != "entry-recurrent":
             return PPO(h.policy, env, seed=0, device=device, **h.model_kwargs)
         from sb3_contrib import RecurrentPPO
 
