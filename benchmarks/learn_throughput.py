@@ -4,7 +4,8 @@ Two groups of rows, each algorithm at one and at every other requested torch thr
 
 * the paper network (``paper.yml``: 12 x 50 inputs, 64-64 hidden, 6 x 100 outputs, T = 50; ``static`` and
   ``ndp-oja``) against ``mlp`` and ``recurrent``, all with the same PPO settings (8 envs, ``n_steps`` 256, 10
-  epochs, batch 2048 transitions = 64 chunks of 32);
+  epochs, batch 2048 transitions = 64 chunks of 32); ``ndp-oja-passes`` runs each minibatch in 4 passes of 16
+  chunks (``chunks_per_pass``: the same update in a quarter of the memory);
 * the shipped CPU entry (``entry``: ``ppo.yml``'s HalfCheetah-v5, 17 x 10 inputs, T = 10, its own settings)
   against ``entry-recurrent`` (``ppo_lstm.yml``: RecurrentPPO with the same PPO settings as the entry);
 * ``tmaze``: the T-maze entry (``ppo.yml``'s TMazeCue-v0), the small network that ``train --torch-threads auto``
@@ -48,6 +49,7 @@ LABELS = {
     "static": "SpikePlastic static, paper network",
     "ndp-oja": "SpikePlastic ndp-oja, paper network",
     "ndp-oja-eager": "SpikePlastic ndp-oja, paper network, no CUDA graphs",
+    "ndp-oja-passes": "SpikePlastic ndp-oja, paper network, chunks_per_pass 16",
     "entry": "SpikePlastic CPU entry (ppo.yml, dp-oja)",
     "entry-recurrent": "RecurrentPPO, the entry's settings (ppo_lstm.yml)",
     "tmaze": "SpikePlastic T-maze entry (ppo.yml, TMazeCue-v0)",
@@ -127,7 +129,7 @@ def make_model(key: str, device: str):
         paper.pop(name, None)
     rule = "static" if key == "static" else "ndp-oja"
     return PPO("SpikePlasticPolicy", env, bptt_steps=32, cuda_graphs=key != "ndp-oja-eager",
-               policy_kwargs=dict(paper, rule=rule), **common)
+               chunks_per_pass=16 if key == "ndp-oja-passes" else None, policy_kwargs=dict(paper, rule=rule), **common)
 
 
 def run_row(key: str, threads: int, device: str, rollouts: int) -> dict:

@@ -38,6 +38,21 @@ class ChunkSamples(NamedTuple):
     states: NetworkState
     action_masks: Optional[Tensor] = None
 
+    @property
+    def n_chunks(self) -> int:
+        return self.observations.shape[1]
+
+    def split(self, chunks: int) -> list["ChunkSamples"]:
+        """The minibatch as consecutive parts of ``chunks`` chunks each (the last may be smaller)."""
+        parts = []
+        for start in range(0, self.n_chunks, chunks):
+            part = slice(start, start + chunks)
+            sequences = [x[:, part] for x in (self.observations, self.actions, self.old_values, self.old_log_prob,
+                                              self.advantages, self.returns, self.episode_starts)]
+            parts.append(ChunkSamples(*sequences, self.states.select(part),
+                                      None if self.action_masks is None else self.action_masks[:, part]))
+        return parts
+
 
 class ChunkRolloutBuffer(RolloutBuffer):
     """SB3's rollout buffer plus one network-state snapshot per ``chunk_len`` steps and environment, and (for

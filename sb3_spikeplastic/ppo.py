@@ -64,6 +64,10 @@ class PPO(SB3PPO):
         PyTorch (the rollout's action samples use other random numbers of the same distribution), without the
         hundreds of kernel launches per environment step that otherwise bound the GPU by the host. Ignored on
         the CPU.
+    :param chunks_per_pass: for recurrent policies, run the forward and backward pass of at most this many chunks at
+        once and add up the minibatch's gradient over the passes: the same update, with the memory of the
+        backpropagation graph (which holds every step's traces) bounded by ``chunks_per_pass`` instead of the
+        minibatch. ``None``: the whole minibatch in one pass. Must divide ``batch_size // bptt_steps``.
     :param flush_denormal: for recurrent policies, set torch's flush-denormal mode
         (``torch.set_flush_denormal(True)``, process-wide) when the model is set up. The PSP filters of silent
         neurons, the traces and their gradients decay through the subnormal floats (below ~1e-38 in float32),
@@ -109,6 +113,7 @@ class PPO(SB3PPO):
         grad_clip: str = "global",
         use_action_masks: bool = False,
         cuda_graphs: bool = True,
+        chunks_per_pass: Optional[int] = None,
         flush_denormal: bool = True,
         _init_setup_model: bool = True,
     ):
@@ -122,6 +127,11 @@ class PPO(SB3PPO):
         if getattr(policy_class, "recurrent", False):
             # Before SB3's own checks, whose warnings about mini-batches do not apply to chunks.
             check_chunking(self.bptt_steps, n_steps, batch_size)
+            n_chunks = batch_size // self.bptt_steps
+            if chunks_per_pass is not None and (chunks_per_pass < 1 or n_chunks % chunks_per_pass):
+                raise ValueError(f"chunks_per_pass={chunks_per_pass} must divide the chunks per minibatch, "
+                                 f"batch_size // bptt_steps = {n_chunks}")
+        self.chunks_per_pass = None if chunks_per_pass is None else int(chunks_per_pass)
         super().__init__(
             policy, env, learning_rate=learning_rate, n_steps=n_steps, batch_size=batch_size, n_epochs=n_epochs,
             gamma=gamma, gae_lambda=gae_lambda, clip_range=clip_range, clip_range_vf=clip_range_vf,
@@ -294,17 +304,18 @@ class PPO(SB3PPO):
                 p.grad.mul_(torch.clamp(self.max_grad_norm / (norm + 1e-6), max=1.0))
         return total
 
-    def _minibatch_losses(self, batch: ChunkSamples, evaluate, clip_range: float,
-                          clip_range_vf: Optional[float]) -> tuple[Tensor, dict[str, float]]:
-        """PPO's loss on one minibatch of chunks and its statistics (as floats)."""
+    def _minibatch_losses(self, batch: ChunkSamples, evaluate, clip_range: float, clip_range_vf: Optional[float],
+                          advantage_stats: Optional[tuple[Tensor, Tensor]] = None) -> tuple[Tensor, dict[str, float]]:
+        """PPO's loss on one minibatch of chunks (or one part of it: ``advantage_stats`` are then the whole
+        minibatch's advantage mean and standard deviation) and its statistics (as floats)."""
         values, log_prob, entropy = evaluate(
             batch.observations, batch.actions, batch.episode_starts, batch.states, batch.action_masks)
         values = values.flatten()
         advantages = batch.advantages.flatten()
         old_log_prob = batch.old_log_prob.flatten()
         old_values, returns = batch.old_values.flatten(), batch.returns.flatten()
-        if self.normalize_advantage and len(advantages) > 1:
-            advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+        if self.normalize_advantage and advantage_stats is not None:
+            advantages = (advantages - advantage_stats[0]) / (advantage_stats[1] + 1e-8)
         ratio = torch.exp(log_prob - old_log_prob)
         policy_loss = -torch.min(advantages * ratio,
                                  advantages * torch.clamp(ratio, 1 - clip_range, 1 + clip_range)).mean()
@@ -335,15 +346,30 @@ class PPO(SB3PPO):
         """One gradient step on one minibatch: its statistics, and ``False`` (no step taken) when the KL early
         stop triggers.
 
-        A method of its own so that the minibatch's autograd graph is gone when it returns: a graph kept alive
-        into the next minibatch (through a ``loss`` variable, say) can break a CUDA-graph capture there.
+        The minibatch runs in parts of ``chunks_per_pass`` chunks, each part's loss weighted by its share of
+        the minibatch, so that the summed gradient is the whole minibatch's. A method of its own so that the
+        autograd graphs are gone when it returns: a graph kept alive into the next minibatch (through a ``loss``
+        variable, say) can break a CUDA-graph capture there.
         """
-        loss, stats = self._minibatch_losses(batch, evaluate, clip_range, clip_range_vf)
-        stats["loss"] = loss.item()
-        if self.target_kl is not None and stats["approx_kl"] > 1.5 * self.target_kl:
-            return stats, False
+        parts = batch.split(self.chunks_per_pass) if getattr(self, "chunks_per_pass", None) else [batch]
+        advantages = batch.advantages.flatten()
+        stats_of_whole = (advantages.mean(), advantages.std()) if len(advantages) > 1 else None
         self.policy.optimizer.zero_grad()
-        loss.backward()
+        stats: dict[str, float] = {}
+        for part in parts:
+            loss, part_stats = self._minibatch_losses(part, evaluate, clip_range, clip_range_vf, stats_of_whole)
+            weight = part.n_chunks / batch.n_chunks
+            part_stats["loss"] = loss.item()
+            for key, value in part_stats.items():
+                stats[key] = stats.get(key, 0.0) + weight * value
+            if self.target_kl is not None and len(parts) == 1 and stats["approx_kl"] > 1.5 * self.target_kl:
+                return stats, False  # known before any backward pass
+            if len(parts) > 1:
+                loss = loss * weight
+            loss.backward()
+        if self.target_kl is not None and stats["approx_kl"] > 1.5 * self.target_kl:
+            self.policy.optimizer.zero_grad()
+            return stats, False
         grad_norm = self._clip_gradients()
         if grad_norm is None:
             # An overflowing gradient would turn every parameter into NaN (or, clipped, freeze them all): skip

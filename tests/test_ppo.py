@@ -13,7 +13,7 @@ from stable_baselines3.common.callbacks import EvalCallback
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.vec_env import VecNormalize
 
-from helpers import tmaze, vec
+from helpers import tmaze, tmaze_model, vec
 
 from sb3_spikeplastic import PPO, SpikePlasticPolicy
 from sb3_spikeplastic.network import tensor_leaves
@@ -302,3 +302,31 @@ print(mlp_keeps, (tiny * 1.0).item() == 0, model.flush_denormal)
                             cwd=Path(__file__).parent)
     assert result.returncode == 0, result.stderr[-2000:]
     assert result.stdout.split() == ["True", str(flush), str(flush)]
+
+
+def test_chunks_per_pass_gives_the_whole_minibatchs_gradient_and_statistics(monkeypatch):
+    """A minibatch of 4 chunks run as 4 passes of one chunk: the accumulated gradient of every parameter and the
+    logged statistics equal those of one pass over the 4 chunks."""
+    model = tmaze_model(n_envs=2, n_steps=32, batch_size=64, bptt_steps=16, max_grad_norm=1e12)
+    model.learn(64)
+    monkeypatch.setattr(model.policy.optimizer, "step", lambda: None)
+    batch = next(iter(model.rollout_buffer.get_chunks(4)))
+    evaluate = model._training_evaluation()
+    results = []
+    for chunks in (None, 1):
+        model.chunks_per_pass = chunks
+        stats, stepped = model._update_minibatch(batch, evaluate, 0.2, None)
+        results.append((stats, [p.grad.clone() for p in model.policy.parameters()]))
+        assert stepped
+    (whole, whole_grads), (parts, part_grads) = results
+    assert sum(float(g.abs().sum()) for g in whole_grads) > 0
+    for a, b in zip(whole_grads, part_grads):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6)
+    for key in ("policy_loss", "value_loss", "entropy_loss", "approx_kl", "loss", "grad_norm"):
+        assert parts[key] == pytest.approx(whole[key], rel=1e-4, abs=1e-7), key
+
+
+def test_chunks_per_pass_must_divide_the_minibatch():
+    with pytest.raises(ValueError, match=r"chunks_per_pass=3 must divide the chunks per minibatch, "
+                                         r"batch_size // bptt_steps = 4"):
+        tmaze_model(n_envs=2, n_steps=32, batch_size=64, bptt_steps=16, chunks_per_pass=3)
