@@ -65,9 +65,9 @@ def check_spaces(model, env, env_id: str, model_path) -> None:
 
 
 #: ``train --torch-threads auto``: a policy with a weight matrix of at least this many entries trains on every core,
-#: a smaller one on one (its products are too small to split; threads then only add synchronisation). Measured on
-#: 2 cores: the HalfCheetah entry (170 x 64 input layer) and RecurrentPPO (1024 x 256) train faster on two
-#: threads, MlpPolicy (64 x 64) and the T-maze entry (40 x 64) slower (``benchmarks/README.md``).
+#: a smaller one on one (its products are too small to split). Measured on 2 cores: the HalfCheetah entry
+#: (170 x 64 input layer) and RecurrentPPO (1024 x 256) train ~25 % faster on two threads, MlpPolicy (64 x 64) and
+#: the T-maze entry (40 x 64) at most 3 % (``benchmarks/README.md``).
 AUTO_THREADS_MIN_WEIGHTS = 8192
 
 
