@@ -322,34 +322,28 @@ def trace_step(E: Tensor, post: Tensor, pre: Tensor, eta: Tensor, e_max: float, 
     return _TraceStep.apply(E, post, pre, eta, float(e_max), bool(oja))
 
 
-#: Rows of ``x`` with at most this fraction of nonzeros (spike rows) are multiplied through their nonzeros only;
-#: denser rows by dense products (``benchmarks/plastic_linear_density.py`` measures the crossover).
-SPARSE_MAX_DENSITY = 0.25
-
-
 class _PlasticLinear(torch.autograd.Function):
-    """``X[b] (W + alpha * E[b])^T`` per environment, sparse rows of ``X`` through their nonzeros (see
-    ``plastic_linear.cpp``); the gradient of ``X`` is computed only when it is needed."""
+    """``X[b] (W + alpha * E[b])^T`` per environment, one environment's efficacy at a time, environments split
+    between torch's threads (see ``plastic_linear.cpp``); the gradient of ``X`` is computed only when it is
+    needed."""
 
     @staticmethod
-    def forward(ctx, x: Tensor, weight: Tensor, alpha: Tensor, E: Tensor, max_density: float) -> Tensor:
+    def forward(ctx, x: Tensor, weight: Tensor, alpha: Tensor, E: Tensor) -> Tensor:
         ctx.save_for_backward(x, weight, alpha, E)
-        ctx.max_density = max_density
-        return _ops.plastic_linear_forward(x, weight, alpha, E, max_density)
+        return _ops.plastic_linear_forward(x, weight, alpha, E)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad: Tensor):
         x, weight, alpha, E = ctx.saved_tensors
-        d_x, d_w, d_alpha, d_e = _ops.plastic_linear_backward(grad, x, weight, alpha, E, ctx.needs_input_grad[0],
-                                                              ctx.max_density)
-        return d_x if ctx.needs_input_grad[0] else None, d_w, d_alpha, d_e, None
+        d_x, d_w, d_alpha, d_e = _ops.plastic_linear_backward(grad, x, weight, alpha, E, ctx.needs_input_grad[0])
+        return d_x if ctx.needs_input_grad[0] else None, d_w, d_alpha, d_e
 
 
-def plastic_linear(x: Tensor, weight: Tensor, alpha: Tensor, E: Tensor,
-                   max_density: Optional[float] = None) -> Optional[Tensor]:
-    """The fused ``x[b] @ (W + alpha * E[b]).T``; ``max_density``: rows of ``x`` with at
-    most this fraction of nonzeros use the sparse products (0: dense only; default :data:`SPARSE_MAX_DENSITY`)."""
+def plastic_linear(x: Tensor, weight: Tensor, alpha: Tensor, E: Tensor) -> Optional[Tensor]:
+    """The fused ``x[b] @ (W + alpha * E[b]).T`` for CPU float32/float64 ``x (B, L, n_in)``, ``W, alpha
+    (n_out, n_in)`` and ``E (B, n_out, n_in)`` of one dtype, or ``None`` when it does not apply (then use the eager
+    ops). Differentiable once."""
     if not (
         _cpu_float_operands(E, x, weight, alpha)
         and E.dim() == 3
@@ -361,8 +355,7 @@ def plastic_linear(x: Tensor, weight: Tensor, alpha: Tensor, E: Tensor,
         return None
     if _enabled_ops() is None:
         return None
-    density = SPARSE_MAX_DENSITY if max_density is None else float(max_density)
-    return _PlasticLinear.apply(x, weight, alpha, E, density)
+    return _PlasticLinear.apply(x, weight, alpha, E)
 
 
 def bernoulli_spikes(p: Tensor, keys: Tensor, index_hash: Tensor) -> Optional[Tensor]:
