@@ -12,7 +12,10 @@ from __future__ import annotations
 
 import shlex
 import shutil
+import signal
+import threading
 import traceback
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Optional
 
@@ -76,6 +79,25 @@ def training_threads(policy, cores: int) -> int:
     :data:`AUTO_THREADS_MIN_WEIGHTS`)."""
     largest = max((p.numel() for p in policy.parameters() if p.dim() >= 2), default=0)
     return cores if largest >= AUTO_THREADS_MIN_WEIGHTS else 1
+
+
+@contextmanager
+def sigterm_interrupts():
+    """Within the block, SIGTERM (a scheduler's time limit, ``docker stop``, ``kill``) raises ``KeyboardInterrupt``,
+    so that training stops as on Ctrl-C: the model is saved and the run can be continued. Only in the main
+    thread (where Python runs signal handlers); the previous handler is restored afterwards."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def rule_label(config: dict) -> str:
@@ -249,7 +271,7 @@ class Experiment:
 
     def learn(self) -> bool:
         """Train up to the entry's ``n_timesteps`` and save the final model. Returns ``False`` when interrupted by
-        Ctrl-C (the model is saved and ``INTERRUPTED.txt`` says how to continue); other errors propagate after the
+        Ctrl-C or SIGTERM (the model is saved and ``INTERRUPTED.txt`` says how to continue); other errors propagate after the
         run folder is removed (no step taken) or marked with ``FAILED.txt``."""
         from stable_baselines3.common.callbacks import CallbackList
         from stable_baselines3.common.logger import Logger, make_output_format
@@ -268,8 +290,9 @@ class Experiment:
             write_hyperparameters(model.logger, {"env_id": self.env_id, "seed": self.seed, **self.config})
             # Continuing: the remaining steps with the counter kept, so schedules resume where they stopped.
             callback = CallbackList(self._callbacks(eval_env))
-            model.learn(self.config["n_timesteps"] - model.num_timesteps, callback=callback,
-                        reset_num_timesteps=self.source is None)
+            with sigterm_interrupts():
+                model.learn(self.config["n_timesteps"] - model.num_timesteps, callback=callback,
+                            reset_num_timesteps=self.source is None)
         except KeyboardInterrupt:
             self.save()
             note = (f"interrupted after {model.num_timesteps:,} of {self.config['n_timesteps']:,} steps; continue "

@@ -447,6 +447,33 @@ def test_a_killed_run_keeps_its_checkpoints_and_continues_from_them(tmp_path, ca
     assert PPO.load(logs / "ppo" / "TMazeCue-v0_2" / "TMazeCue-v0.zip").num_timesteps == steps + 64
 
 
+def test_sigterm_stops_training_like_ctrl_c(tmp_path):
+    """A scheduler's time limit (SIGTERM) saves the model and writes INTERRUPTED.txt, as Ctrl-C does."""
+    import signal
+    import time
+
+    logs = tmp_path / "logs"
+    argv = [sys.executable, "-m", "sb3_spikeplastic.cli", "train", "--env", "TMazeCue-v0", "-n", "1000000", "--seed",
+            "0", "-f", str(logs), "--save-freq", "64", "-v", "0", "--no-progress", "--hyperparams", *TINY_TMAZE]
+    process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    run = logs / "ppo" / "TMazeCue-v0_1"
+    try:
+        deadline = time.time() + 180
+        while not list(run.glob("rl_model_*_steps.zip")) and time.time() < deadline:
+            if process.poll() is not None:
+                pytest.fail("training exited before the signal")
+            time.sleep(0.2)
+        process.send_signal(signal.SIGTERM)
+        out, err = process.communicate(timeout=120)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == 130, err[-2000:]
+    assert "Interrupted after" in out
+    assert (run / "TMazeCue-v0.zip").exists() and (run / "INTERRUPTED.txt").exists()
+    assert PPO.load(run / "TMazeCue-v0.zip").num_timesteps >= 64
+
+
 def test_checkpoints_are_pruned_to_the_latest(tmp_path, capsys):
     argv = _train_argv(tmp_path, n="320") + ["--save-freq", "64", "--keep-checkpoints", "2"]
     assert run_cli(capsys, *argv)[0] == 0
