@@ -414,25 +414,31 @@ def test_unknown_algo_is_a_one_line_error(tmp_path, capsys):
     assert not (tmp_path / "logs").exists()
 
 
-def test_a_killed_run_keeps_its_checkpoints_and_continues_from_them(tmp_path, capsys):
-    import signal
+def start_training_until_a_checkpoint(logs: Path, **popen_kwargs):
+    """A T-maze training process (1M steps, a checkpoint every 64) started in ``logs``, returned once its first
+    checkpoint exists, with its run folder."""
     import time
 
-    logs = tmp_path / "logs"
     argv = [sys.executable, "-m", "sb3_spikeplastic.cli", "train", "--env", "TMazeCue-v0", "-n", "1000000", "--seed",
-            "0", "-f", str(logs), "--save-freq", "64", "-v", "0", "--no-progress",
-            "--hyperparams", *TINY_TMAZE]
-    process = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            "0", "-f", str(logs), "--save-freq", "64", "-v", "0", "--no-progress", "--hyperparams", *TINY_TMAZE]
+    process = subprocess.Popen(argv, **popen_kwargs)
     run = logs / "ppo" / "TMazeCue-v0_1"
-    try:
-        deadline = time.time() + 180
-        while not list(run.glob("rl_model_*_steps.zip")) and time.time() < deadline:
-            if process.poll() is not None:
-                pytest.fail("training exited before it was killed")
-            time.sleep(0.2)
-    finally:
-        process.send_signal(signal.SIGKILL)  # power loss: no handler runs
-        process.wait()
+    deadline = time.time() + 180
+    while not list(run.glob("rl_model_*_steps.zip")) and time.time() < deadline:
+        if process.poll() is not None:
+            process.kill()
+            pytest.fail("training exited before its first checkpoint")
+        time.sleep(0.2)
+    return process, run
+
+
+def test_a_killed_run_keeps_its_checkpoints_and_continues_from_them(tmp_path, capsys):
+    import signal
+
+    logs = tmp_path / "logs"
+    process, run = start_training_until_a_checkpoint(logs, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    process.send_signal(signal.SIGKILL)  # power loss: no handler runs
+    process.wait()
     checkpoints = sorted(run.glob("rl_model_*_steps.zip"), key=lambda p: int(p.name.split("_")[2]))
     assert not (run / "TMazeCue-v0.zip").exists()
     latest = checkpoints[-1]
@@ -450,19 +456,10 @@ def test_a_killed_run_keeps_its_checkpoints_and_continues_from_them(tmp_path, ca
 def test_sigterm_stops_training_like_ctrl_c(tmp_path):
     """A scheduler's time limit (SIGTERM) saves the model and writes INTERRUPTED.txt, as Ctrl-C does."""
     import signal
-    import time
 
-    logs = tmp_path / "logs"
-    argv = [sys.executable, "-m", "sb3_spikeplastic.cli", "train", "--env", "TMazeCue-v0", "-n", "1000000", "--seed",
-            "0", "-f", str(logs), "--save-freq", "64", "-v", "0", "--no-progress", "--hyperparams", *TINY_TMAZE]
-    process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    run = logs / "ppo" / "TMazeCue-v0_1"
+    process, run = start_training_until_a_checkpoint(tmp_path / "logs", stdout=subprocess.PIPE,
+                                                     stderr=subprocess.PIPE, text=True)
     try:
-        deadline = time.time() + 180
-        while not list(run.glob("rl_model_*_steps.zip")) and time.time() < deadline:
-            if process.poll() is not None:
-                pytest.fail("training exited before the signal")
-            time.sleep(0.2)
         process.send_signal(signal.SIGTERM)
         out, err = process.communicate(timeout=120)
     finally:
