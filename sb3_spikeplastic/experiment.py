@@ -271,8 +271,8 @@ class Experiment:
 
     def learn(self) -> bool:
         """Train up to the entry's ``n_timesteps`` and save the final model. Returns ``False`` when interrupted by
-        Ctrl-C or SIGTERM (the model is saved and ``INTERRUPTED.txt`` says how to continue); other errors propagate after the
-        run folder is removed (no step taken) or marked with ``FAILED.txt``."""
+        Ctrl-C or SIGTERM (the model is saved and ``INTERRUPTED.txt`` says how to continue); other errors propagate
+        after the run folder is removed (no step taken) or marked with ``FAILED.txt``."""
         from stable_baselines3.common.callbacks import CallbackList
         from stable_baselines3.common.logger import Logger, make_output_format
 

@@ -364,9 +364,7 @@ class PPO(SB3PPO):
                 stats[key] = stats.get(key, 0.0) + weight * value
             if self.target_kl is not None and len(parts) == 1 and stats["approx_kl"] > 1.5 * self.target_kl:
                 return stats, False  # known before any backward pass
-            if len(parts) > 1:
-                loss = loss * weight
-            loss.backward()
+            (loss * weight).backward()  # weight 1.0 for a single part: exact
         if self.target_kl is not None and stats["approx_kl"] > 1.5 * self.target_kl:
             self.policy.optimizer.zero_grad()
             return stats, False
