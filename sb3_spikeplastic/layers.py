@@ -20,6 +20,7 @@ from .neurons import (
     SRMParameters,
     alpha_filter_operator,
     alpha_kernel_sum,
+    spike_constants,
     srm_spikes,
 )
 from .plasticity import PlasticityRule, PlasticState
@@ -126,38 +127,113 @@ class PlasticSRMLayer(nn.Module):
         """Run one plasticity interval of presynaptic spikes ``(batch, L, n_in)``.
 
         With ``monitor`` the output also carries the interval's neuromodulatory signal (computed once more, so
-        it is off on the training path).
+        it is off on the training path). The spikes come from :meth:`interval` (or, when training on the CPU,
+        from the same computation as one autograd node, :class:`_FusedInterval`); then ``E`` is updated from the
+        interval's rates and acts from the next interval on.
+        """
+        if _FusedInterval.applies(self, spikes_in, state):
+            inputs = (spikes_in, state.psp.h1, state.psp.h2, state.refractory.h1, state.refractory.h2, self.weight,
+                      self.alpha, state.plastic.trace, self)
+            if torch.is_grad_enabled():
+                outputs = _FusedInterval.apply(*inputs)
+            else:  # rollouts: the same op without an autograd node
+                outputs = _FusedInterval.run(*inputs)[:8]
+            spikes, membrane, h1, h2, ref_h1, ref_h2, r_pre, r_post = outputs
+            psp_state, refractory = AlphaFilterState(h1, h2), AlphaFilterState(ref_h1, ref_h2)
+        else:
+            synaptic, psp_state = self.interval(spikes_in, state.psp, state.plastic.trace)
+            spikes, membrane, refractory = srm_spikes(synaptic, state.refractory, self.neuron)
+            r_pre, r_post = spikes_in.mean(1), spikes.mean(1)
+        modulation = None
+        plastic = state.plastic
+        if self.plastic:
+            if monitor:
+                modulation = self.rule.modulation(r_post)
+            plastic = self.rule.step(r_pre, r_post, plastic)
+        return LayerOutput(spikes, membrane, modulation), LayerState(psp_state, refractory, plastic)
+
+    def interval(self, spikes_in: Tensor, psp: AlphaFilterState, trace: Tensor) -> tuple[Tensor, AlphaFilterState]:
+        """The synaptic input of one interval ``(batch, L, n_out)`` and the PSP state carried out of it.
 
         The synaptic input ``K (S W_eff^T)`` (plus the decayed carried PSP) is associated so that the Toeplitz
         product ``K`` runs over the narrower side: ``(K S) W_eff^T`` when ``n_in <= n_out`` (e.g. the 64 -> 600
         output layer), ``K (S W_eff^T)`` otherwise (e.g. the 600 -> 64 input layer). Both equal filtering the
         presynaptic spikes first, because the filter is linear and ``W_eff`` is constant within the interval.
-        Then ``E`` is updated from the interval's rates and acts from the next interval on.
         """
         length = spikes_in.shape[1]
         operator, psp_rows, end_rows = self._psp_filter(length, spikes_in.dtype, spikes_in.device)
-        trace = state.plastic.trace
         # The interval's spikes and the carried PSP state (h1, h2) as L + 2 rows: one product filters them all.
-        rows = torch.cat([spikes_in, state.psp.h1.unsqueeze(1), state.psp.h2.unsqueeze(1)], 1)
-        if self.n_in <= self.n_out:
+        rows = torch.cat([spikes_in, psp.h1.unsqueeze(1), psp.h2.unsqueeze(1)], 1)
+        if self.filter_first:
             filtered = operator @ rows  # (B, L + 2, n_in): the PSP of each step, then the end state
-            synaptic = self.project(filtered[:, :length], trace)
-            psp_state = AlphaFilterState(filtered[:, length], filtered[:, length + 1])
-        else:
-            # The carried state rides along in the product: projecting h1 and h2 on their own would cost two
-            # trace-sized outer products (and their sum) in the backward pass.
-            synaptic = psp_rows @ self.project(rows, trace, efficacy_left=True)
-            end = end_rows @ rows
-            psp_state = AlphaFilterState(end[:, 0], end[:, 1])
-        spikes, membrane, refractory = srm_spikes(synaptic, state.refractory, self.neuron)
-        modulation = None
-        plastic = state.plastic
-        if self.plastic:
-            r_pre, r_post = spikes_in.mean(1), spikes.mean(1)
-            if monitor:
-                modulation = self.rule.modulation(r_post)
-            plastic = self.rule.step(r_pre, r_post, plastic)
-        return LayerOutput(spikes, membrane, modulation), LayerState(psp_state, refractory, plastic)
+            return self.project(filtered[:, :length], trace), AlphaFilterState(filtered[:, length],
+                                                                               filtered[:, length + 1])
+        # The carried state rides along in the product: projecting h1 and h2 on their own would cost two
+        # trace-sized outer products (and their sum) in the backward pass.
+        end = end_rows @ rows
+        return psp_rows @ self.project(rows, trace, efficacy_left=True), AlphaFilterState(end[:, 0], end[:, 1])
+
+    @property
+    def spike_constants(self) -> tuple[float, float, float, float, float]:
+        """``(d, kappa, theta, width, scale)`` of the refractory recursion and the SLAYER surrogate, as
+        :func:`~sb3_spikeplastic.neurons.srm_spike_loop` and :func:`~sb3_spikeplastic.neurons.slayer_surrogate`
+        compute them."""
+        return spike_constants(self.neuron)
+
+    @property
+    def filter_first(self) -> bool:
+        """Whether :meth:`interval` filters the presynaptic spikes before the product (``n_in <= n_out``)."""
+        return self.n_in <= self.n_out
+
+
+class _FusedInterval(torch.autograd.Function):
+    """One layer interval on the CPU as a single autograd node: :meth:`PlasticSRMLayer.interval`, the spike
+    recursion, the surrogate and both mean rates in one compiled op forward and one backward
+    (``_fast/srm_interval.cpp``, where the backward pass is written out).
+
+    The forward op runs the eager path's ops and kernels in the same order, so spikes, membrane and states are
+    bit-identical; the gradients are those of the eager graph (tested). Eager autograd builds ~12 nodes per layer
+    and interval, whose overhead dominates the small CPU networks' training step.
+    """
+
+    @staticmethod
+    def applies(layer: "PlasticSRMLayer", spikes_in: Tensor, state: LayerState) -> bool:
+        tensors = [layer.weight, state.psp.h1, state.psp.h2, state.refractory.h1, state.refractory.h2]
+        if layer.alpha is not None:
+            tensors += [layer.alpha, state.plastic.trace]
+        return spikes_in.dim() == 3 and _fast.cpu_float_operands(spikes_in, *tensors) and _fast.interval_ops() is not None
+
+    @staticmethod
+    def run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, layer) -> list[Tensor]:
+        """The forward op: spikes, membrane, PSP state, refractory state, ``r_pre``, ``r_post``, then what the
+        backward pass needs (the product's input and the surrogate)."""
+        return _fast.interval_ops().srm_interval_forward(
+            spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace if alpha is not None else None,
+            *layer._psp_filter(spikes_in.shape[1], spikes_in.dtype, spikes_in.device), layer.filter_first,
+            *layer.spike_constants)
+
+    @staticmethod
+    def forward(ctx, spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, layer):
+        *outputs, product_in, surrogate = _FusedInterval.run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha,
+                                                             trace, layer)
+        ctx.save_for_backward(product_in, weight, alpha, trace, surrogate)
+        ctx.filters = (*layer._psp_filter(spikes_in.shape[1], spikes_in.dtype, spikes_in.device), layer.filter_first)
+        ctx.mark_non_differentiable(outputs[1], outputs[4], outputs[5])  # membrane, refractory state
+        return tuple(outputs)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, d_spikes, _d_membrane, d_h1, d_h2, _d_ref_h1, _d_ref_h2, d_r_pre, d_r_post):
+        product_in, weight, alpha, trace, surrogate = ctx.saved_tensors
+        need_rows = any(ctx.needs_input_grad[:3])
+        d_x, d_h1, d_h2, d_w, d_alpha, d_trace = _fast.interval_ops().srm_interval_backward(
+            d_spikes, d_h1, d_h2, d_r_pre, d_r_post, product_in, weight, alpha, trace if alpha is not None else None,
+            surrogate, *ctx.filters, need_rows)
+        if not need_rows:
+            d_x = d_h1 = d_h2 = None
+        if alpha is None:
+            d_alpha = d_trace = None
+        return d_x, d_h1, d_h2, None, None, d_w, d_alpha, d_trace, None
 
 
 def fan_in_std(n_in: int, rms_rate: float, neuron: SRMParameters, gain: float) -> float:

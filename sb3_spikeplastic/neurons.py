@@ -169,6 +169,14 @@ class SLAYERSpike(torch.autograd.Function):
         return grad_s * slayer_surrogate(u, ctx.params), None
 
 
+def spike_constants(params: SRMParameters) -> tuple[float, float, float, float, float]:
+    """``(d, kappa, theta, width, scale)``: the refractory filter's decay ``d`` and gain ``kappa`` (as
+    :func:`srm_spike_loop` uses them) and the surrogate's ``theta``, ``width`` and ``scale`` (as
+    :func:`slayer_surrogate`), for compiled code that runs both."""
+    d, c = _decay_and_gain(params.tau_ref, params.dt)
+    return d, params.scale_ref * params.theta * c, params.theta, params.tau_rho * params.theta, params.scale_rho
+
+
 def srm_spike_loop(
     synaptic: Tensor, state: AlphaFilterState, params: SRMParameters
 ) -> tuple[Tensor, Tensor, AlphaFilterState]:
@@ -181,8 +189,7 @@ def srm_spike_loop(
     elsewhere, with ``SB3_SPIKEPLASTIC_NO_COMPILE=1``, or if the build failed (one warning), it runs
     :func:`_srm_spike_loop_reference`. Both give bit-identical spikes, membrane and state.
     """
-    d, c = _decay_and_gain(params.tau_ref, params.dt)
-    kappa = params.scale_ref * params.theta * c
+    d, kappa, *_ = spike_constants(params)
     fast = _fast.srm_loop(synaptic, state.h1, state.h2, d, kappa, params.theta)
     if fast is not None:
         spikes, membrane, h1, h2 = fast

@@ -48,18 +48,18 @@ from typing import Any, Optional
 import torch
 from torch import Tensor
 
-__all__ = ["NO_COMPILE_ENV", "bernoulli_spikes", "build_directory", "compiled_disabled", "load_cuda_ops",
-           "load_ops", "plastic_linear", "srm_loop", "trace_step"]
+__all__ = ["NO_COMPILE_ENV", "bernoulli_spikes", "build_directory", "compiled_disabled", "cpu_float_operands",
+           "interval_ops", "load_cuda_ops", "load_ops", "plastic_linear", "srm_loop", "trace_step"]
 
 NO_COMPILE_ENV = "SB3_SPIKEPLASTIC_NO_COMPILE"
 BUILD_DIR_ENV = "SB3_SPIKEPLASTIC_BUILD_DIR"
 _EXTENSION = "sb3_spikeplastic_fast"
 _SOURCES = [Path(__file__).with_name(name)
-            for name in ("srm_loop.cpp", "trace_step.cpp", "plastic_linear.cpp", "bernoulli.cpp")]
+            for name in ("srm_loop.cpp", "trace_step.cpp", "plastic_linear.cpp", "srm_interval.cpp", "bernoulli.cpp")]
 
 _CUDA_EXTENSION = "sb3_spikeplastic_fast_cuda"
 _CUDA_SOURCES = [Path(__file__).with_name("srm_loop_cuda.cu")]
-_HEADERS = [Path(__file__).with_name(name) for name in ("srm_loop_checks.h", "denormal_mode.h")]
+_HEADERS = [Path(__file__).with_name(name) for name in ("srm_loop_checks.h", "denormal_mode.h", "kernels.h")]
 
 _lock = threading.Lock()
 _tried = False
@@ -244,7 +244,7 @@ def _enabled_cuda_ops() -> Optional[Any]:
     return _cuda_ops if _cuda_tried else load_cuda_ops()
 
 
-def _cpu_float_operands(first: Tensor, *others: Tensor) -> bool:
+def cpu_float_operands(first: Tensor, *others: Tensor) -> bool:
     """Whether ``first`` is a CPU float32/float64 tensor and ``others`` are CPU tensors of its dtype (what every
     compiled op needs besides its shapes)."""
     dtype = first.dtype
@@ -270,7 +270,7 @@ def srm_loop(
                   and all(t.dtype is synaptic.dtype and t.device == synaptic.device for t in (h1, h2)))
         ops = _enabled_cuda_ops() if usable else None
     else:
-        ops = _enabled_ops() if _cpu_float_operands(synaptic, h1, h2) else None
+        ops = _enabled_ops() if cpu_float_operands(synaptic, h1, h2) else None
     if ops is None:
         return None
     with torch.no_grad():
@@ -309,7 +309,7 @@ def trace_step(E: Tensor, post: Tensor, pre: Tensor, eta: Tensor, e_max: float, 
     Differentiable once (no double backward).
     """
     if not (
-        _cpu_float_operands(E, post, pre)
+        cpu_float_operands(E, post, pre)
         and eta.dtype is E.dtype
         and eta.numel() == 1
         and E.dim() == 3
@@ -345,7 +345,7 @@ def plastic_linear(x: Tensor, weight: Tensor, alpha: Tensor, E: Tensor) -> Optio
     (n_out, n_in)`` and ``E (B, n_out, n_in)`` of one dtype, or ``None`` when it does not apply (then use the eager
     ops). Differentiable once."""
     if not (
-        _cpu_float_operands(E, x, weight, alpha)
+        cpu_float_operands(E, x, weight, alpha)
         and E.dim() == 3
         and x.dim() == 3
         and weight.shape == alpha.shape == E.shape[1:]
@@ -358,12 +358,19 @@ def plastic_linear(x: Tensor, weight: Tensor, alpha: Tensor, E: Tensor) -> Optio
     return _PlasticLinear.apply(x, weight, alpha, E)
 
 
+def interval_ops() -> Optional[Any]:
+    """The compiled ops' namespace for :class:`sb3_spikeplastic.layers.PlasticSRMLayer`'s fused interval
+    (``srm_interval_forward`` / ``srm_interval_backward``, ``srm_interval.cpp``), or ``None`` when disabled or
+    unavailable."""
+    return _enabled_ops()
+
+
 def bernoulli_spikes(p: Tensor, keys: Tensor, index_hash: Tensor) -> Optional[Tensor]:
     """The compiled counter-based sampler for CPU float32/float64 ``p (B, n)``, int32 ``keys (B,)`` and
     ``index_hash (T, n)``, or ``None`` when it does not apply (then use the eager hash). No autograd (spikes are
     samples)."""
     if not (
-        _cpu_float_operands(p)
+        cpu_float_operands(p)
         and keys.is_cpu
         and p.dim() == 2
         and keys.dtype is torch.int32

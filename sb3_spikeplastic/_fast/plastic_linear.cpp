@@ -4,8 +4,10 @@
 //
 // Eager PyTorch materialises the per-environment efficacy W_eff (B, n_out, n_in) for a batched matmul, and in
 // the backward its gradient dW_eff of the same size, then reads both again for dW, dalpha and dE: four extra
-// passes over trace-sized arrays. Here one environment's W_eff[b] (or its gradient) is built in a single
-// (n_out, n_in) buffer that stays in cache, used by one matrix product and overwritten by the next environment's:
+// passes over trace-sized arrays. Here the efficacy (or its gradient) of a block of a few environments is built
+// in a buffer that stays in cache (at most ~1 MB), used by one batched matrix product and overwritten by the next
+// block's; a block, not one environment, because each product call costs microseconds of dispatch, which at
+// the CPU entry's sizes (16 environments, 12 x 170 x 64) was most of the layer's time:
 //
 //     forward:   eff = W + alpha * E[b];          Y[b] = X[b] eff^T
 //     backward:  G = dY[b]^T X[b]                 (the gradient of W_eff[b], in W's layout)
@@ -25,12 +27,13 @@
 #include <ATen/core/Tensor.h>
 #include <ATen/ops/empty.h>
 #include <ATen/ops/empty_like.h>
-#include <ATen/ops/mm.h>
+#include <ATen/ops/bmm.h>
 #include <ATen/ops/zeros.h>
 #include <c10/core/ScalarType.h>
 #include <torch/library.h>
 
 #include "denormal_mode.h"
+#include "kernels.h"
 
 #include <algorithm>
 #include <tuple>
@@ -47,9 +50,14 @@ void check_operands(const at::Tensor& X, const at::Tensor& W, const at::Tensor& 
               "plastic_linear: float32 or float64 tensors of one dtype");
 }
 
-// Environments per task: enough work per task (~64k multiply-adds) that a thread's start-up does not dominate.
-int64_t batch_grain(int64_t rows, int64_t n_out, int64_t n_in) {
-  return std::max<int64_t>(1, 65536 / std::max<int64_t>(1, rows * n_out * n_in / 4));
+// Environments per block: the block's efficacy buffer stays below kBlockElements values (1 MB in float32, so it
+// stays in L2 between being written and being multiplied), and there are at least as many blocks as threads.
+constexpr int64_t kBlockElements = 1 << 18;
+
+int64_t block_size(int64_t batch, int64_t n) {
+  const int64_t threads = std::max<int64_t>(1, at::get_num_threads());
+  const int64_t per_thread = (batch + threads - 1) / threads;
+  return std::max<int64_t>(1, std::min<int64_t>(per_thread, kBlockElements / std::max<int64_t>(1, n)));
 }
 
 template <typename scalar_t>
@@ -72,23 +80,30 @@ inline void efficacy_grad_row(const scalar_t* __restrict g, const scalar_t* __re
   }
 }
 
+}  // namespace
+
+namespace sb3_spikeplastic_fast {
+
 at::Tensor plastic_linear_forward(const at::Tensor& X_in, const at::Tensor& W_in, const at::Tensor& alpha_in,
                                   const at::Tensor& E_in) {
   check_operands(X_in, W_in, alpha_in, E_in);
   const at::Tensor X = X_in.contiguous(), W = W_in.contiguous(), alpha = alpha_in.contiguous(), E = E_in.contiguous();
   const int64_t B = X.size(0), R = X.size(1), O = W.size(0), I = W.size(1), N = W.numel();
   at::Tensor Y = at::empty({B, R, O}, X.options());
+  const int64_t nb = block_size(B, N), blocks = (B + nb - 1) / nb;
   AT_DISPATCH_FLOATING_TYPES(E.scalar_type(), "plastic_linear_forward", [&] {
     const scalar_t *w_p = W.data_ptr<scalar_t>(), *a_p = alpha.data_ptr<scalar_t>(), *e_p = E.data_ptr<scalar_t>();
     const CallerDenormalMode mode;
-    at::parallel_for(0, B, batch_grain(R, O, I), [&](int64_t begin, int64_t end) {
+    at::parallel_for(0, blocks, 1, [&](int64_t begin, int64_t end) {
       const DenormalModeScope denormals(mode);
       at::NoGradGuard no_grad;  // grad mode is per thread: the pool's threads would record the products below
-      at::Tensor buf = at::empty({O, I}, W.options());
-      for (int64_t b = begin; b < end; ++b) {
-        efficacy_into<scalar_t>(w_p, a_p, e_p + b * N, buf.data_ptr<scalar_t>(), N);
-        at::Tensor y = Y.select(0, b);
-        at::mm_out(y, X.select(0, b), buf.t());
+      at::Tensor buf = at::empty({nb, O, I}, W.options());
+      scalar_t* buf_p = buf.data_ptr<scalar_t>();
+      for (int64_t block = begin; block < end; ++block) {
+        const int64_t b0 = block * nb, n = std::min(nb, B - b0);
+        for (int64_t b = 0; b < n; ++b) efficacy_into<scalar_t>(w_p, a_p, e_p + (b0 + b) * N, buf_p + b * N, N);
+        at::Tensor y = Y.narrow(0, b0, n);
+        at::bmm_out(y, X.narrow(0, b0, n), buf.narrow(0, 0, n).transpose(1, 2));
       }
     });
   });
@@ -110,31 +125,37 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> plastic_linear_backwa
   // Per-thread sums of dW and dalpha, added up at the end.
   at::Tensor acc = at::zeros({at::get_num_threads(), 2, O, I}, W.options());
   at::Tensor dX = need_x_grad ? at::empty_like(X, at::MemoryFormat::Contiguous) : at::empty({0}, X.options());
+  const int64_t nb = block_size(B, N), blocks = (B + nb - 1) / nb;
   AT_DISPATCH_FLOATING_TYPES(E.scalar_type(), "plastic_linear_backward", [&] {
     const scalar_t *w_p = W.data_ptr<scalar_t>(), *a_p = alpha.data_ptr<scalar_t>(), *e_p = E.data_ptr<scalar_t>();
     scalar_t *de_p = dE.data_ptr<scalar_t>(), *acc_p = acc.data_ptr<scalar_t>();
     const CallerDenormalMode mode;
-    at::parallel_for(0, B, batch_grain(R, O, I), [&](int64_t begin, int64_t end) {
+    at::parallel_for(0, blocks, 1, [&](int64_t begin, int64_t end) {
       const DenormalModeScope denormals(mode);
       at::NoGradGuard no_grad;
       scalar_t* dw_t = acc_p + at::get_thread_num() * 2 * N;
       scalar_t* da_t = dw_t + N;
-      at::Tensor G = at::empty({O, I}, W.options());
-      at::Tensor buf = need_x_grad ? at::empty({O, I}, W.options()) : at::Tensor();
-      const scalar_t* G_p = G.data_ptr<scalar_t>();
-      for (int64_t b = begin; b < end; ++b) {
-        const at::Tensor gy = g.select(0, b);
-        at::mm_out(G, gy.t(), X.select(0, b));
-        const scalar_t* e_b = e_p + b * N;
-        scalar_t* de_b = de_p + b * N;
-        for (int64_t o = 0; o < O; ++o) {
-          const int64_t off = o * I;
-          efficacy_grad_row<scalar_t>(G_p + off, e_b + off, a_p + off, de_b + off, dw_t + off, da_t + off, I);
+      at::Tensor G = at::empty({nb, O, I}, W.options());
+      scalar_t* G_p = G.data_ptr<scalar_t>();
+      for (int64_t block = begin; block < end; ++block) {
+        const int64_t b0 = block * nb, n = std::min(nb, B - b0);
+        const at::Tensor gy = g.narrow(0, b0, n);
+        at::Tensor G_n = G.narrow(0, 0, n);
+        at::bmm_out(G_n, gy.transpose(1, 2), X.narrow(0, b0, n));
+        for (int64_t b = 0; b < n; ++b) {
+          const scalar_t* e_b = e_p + (b0 + b) * N;
+          scalar_t* de_b = de_p + (b0 + b) * N;
+          const scalar_t* G_b = G_p + b * N;
+          for (int64_t o = 0; o < O; ++o) {
+            const int64_t off = o * I;
+            efficacy_grad_row<scalar_t>(G_b + off, e_b + off, a_p + off, de_b + off, dw_t + off, da_t + off, I);
+          }
         }
         if (need_x_grad) {
-          efficacy_into<scalar_t>(w_p, a_p, e_b, buf.data_ptr<scalar_t>(), N);
-          at::Tensor dx = dX.select(0, b);
-          at::mm_out(dx, gy, buf);
+          // G is consumed: its buffer now holds the block's efficacy.
+          for (int64_t b = 0; b < n; ++b) efficacy_into<scalar_t>(w_p, a_p, e_p + (b0 + b) * N, G_p + b * N, N);
+          at::Tensor dx = dX.narrow(0, b0, n);
+          at::bmm_out(dx, gy, G_n);
         }
       }
     });
@@ -143,7 +164,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> plastic_linear_backwa
   return std::make_tuple(dX, sums.select(0, 0), sums.select(0, 1), dE);
 }
 
-}  // namespace
+}  // namespace sb3_spikeplastic_fast
 
 TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
   m.def("plastic_linear_forward(Tensor X, Tensor W, Tensor alpha, Tensor E) -> Tensor");
@@ -153,6 +174,6 @@ TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
 }
 
 TORCH_LIBRARY_IMPL(sb3_spikeplastic_fast, CPU, m) {
-  m.impl("plastic_linear_forward", &plastic_linear_forward);
-  m.impl("plastic_linear_backward", &plastic_linear_backward);
+  m.impl("plastic_linear_forward", &sb3_spikeplastic_fast::plastic_linear_forward);
+  m.impl("plastic_linear_backward", &sb3_spikeplastic_fast::plastic_linear_backward);
 }

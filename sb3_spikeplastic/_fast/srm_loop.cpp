@@ -24,6 +24,7 @@
 #include <torch/library.h>
 
 #include "denormal_mode.h"
+#include "kernels.h"
 
 #include "srm_loop_checks.h"
 
@@ -57,6 +58,10 @@ void srm_rows(const scalar_t* __restrict syn, scalar_t* __restrict h1, scalar_t*
     }
   }
 }
+
+}  // namespace
+
+namespace sb3_spikeplastic_fast {
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> srm_loop_cpu(const at::Tensor& synaptic,
                                                                       const at::Tensor& h1, const at::Tensor& h2,
@@ -97,7 +102,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> srm_loop_cpu(const at
   return std::make_tuple(spikes, membrane, new_h1, new_h2);
 }
 
-}  // namespace
+}  // namespace sb3_spikeplastic_fast
 
 TORCH_LIBRARY(sb3_spikeplastic_fast, m) {
   m.def(
@@ -106,5 +111,5 @@ TORCH_LIBRARY(sb3_spikeplastic_fast, m) {
 }
 
 TORCH_LIBRARY_IMPL(sb3_spikeplastic_fast, CPU, m) {
-  m.impl("srm_loop", &srm_loop_cpu);
+  m.impl("srm_loop", &sb3_spikeplastic_fast::srm_loop_cpu);
 }

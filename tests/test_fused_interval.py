@@ -1,0 +1,114 @@
+"""The CPU layer interval as one compiled op each way (``layers._FusedInterval``, ``_fast/srm_interval.cpp``)
+against the eager layer: the same spikes, membrane and states, and the gradients of the eager graph."""
+
+import pytest
+import torch
+
+from sb3_spikeplastic import _fast
+from sb3_spikeplastic.layers import PlasticSRMLayer, _FusedInterval
+from sb3_spikeplastic.neurons import SRMParameters
+from sb3_spikeplastic.plasticity import get_rule_class
+
+pytestmark = pytest.mark.skipif(_fast.load_ops() is None, reason="compiled ops unavailable")
+
+
+def make_layer(rule: str, n_in: int, n_out: int, dtype=torch.float64) -> PlasticSRMLayer:
+    torch.manual_seed(0)
+    cls = get_rule_class(rule)
+    layer_rule = cls(n_in, n_out) if cls.has_trace else cls(n_in, n_out)
+    # Large weights and alpha: many spikes, and the trace changes the efficacy noticeably.
+    return PlasticSRMLayer(n_in, n_out, layer_rule, SRMParameters(tau_s=2.0), w_init_std=3.0,
+                           alpha_init_std=5.0).to(dtype)
+
+
+def run_intervals(layer, fused: bool, monkeypatch, dtype=torch.float64, batch=4, length=6, intervals=3):
+    """Chain ``intervals`` intervals from the initial state; return every output, the final state and the
+    gradients of a loss that reads spikes, rates, the carried PSP state and the trace."""
+    with monkeypatch.context() as patch:
+        if not fused:
+            patch.setattr(_FusedInterval, "applies", staticmethod(lambda *args: False))
+        generator = torch.Generator().manual_seed(1)
+        # Inputs with a gradient, as a hidden layer's are (they come from the previous layer's spikes).
+        spikes_in = (torch.rand(intervals, batch, length, layer.n_in, generator=generator) < 0.4).to(dtype)
+        spikes_in.requires_grad_()
+        weights = torch.randn(intervals, batch, length, layer.n_out, generator=generator, dtype=dtype)
+        state = layer.initial_state(batch, dtype)
+        outputs, loss = [], 0.0
+        for k in range(intervals):
+            out, state = layer(spikes_in[k] * 1.0, state)
+            outputs.append(out)
+            loss = loss + (out.spikes * weights[k]).sum()
+        loss = loss + (0.3 * state.psp.h1 + 0.7 * state.psp.h2).sum()
+        if layer.plastic:
+            loss = loss + 5.0 * state.plastic.trace.sum()
+        params = list(layer.parameters())
+        grads = torch.autograd.grad(loss, params + [spikes_in], allow_unused=True)
+    return outputs, state, grads
+
+
+@pytest.mark.parametrize("rule", ["dp-oja", "ndp-bcm", "static"])
+@pytest.mark.parametrize("n_in, n_out", [(30, 20), (20, 30)], ids=["product-first", "filter-first"])
+def test_fused_interval_equals_eager_layer(rule, n_in, n_out, monkeypatch):
+    layer = make_layer(rule, n_in, n_out)
+    fused_out, fused_state, fused_grads = run_intervals(layer, True, monkeypatch)
+    eager_out, eager_state, eager_grads = run_intervals(layer, False, monkeypatch)
+    assert type(fused_out[0].spikes.grad_fn).__name__ == "_FusedIntervalBackward"
+    assert type(eager_out[0].spikes.grad_fn).__name__ != "_FusedIntervalBackward"
+    assert sum(float(o.spikes.detach().sum()) for o in eager_out) > 0
+    for a, b in zip(fused_out, eager_out):
+        assert torch.equal(a.spikes, b.spikes) and torch.equal(a.membrane, b.membrane)
+    for a, b in zip(fused_state.psp + fused_state.refractory, eager_state.psp + eager_state.refractory):
+        assert torch.equal(a, b)
+    if layer.plastic:
+        assert torch.equal(fused_state.plastic.trace, eager_state.plastic.trace)
+    for a, b in zip(fused_grads, eager_grads):
+        assert (a is None) == (b is None)
+        if a is not None:
+            assert float(b.abs().max()) > 0
+            torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+
+
+def test_first_layer_inputs_without_gradient(monkeypatch):
+    """The input layer's spikes are samples: no input gradient is computed, the parameters' still are."""
+    layer = make_layer("dp-oja", 30, 20)
+    state = layer.initial_state(3, torch.float64)
+    spikes_in = (torch.rand(3, 5, 30) < 0.4).double()
+    out, state = layer(spikes_in, state)
+    loss = out.spikes.sum() + state.plastic.trace.sum()
+    fused = torch.autograd.grad(loss, list(layer.parameters()))
+    with monkeypatch.context() as patch:
+        patch.setattr(_FusedInterval, "applies", staticmethod(lambda *args: False))
+        state = layer.initial_state(3, torch.float64)
+        out, state = layer(spikes_in, state)
+        eager = torch.autograd.grad(out.spikes.sum() + state.plastic.trace.sum(), list(layer.parameters()))
+    for a, b in zip(fused, eager):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+
+
+def test_rollout_path_matches_training_path():
+    """Without autograd the layer runs the same op (no node): identical spikes and states."""
+    layer = make_layer("dp-oja", 20, 30, torch.float32)
+    spikes_in = (torch.rand(4, 6, 20) < 0.4).float()
+    with torch.no_grad():
+        out_a, state_a = layer(spikes_in, layer.initial_state(4))
+    out_b, state_b = layer(spikes_in, layer.initial_state(4))
+    assert out_a.spikes.grad_fn is None and out_b.spikes.grad_fn is not None
+    assert torch.equal(out_a.spikes, out_b.spikes) and torch.equal(out_a.membrane, out_b.membrane)
+    assert torch.equal(state_a.plastic.trace, state_b.plastic.trace.detach())
+
+
+def test_float32_gradients_agree(monkeypatch):
+    """In float32 the fused gradients agree with the eager float32 ones to float rounding."""
+    layer = make_layer("ndp-oja", 30, 20, torch.float32)
+    _, _, fused = run_intervals(layer, True, monkeypatch, dtype=torch.float32)
+    _, _, eager = run_intervals(layer, False, monkeypatch, dtype=torch.float32)
+    for a, b in zip(fused, eager):
+        if a is not None:
+            torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5 * float(b.abs().max()))
+
+
+def test_disabled_compilation_uses_the_eager_layer(monkeypatch):
+    monkeypatch.setenv(_fast.NO_COMPILE_ENV, "1")
+    layer = make_layer("dp-oja", 30, 20)
+    out, _ = layer((torch.rand(2, 5, 30) < 0.4).double().requires_grad_(), layer.initial_state(2, torch.float64))
+    assert type(out.spikes.grad_fn).__name__ != "_FusedIntervalBackward"
