@@ -40,12 +40,16 @@ class LayerState(NamedTuple):
 
 
 class LayerOutput(NamedTuple):
-    """What a layer produced over one interval: ``spikes`` and ``membrane`` ``(batch, L, n_out)``, and the
-    neuromodulatory signal of the interval's plasticity update (``None`` for unmodulated rules)."""
+    """What a layer produced over one interval: ``spikes`` and ``membrane`` ``(batch, L, n_out)``, the
+    neuromodulatory signal of the interval's plasticity update (``None`` for unmodulated rules), and the
+    interval's mean spike rates ``rate`` (``(batch, n_out)``, the rule's :math:`r_{post}`) and ``input_rate``
+    (``(batch, n_in)``, :math:`r_{pre}`)."""
 
     spikes: Tensor
     membrane: Tensor
     modulation: Optional[Tensor]
+    rate: Tensor
+    input_rate: Tensor
 
 
 class PlasticSRMLayer(nn.Module):
@@ -131,9 +135,10 @@ class PlasticSRMLayer(nn.Module):
         from the same computation as one autograd node, :class:`_FusedInterval`); then ``E`` is updated from the
         interval's rates and acts from the next interval on.
         """
-        if _FusedInterval.applies(self, spikes_in, state):
+        ops = _fast.interval_ops()
+        if ops is not None and _FusedInterval.applies(self, spikes_in, state):
             inputs = (spikes_in, state.psp.h1, state.psp.h2, state.refractory.h1, state.refractory.h2, self.weight,
-                      self.alpha, state.plastic.trace, self)
+                      self.alpha, state.plastic.trace, self, ops)
             if torch.is_grad_enabled():
                 outputs = _FusedInterval.apply(*inputs)
             else:  # rollouts: the same op without an autograd node
@@ -150,7 +155,7 @@ class PlasticSRMLayer(nn.Module):
             if monitor:
                 modulation = self.rule.modulation(r_post)
             plastic = self.rule.step(r_pre, r_post, plastic)
-        return LayerOutput(spikes, membrane, modulation), LayerState(psp_state, refractory, plastic)
+        return LayerOutput(spikes, membrane, modulation, r_post, r_pre), LayerState(psp_state, refractory, plastic)
 
     def interval(self, spikes_in: Tensor, psp: AlphaFilterState, trace: Tensor) -> tuple[Tensor, AlphaFilterState]:
         """The synaptic input of one interval ``(batch, L, n_out)`` and the PSP state carried out of it.
@@ -201,21 +206,23 @@ class _FusedInterval(torch.autograd.Function):
         tensors = [layer.weight, state.psp.h1, state.psp.h2, state.refractory.h1, state.refractory.h2]
         if layer.alpha is not None:
             tensors += [layer.alpha, state.plastic.trace]
-        return spikes_in.dim() == 3 and _fast.cpu_float_operands(spikes_in, *tensors) and _fast.interval_ops() is not None
+        return spikes_in.dim() == 3 and _fast.cpu_float_operands(spikes_in, *tensors)
 
     @staticmethod
-    def run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, layer) -> list[Tensor]:
-        """The forward op: spikes, membrane, PSP state, refractory state, ``r_pre``, ``r_post``, then what the
-        backward pass needs (the product's input and the surrogate)."""
-        return _fast.interval_ops().srm_interval_forward(
+    def run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, layer, ops) -> list[Tensor]:
+        """The forward op (``ops``: :func:`sb3_spikeplastic._fast.interval_ops`): spikes, membrane, PSP state,
+        refractory state, ``r_pre``, ``r_post``, then what the backward pass needs (the product's input and the
+        surrogate)."""
+        return ops.srm_interval_forward(
             spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace if alpha is not None else None,
             *layer._psp_filter(spikes_in.shape[1], spikes_in.dtype, spikes_in.device), layer.filter_first,
             *layer.spike_constants)
 
     @staticmethod
-    def forward(ctx, spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, layer):
+    def forward(ctx, spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, layer, ops):
         *outputs, product_in, surrogate = _FusedInterval.run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha,
-                                                             trace, layer)
+                                                             trace, layer, ops)
+        ctx.ops = ops
         ctx.save_for_backward(product_in, weight, alpha, trace, surrogate)
         ctx.filters = (*layer._psp_filter(spikes_in.shape[1], spikes_in.dtype, spikes_in.device), layer.filter_first)
         ctx.mark_non_differentiable(outputs[1], outputs[4], outputs[5])  # membrane, refractory state
@@ -226,14 +233,14 @@ class _FusedInterval(torch.autograd.Function):
     def backward(ctx, d_spikes, _d_membrane, d_h1, d_h2, _d_ref_h1, _d_ref_h2, d_r_pre, d_r_post):
         product_in, weight, alpha, trace, surrogate = ctx.saved_tensors
         need_rows = any(ctx.needs_input_grad[:3])
-        d_x, d_h1, d_h2, d_w, d_alpha, d_trace = _fast.interval_ops().srm_interval_backward(
+        d_x, d_h1, d_h2, d_w, d_alpha, d_trace = ctx.ops.srm_interval_backward(
             d_spikes, d_h1, d_h2, d_r_pre, d_r_post, product_in, weight, alpha, trace if alpha is not None else None,
             surrogate, *ctx.filters, need_rows)
         if not need_rows:
             d_x = d_h1 = d_h2 = None
         if alpha is None:
             d_alpha = d_trace = None
-        return d_x, d_h1, d_h2, None, None, d_w, d_alpha, d_trace, None
+        return d_x, d_h1, d_h2, None, None, d_w, d_alpha, d_trace, None, None
 
 
 def fan_in_std(n_in: int, rms_rate: float, neuron: SRMParameters, gain: float) -> float:

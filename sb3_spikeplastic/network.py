@@ -258,7 +258,12 @@ class SpikingPlasticNetwork(nn.Module):
                     traces[i].append(layer_states[i].plastic.trace)
                 x = out.spikes
         spikes = [outs[0].spikes if n_intervals == 1 else torch.cat([o.spikes for o in outs], 1) for outs in outputs]
-        rates = tuple(s.mean(1) for s in spikes)
+        if n_intervals == 1:  # the layers' own rates (the same op on the same spikes)
+            rates = tuple(outs[0].rate for outs in outputs)
+            input_rate = outputs[0][0].input_rate
+        else:
+            rates = tuple(s.mean(1) for s in spikes)
+            input_rate = spikes_in.mean(1)
         new_state = NetworkState(tuple(layer_states), advance_keys(state.noise_key))
         rec = None
         if record:
@@ -269,7 +274,7 @@ class SpikingPlasticNetwork(nn.Module):
                       for outs in outputs),
                 tuple(torch.stack(t, 1) if t else None for t in traces),
             )
-        return NetworkOutput(self.decoder(rates[-1]), rates, rec, spikes_in.mean(1)), new_state
+        return NetworkOutput(self.decoder(rates[-1]), rates, rec, input_rate), new_state
 
     def forward_sequence(self, obs: Tensor, episode_start: Tensor, state: NetworkState,
                          sync_free: bool = False) -> tuple[list[NetworkOutput], NetworkState]:

@@ -5,7 +5,7 @@
 // Eager PyTorch materialises the per-environment efficacy W_eff (B, n_out, n_in) for a batched matmul, and in
 // the backward its gradient dW_eff of the same size, then reads both again for dW, dalpha and dE: four extra
 // passes over trace-sized arrays. Here the efficacy (or its gradient) of a block of a few environments is built
-// in a buffer that stays in cache (at most ~1 MB), used by one batched matrix product and overwritten by the next
+// in a buffer that stays in cache (at most ~256 KB), used by one batched matrix product and overwritten by the next
 // block's; a block, not one environment, because each product call costs microseconds of dispatch, which at
 // the CPU entry's sizes (16 environments, 12 x 170 x 64) was most of the layer's time:
 //
@@ -50,14 +50,17 @@ void check_operands(const at::Tensor& X, const at::Tensor& W, const at::Tensor& 
               "plastic_linear: float32 or float64 tensors of one dtype");
 }
 
-// Environments per block: the block's efficacy buffer stays below kBlockElements values (1 MB in float32, so it
-// stays in L2 between being written and being multiplied), and there are at least as many blocks as threads.
-constexpr int64_t kBlockElements = 1 << 18;
+// Environments per block: the block's efficacy buffer stays below kBlockElements values (256 KB in float32, so it
+// stays in L2 between being written and being multiplied), and the number of blocks is a multiple of the thread
+// count, so that the threads get equal shares.
+constexpr int64_t kBlockElements = 1 << 16;
 
 int64_t block_size(int64_t batch, int64_t n) {
   const int64_t threads = std::max<int64_t>(1, at::get_num_threads());
-  const int64_t per_thread = (batch + threads - 1) / threads;
-  return std::max<int64_t>(1, std::min<int64_t>(per_thread, kBlockElements / std::max<int64_t>(1, n)));
+  const int64_t cap = std::max<int64_t>(1, kBlockElements / std::max<int64_t>(1, n));
+  int64_t blocks = (batch + cap - 1) / cap;
+  blocks = std::min(batch, (blocks + threads - 1) / threads * threads);
+  return std::max<int64_t>(1, (batch + blocks - 1) / std::max<int64_t>(1, blocks));
 }
 
 template <typename scalar_t>
