@@ -226,6 +226,10 @@ class _FusedInterval(torch.autograd.Function):
         ctx.save_for_backward(product_in, weight, alpha, trace, surrogate)
         ctx.filters = (*layer._psp_filter(spikes_in.shape[1], spikes_in.dtype, spikes_in.device), layer.filter_first)
         ctx.mark_non_differentiable(outputs[1], outputs[4], outputs[5])  # membrane, refractory state
+        if not any(ctx.needs_input_grad[:3]):
+            # The PSP state and r_pre depend on the input spikes and the carried PSP state only: without their
+            # gradient (the input layer) no gradient flows back through the filter.
+            ctx.mark_non_differentiable(outputs[2], outputs[3], outputs[6])
         return tuple(outputs)
 
     @staticmethod
