@@ -23,7 +23,7 @@ from .neurons import (
     spike_constants,
     srm_spikes,
 )
-from .plasticity import PlasticityRule, PlasticState
+from .plasticity import CompiledForm, PlasticityRule, PlasticState, compiled_form
 
 
 class LayerState(NamedTuple):
@@ -131,30 +131,28 @@ class PlasticSRMLayer(nn.Module):
         """Run one plasticity interval of presynaptic spikes ``(batch, L, n_in)``.
 
         With ``monitor`` the output also carries the interval's neuromodulatory signal (computed once more, so
-        it is off on the training path). The spikes come from :meth:`interval` (or, when training on the CPU,
-        from the same computation as one autograd node, :class:`_FusedInterval`); then ``E`` is updated from the
-        interval's rates and acts from the next interval on.
+        it is off on the training path). The spikes come from :meth:`interval`, then ``E`` is updated from the
+        interval's rates and acts from the next interval on. On the CPU both run as one compiled op each way
+        (:class:`_FusedPlasticInterval` for the built-in rules, else :class:`_FusedInterval` and the rule's
+        :meth:`~sb3_spikeplastic.plasticity.PlasticityRule.step`), one autograd node when training.
         """
         ops = _fast.interval_ops()
-        if ops is not None and _FusedInterval.applies(self, spikes_in, state):
-            inputs = (spikes_in, state.psp.h1, state.psp.h2, state.refractory.h1, state.refractory.h2, self.weight,
-                      self.alpha, state.plastic.trace, self, ops)
-            if torch.is_grad_enabled():
-                outputs = _FusedInterval.apply(*inputs)
-            else:  # rollouts: the same op without an autograd node
-                outputs = _FusedInterval.run(*inputs)[:8]
-            spikes, membrane, h1, h2, ref_h1, ref_h2, r_pre, r_post = outputs
-            psp_state, refractory = AlphaFilterState(h1, h2), AlphaFilterState(ref_h1, ref_h2)
+        fused = ops is not None and _FusedInterval.applies(self, spikes_in, state)
+        form = compiled_form(self.rule) if fused and self.plastic else None
+        if form is not None:
+            *outputs, trace, phi = _FusedPlasticInterval.run_layer(self, form, spikes_in, state, ops)
+            plastic = PlasticState(trace, (phi,) if form.bcm else ())
         else:
-            synaptic, psp_state = self.interval(spikes_in, state.psp, state.plastic.trace)
-            spikes, membrane, refractory = srm_spikes(synaptic, state.refractory, self.neuron)
-            r_pre, r_post = spikes_in.mean(1), spikes.mean(1)
-        modulation = None
-        plastic = state.plastic
-        if self.plastic:
-            if monitor:
-                modulation = self.rule.modulation(r_post)
-            plastic = self.rule.step(r_pre, r_post, plastic)
+            if fused:
+                outputs = _FusedInterval.run_layer(self, spikes_in, state, ops)
+            else:
+                synaptic, psp_state = self.interval(spikes_in, state.psp, state.plastic.trace)
+                spikes, membrane, refractory = srm_spikes(synaptic, state.refractory, self.neuron)
+                outputs = (spikes, membrane, *psp_state, *refractory, spikes_in.mean(1), spikes.mean(1))
+            plastic = self.rule.step(outputs[6], outputs[7], state.plastic) if self.plastic else state.plastic
+        spikes, membrane, h1, h2, ref_h1, ref_h2, r_pre, r_post = outputs
+        psp_state, refractory = AlphaFilterState(h1, h2), AlphaFilterState(ref_h1, ref_h2)
+        modulation = self.rule.modulation(r_post) if monitor and self.plastic else None
         return LayerOutput(spikes, membrane, modulation, r_post, r_pre), LayerState(psp_state, refractory, plastic)
 
     def interval(self, spikes_in: Tensor, psp: AlphaFilterState, trace: Tensor) -> tuple[Tensor, AlphaFilterState]:
@@ -209,6 +207,16 @@ class _FusedInterval(torch.autograd.Function):
         return spikes_in.dim() == 3 and _fast.cpu_float_operands(spikes_in, *tensors)
 
     @staticmethod
+    def run_layer(layer: "PlasticSRMLayer", spikes_in: Tensor, state: LayerState, ops) -> list[Tensor]:
+        """The interval's spikes, membrane, PSP state, refractory state, ``r_pre`` and ``r_post``: one autograd
+        node when training, the op alone without autograd (rollouts)."""
+        inputs = (spikes_in, state.psp.h1, state.psp.h2, state.refractory.h1, state.refractory.h2, layer.weight,
+                  layer.alpha, state.plastic.trace, layer, ops)
+        if torch.is_grad_enabled():
+            return _FusedInterval.apply(*inputs)
+        return _FusedInterval.run(*inputs)[:8]
+
+    @staticmethod
     def run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, layer, ops) -> list[Tensor]:
         """The forward op (``ops``: :func:`sb3_spikeplastic._fast.interval_ops`): spikes, membrane, PSP state,
         refractory state, ``r_pre``, ``r_post``, then what the backward pass needs (the product's input and the
@@ -225,11 +233,7 @@ class _FusedInterval(torch.autograd.Function):
         ctx.ops = ops
         ctx.save_for_backward(product_in, weight, alpha, trace, surrogate)
         ctx.filters = (*layer._psp_filter(spikes_in.shape[1], spikes_in.dtype, spikes_in.device), layer.filter_first)
-        ctx.mark_non_differentiable(outputs[1], outputs[4], outputs[5])  # membrane, refractory state
-        if not any(ctx.needs_input_grad[:3]):
-            # The PSP state and r_pre depend on the input spikes and the carried PSP state only: without their
-            # gradient (the input layer) no gradient flows back through the filter.
-            ctx.mark_non_differentiable(outputs[2], outputs[3], outputs[6])
+        ctx.mark_non_differentiable(*_constant_outputs(ctx, outputs))
         return tuple(outputs)
 
     @staticmethod
@@ -245,6 +249,82 @@ class _FusedInterval(torch.autograd.Function):
         if alpha is None:
             d_alpha = d_trace = None
         return d_x, d_h1, d_h2, None, None, d_w, d_alpha, d_trace, None, None
+
+
+class _FusedPlasticInterval(torch.autograd.Function):
+    """:class:`_FusedInterval` and a built-in rule's trace update (its terms, the update and the clip) as one op
+    each way, one autograd node (``_fast/srm_interval.cpp``): the trace-sized gradients of the product and of the
+    update are summed in one pass, not by autograd.
+
+    The forward op runs the eager rule's ops in the same order (new trace and BCM threshold bit-identical); the
+    gradients are those of the eager graph (tested for every built-in rule).
+    """
+
+    @staticmethod
+    def run_layer(layer: "PlasticSRMLayer", form: CompiledForm, spikes_in: Tensor, state: LayerState, ops) -> list:
+        """The 8 outputs of :meth:`_FusedInterval.run_layer`, then the new trace and BCM threshold (``None`` for
+        the other rules)."""
+        rule = layer.rule
+        phi = state.plastic.extra[0] if form.bcm else None
+        inputs = (spikes_in, state.psp.h1, state.psp.h2, state.refractory.h1, state.refractory.h2, layer.weight,
+                  layer.alpha, state.plastic.trace, phi, rule.eta, rule.eta_phi if form.bcm else None,
+                  rule.psi if form.bcm else None, rule.w_m if form.modulation else None, layer, form, ops)
+        if torch.is_grad_enabled():
+            return _FusedPlasticInterval.apply(*inputs)
+        outputs = _FusedPlasticInterval.run(*inputs)
+        return [*outputs[:9], outputs[9] if form.bcm else None]
+
+    @staticmethod
+    def run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m, layer, form, ops):
+        return ops.plastic_interval_forward(
+            spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m,
+            *layer._psp_filter(spikes_in.shape[1], spikes_in.dtype, spikes_in.device), layer.filter_first,
+            *layer.spike_constants, layer.rule.e_max, form.oja, form.modulation)
+
+    @staticmethod
+    def forward(ctx, spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m, layer,
+                form, ops):
+        *outputs, product_in, surrogate, p, pre, m = _FusedPlasticInterval.run(
+            spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m, layer, form, ops)
+        ctx.save_for_backward(product_in, weight, alpha, trace, surrogate, p, pre, m if form.modulation else None,
+                              outputs[6], outputs[7], phi, eta, eta_phi, psi, w_m)
+        ctx.constants = (*layer._psp_filter(spikes_in.shape[1], spikes_in.dtype, spikes_in.device),
+                         layer.filter_first, layer.rule.e_max, form, ops)
+        ctx.mark_non_differentiable(*_constant_outputs(ctx, outputs))
+        if not form.bcm:
+            outputs[9] = None
+        return tuple(outputs)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, d_spikes, _d_membrane, d_h1, d_h2, _d_ref_h1, _d_ref_h2, d_r_pre, d_r_post, d_trace, d_phi):
+        product_in, weight, alpha, trace, surrogate, p, pre, m, r_pre, r_post, phi, eta, eta_phi, psi, w_m = \
+            ctx.saved_tensors
+        operator, psp_rows, end_rows, filter_first, e_max, form, ops = ctx.constants
+        need_rows = any(ctx.needs_input_grad[:3])
+        (d_x, d_h1, d_h2, d_w, d_alpha, d_trace, d_phi, d_eta, d_eta_phi, d_psi,
+         d_w_m) = ops.plastic_interval_backward(
+            d_spikes, d_h1, d_h2, d_r_pre, d_r_post, d_trace, d_phi if form.bcm else None, product_in, weight,
+            alpha, trace, surrogate, p, pre, m, r_pre, r_post, phi, eta, eta_phi, psi, w_m, operator, psp_rows,
+            end_rows, filter_first, need_rows, e_max, form.oja, form.modulation)
+        if not need_rows:
+            d_x = d_h1 = d_h2 = None
+        if not form.bcm:
+            d_phi = d_eta_phi = d_psi = None
+        if not form.modulation:
+            d_w_m = None
+        return (d_x, d_h1, d_h2, None, None, d_w, d_alpha, d_trace, d_phi, d_eta, d_eta_phi, d_psi, d_w_m, None,
+                None, None)
+
+
+def _constant_outputs(ctx, outputs: list[Tensor]) -> list[Tensor]:
+    """The fused interval's outputs that carry no gradient: the membrane and the refractory state (as in
+    :class:`~sb3_spikeplastic.neurons.SRMSpikeRecursion`), and, when the input spikes and the carried PSP state have
+    no gradient (the input layer), the PSP state and ``r_pre``, which depend on those only."""
+    constant = [outputs[1], outputs[4], outputs[5]]
+    if not any(ctx.needs_input_grad[:3]):
+        constant += [outputs[2], outputs[3], outputs[6]]
+    return constant
 
 
 def fan_in_std(n_in: int, rms_rate: float, neuron: SRMParameters, gain: float) -> float:

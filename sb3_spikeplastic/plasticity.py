@@ -371,3 +371,31 @@ class NDPBCMRule(_ModulatedMixin, _BCMRule):
     def hebbian_terms(self, r_pre, r_post, state):
         r_beta, phi = self.presynaptic(r_pre, state)
         return HebbianTerms(self.modulation(r_post) * r_post, r_beta, False, (phi,))
+
+
+class CompiledForm(NamedTuple):
+    """How the compiled CPU layer op (``_fast/srm_interval.cpp``) evaluates a built-in rule's terms, op for op as
+    :meth:`PlasticityRule.hebbian_terms`.
+
+    :param oja: the Oja forms (subtract the trace's prediction).
+    :param bcm: the BCM presynaptic term and sliding threshold.
+    :param modulation: 0 unmodulated, 1 :math:`M = W_m r_{post}`, 2 :math:`M = \\tanh(W_m r_{post})`.
+    """
+
+    oja: bool
+    bcm: bool
+    modulation: int
+
+
+_COMPILED_FORMS = {DPLinearRule: (False, False), DPOjaRule: (True, False), DPBCMRule: (False, True),
+                   NDPOjaRule: (True, False), NDPBCMRule: (False, True)}
+
+
+def compiled_form(rule: PlasticityRule) -> Optional[CompiledForm]:
+    """The :class:`CompiledForm` of a built-in rule; ``None`` for any other rule, subclasses of the built-in ones
+    included (they may change the terms), which then run :meth:`PlasticityRule.step` as written."""
+    flags = _COMPILED_FORMS.get(type(rule))
+    if flags is None:
+        return None
+    modulation = 1 + MODULATION_FORMS.index(rule.modulation_form) if rule.modulated else 0
+    return CompiledForm(*flags, modulation)

@@ -1,5 +1,6 @@
-"""The CPU layer interval as one compiled op each way (``layers._FusedInterval``, ``_fast/srm_interval.cpp``)
-against the eager layer: the same spikes, membrane and states, and the gradients of the eager graph."""
+"""The CPU layer interval as one compiled op each way (``layers._FusedInterval``, and with a built-in rule's trace
+update ``layers._FusedPlasticInterval``; ``_fast/srm_interval.cpp``) against the eager layer: the same spikes,
+membrane and states, and the gradients of the eager graph."""
 
 import pytest
 import torch
@@ -7,15 +8,27 @@ import torch
 from sb3_spikeplastic import _fast
 from sb3_spikeplastic.layers import PlasticSRMLayer, _FusedInterval
 from sb3_spikeplastic.neurons import SRMParameters
-from sb3_spikeplastic.plasticity import get_rule_class
+from sb3_spikeplastic.plasticity import DPOjaRule, get_rule_class
 
 pytestmark = pytest.mark.skipif(_fast.load_ops() is None, reason="compiled ops unavailable")
 
 
+class ShiftedOja(DPOjaRule):
+    """A user's rule built on a built-in one with other terms: it must run its own ``hebbian_terms``."""
+
+    def hebbian_terms(self, r_pre, r_post, state):
+        terms = super().hebbian_terms(r_pre, r_post, state)
+        return terms._replace(post=terms.post + 0.5)
+
+
 def make_layer(rule: str, n_in: int, n_out: int, dtype=torch.float64) -> PlasticSRMLayer:
     torch.manual_seed(0)
-    cls = get_rule_class(rule)
-    layer_rule = cls(n_in, n_out) if cls.has_trace else cls(n_in, n_out)
+    name, _, form = rule.partition("+")
+    cls = ShiftedOja if name == "shifted-oja" else get_rule_class(name)
+    kwargs = {"modulation": form} if form else {}
+    layer_rule = cls(n_in, n_out, **kwargs) if cls.has_trace else cls(n_in, n_out)
+    if hasattr(layer_rule, "psi"):  # a nonzero BCM offset, so that its gradient path is exercised
+        layer_rule.psi.data.normal_(0.0, 0.1)
     # Large weights and alpha: many spikes, and the trace changes the efficacy noticeably.
     return PlasticSRMLayer(n_in, n_out, layer_rule, SRMParameters(tau_s=2.0), w_init_std=3.0,
                            alpha_init_std=5.0).to(dtype)
@@ -40,27 +53,34 @@ def run_intervals(layer, fused: bool, monkeypatch, dtype=torch.float64, batch=4,
             loss = loss + (out.spikes * weights[k]).sum()
         loss = loss + (0.3 * state.psp.h1 + 0.7 * state.psp.h2).sum()
         if layer.plastic:
-            loss = loss + 5.0 * state.plastic.trace.sum()
+            loss = loss + 5.0 * state.plastic.trace.sum() + sum(3.0 * x.sum() for x in state.plastic.extra)
         params = list(layer.parameters())
         grads = torch.autograd.grad(loss, params + [spikes_in], allow_unused=True)
     return outputs, state, grads
 
 
-@pytest.mark.parametrize("rule", ["dp-oja", "ndp-bcm", "static"])
+NODES = {"static": "_FusedIntervalBackward", "shifted-oja": "_FusedIntervalBackward"}
+
+
+@pytest.mark.parametrize("rule", ["dp-linear", "dp-oja", "dp-bcm", "ndp-oja", "ndp-oja+tanh", "ndp-bcm",
+                                  "ndp-bcm+tanh", "static", "shifted-oja"])
 @pytest.mark.parametrize("n_in, n_out", [(30, 20), (20, 30)], ids=["product-first", "filter-first"])
 def test_fused_interval_equals_eager_layer(rule, n_in, n_out, monkeypatch):
     layer = make_layer(rule, n_in, n_out)
     fused_out, fused_state, fused_grads = run_intervals(layer, True, monkeypatch)
     eager_out, eager_state, eager_grads = run_intervals(layer, False, monkeypatch)
-    assert type(fused_out[0].spikes.grad_fn).__name__ == "_FusedIntervalBackward"
+    assert type(fused_out[0].spikes.grad_fn).__name__ == NODES.get(rule, "_FusedPlasticIntervalBackward")
     assert type(eager_out[0].spikes.grad_fn).__name__ != "_FusedIntervalBackward"
     assert sum(float(o.spikes.detach().sum()) for o in eager_out) > 0
     for a, b in zip(fused_out, eager_out):
         assert torch.equal(a.spikes, b.spikes) and torch.equal(a.membrane, b.membrane)
     for a, b in zip(fused_state.psp + fused_state.refractory, eager_state.psp + eager_state.refractory):
         assert torch.equal(a, b)
-    if layer.plastic:
-        assert torch.equal(fused_state.plastic.trace, eager_state.plastic.trace)
+    for a, b in zip(fused_state.plastic, eager_state.plastic):  # the trace, and the BCM threshold
+        if isinstance(a, tuple):
+            assert len(a) == len(b) and all(torch.equal(x, y) for x, y in zip(a, b))
+        else:
+            assert torch.equal(a, b)
     for a, b in zip(fused_grads, eager_grads):
         assert (a is None) == (b is None)
         if a is not None:
@@ -74,6 +94,10 @@ def test_first_layer_inputs_without_gradient(monkeypatch):
     state = layer.initial_state(3, torch.float64)
     spikes_in = (torch.rand(3, 5, 30) < 0.4).double()
     out, state = layer(spikes_in, state)
+    # Only the spikes, rates and the trace carry a gradient: the membrane and refractory state never do, the PSP
+    # state not without one of the input spikes.
+    assert out.spikes.requires_grad and state.plastic.trace.requires_grad
+    assert not any(x.requires_grad for x in (out.membrane, *state.refractory, *state.psp, out.input_rate))
     loss = out.spikes.sum() + state.plastic.trace.sum()
     fused = torch.autograd.grad(loss, list(layer.parameters()))
     with monkeypatch.context() as patch:

@@ -12,11 +12,20 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> srm_loop_cpu(const at
                                                                       const at::Tensor& h1, const at::Tensor& h2,
                                                                       double d, double kappa, double theta);
 
-// plastic_linear.cpp: Y[b] = X[b] (W + alpha * E[b])^T and its gradients (dX, dW, dalpha, dE).
+// plastic_linear.cpp: Y[b] = X[b] (W + alpha * E[b])^T and its gradients (dX, dW, dalpha, dE); dE starts from
+// dE_init when it is given (a gradient of E from elsewhere, added in the same pass).
 at::Tensor plastic_linear_forward(const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha,
                                   const at::Tensor& E);
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> plastic_linear_backward(
     const at::Tensor& grad, const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E,
-    bool need_x_grad);
+    bool need_x_grad, const at::Tensor& dE_init = at::Tensor());
+
+// trace_step.cpp: E' = clamp((1 - eta) E + (eta p) (x) pre), p = post - [E pre] -> (E', p), and its gradients
+// (dE, dpost, dpre, deta).
+std::tuple<at::Tensor, at::Tensor> trace_step_forward(const at::Tensor& E, const at::Tensor& post,
+                                                     const at::Tensor& pre, double eta, double e_max, bool oja);
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> trace_step_backward(
+    const at::Tensor& grad, const at::Tensor& E, const at::Tensor& p, const at::Tensor& pre, double eta,
+    double e_max, bool oja);
 
 }  // namespace sb3_spikeplastic_fast

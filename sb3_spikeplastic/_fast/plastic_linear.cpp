@@ -70,14 +70,21 @@ inline void efficacy_into(const scalar_t* __restrict w, const scalar_t* __restri
   for (int64_t k = 0; k < n; ++k) out[k] = w[k] + a[k] * e[k];
 }
 
-// One row of the efficacy's gradient g: dE = g * alpha, and the batch sums dW += g, dalpha += g * E.
+// One row of the efficacy's gradient g: dE = g * alpha (+ de0, another gradient of E, when given), and the batch
+// sums dW += g, dalpha += g * E.
 template <typename scalar_t>
 inline void efficacy_grad_row(const scalar_t* __restrict g, const scalar_t* __restrict e,
-                              const scalar_t* __restrict a, scalar_t* __restrict de, scalar_t* __restrict dw,
-                              scalar_t* __restrict da, int64_t n) {
+                              const scalar_t* __restrict a, const scalar_t* __restrict de0, scalar_t* __restrict de,
+                              scalar_t* __restrict dw, scalar_t* __restrict da, int64_t n) {
+  if (de0 != nullptr) {
+#pragma omp simd
+    for (int64_t i = 0; i < n; ++i) de[i] = de0[i] + g[i] * a[i];
+  } else {
+#pragma omp simd
+    for (int64_t i = 0; i < n; ++i) de[i] = g[i] * a[i];
+  }
 #pragma omp simd
   for (int64_t i = 0; i < n; ++i) {
-    de[i] = g[i] * a[i];
     dw[i] += g[i];
     da[i] += g[i] * e[i];
   }
@@ -116,8 +123,11 @@ at::Tensor plastic_linear_forward(const at::Tensor& X_in, const at::Tensor& W_in
 // Returns (dX, dW, dalpha, dE); dX is empty unless need_x_grad.
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> plastic_linear_backward(
     const at::Tensor& grad_in, const at::Tensor& X_in, const at::Tensor& W_in, const at::Tensor& alpha_in,
-    const at::Tensor& E_in, bool need_x_grad) {
+    const at::Tensor& E_in, bool need_x_grad, const at::Tensor& dE_init_in) {
   check_operands(X_in, W_in, alpha_in, E_in);
+  const at::Tensor dE_init = dE_init_in.defined() ? dE_init_in.contiguous() : at::Tensor();
+  TORCH_CHECK(!dE_init.defined() || (dE_init.sizes() == E_in.sizes() && dE_init.scalar_type() == E_in.scalar_type()),
+              "plastic_linear: dE_init does not match E");
   const at::Tensor g = grad_in.contiguous(), X = X_in.contiguous(), W = W_in.contiguous(),
                    alpha = alpha_in.contiguous(), E = E_in.contiguous();
   const int64_t B = X.size(0), R = X.size(1), O = W.size(0), I = W.size(1), N = W.numel();
@@ -132,6 +142,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> plastic_linear_backwa
   AT_DISPATCH_FLOATING_TYPES(E.scalar_type(), "plastic_linear_backward", [&] {
     const scalar_t *w_p = W.data_ptr<scalar_t>(), *a_p = alpha.data_ptr<scalar_t>(), *e_p = E.data_ptr<scalar_t>();
     scalar_t *de_p = dE.data_ptr<scalar_t>(), *acc_p = acc.data_ptr<scalar_t>();
+    const scalar_t* de0_p = dE_init.defined() ? dE_init.data_ptr<scalar_t>() : nullptr;
     const CallerDenormalMode mode;
     at::parallel_for(0, blocks, 1, [&](int64_t begin, int64_t end) {
       const DenormalModeScope denormals(mode);
@@ -149,9 +160,11 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> plastic_linear_backwa
           const scalar_t* e_b = e_p + (b0 + b) * N;
           scalar_t* de_b = de_p + (b0 + b) * N;
           const scalar_t* G_b = G_p + b * N;
+          const scalar_t* de0_b = de0_p != nullptr ? de0_p + (b0 + b) * N : nullptr;
           for (int64_t o = 0; o < O; ++o) {
             const int64_t off = o * I;
-            efficacy_grad_row<scalar_t>(G_b + off, e_b + off, a_p + off, de_b + off, dw_t + off, da_t + off, I);
+            efficacy_grad_row<scalar_t>(G_b + off, e_b + off, a_p + off, de0_b != nullptr ? de0_b + off : nullptr,
+                                        de_b + off, dw_t + off, da_t + off, I);
           }
         }
         if (need_x_grad) {
@@ -176,7 +189,17 @@ TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
       "-> (Tensor, Tensor, Tensor, Tensor)");
 }
 
+namespace {
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> plastic_linear_backward_op(
+    const at::Tensor& grad, const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E,
+    bool need_x_grad) {
+  return sb3_spikeplastic_fast::plastic_linear_backward(grad, X, W, alpha, E, need_x_grad);
+}
+
+}  // namespace
+
 TORCH_LIBRARY_IMPL(sb3_spikeplastic_fast, CPU, m) {
   m.impl("plastic_linear_forward", &sb3_spikeplastic_fast::plastic_linear_forward);
-  m.impl("plastic_linear_backward", &sb3_spikeplastic_fast::plastic_linear_backward);
+  m.impl("plastic_linear_backward", &plastic_linear_backward_op);
 }

@@ -30,6 +30,7 @@
 #include <torch/library.h>
 
 #include "denormal_mode.h"
+#include "kernels.h"
 
 #include <algorithm>
 #include <tuple>
@@ -103,6 +104,10 @@ std::pair<scalar_t, scalar_t> backward_row(const scalar_t* __restrict g, const s
   return {gp, gdiff};
 }
 
+}  // namespace
+
+namespace sb3_spikeplastic_fast {
+
 // Returns (E', p); p is kept for the backward pass.
 std::tuple<at::Tensor, at::Tensor> trace_step_forward(const at::Tensor& E_in, const at::Tensor& post_in,
                                                      const at::Tensor& pre_in, double eta, double e_max, bool oja) {
@@ -167,7 +172,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> trace_step_backward(
   return std::make_tuple(dE, dpost, dpre, deta_rows.sum().to(E.scalar_type()));
 }
 
-}  // namespace
+}  // namespace sb3_spikeplastic_fast
 
 TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
   m.def("trace_step_forward(Tensor E, Tensor post, Tensor pre, float eta, float e_max, bool oja) -> (Tensor, Tensor)");
@@ -177,6 +182,6 @@ TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
 }
 
 TORCH_LIBRARY_IMPL(sb3_spikeplastic_fast, CPU, m) {
-  m.impl("trace_step_forward", &trace_step_forward);
-  m.impl("trace_step_backward", &trace_step_backward);
+  m.impl("trace_step_forward", &sb3_spikeplastic_fast::trace_step_forward);
+  m.impl("trace_step_backward", &sb3_spikeplastic_fast::trace_step_backward);
 }
