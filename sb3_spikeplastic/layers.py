@@ -104,8 +104,8 @@ class PlasticSRMLayer(nn.Module):
     def project(self, x: Tensor, trace: Tensor, efficacy_left: bool = False) -> Tensor:
         """The synaptic product :math:`x_b (W + \\alpha \\odot E_b)^T` of presynaptic rows ``x (batch, L, n_in)``.
 
-        On CPU the compiled op of :mod:`sb3_spikeplastic._fast` builds one environment's efficacy at a time (the
-        ``(batch, n_out, n_in)`` efficacy and its gradient are never materialised). The eager path multiplies
+        On CPU the compiled op of :mod:`sb3_spikeplastic._fast` builds the efficacy of a few environments at a
+        time (the ``(batch, n_out, n_in)`` efficacy and its gradient are never materialised). The eager path multiplies
         with the efficacy on the left when ``efficacy_left`` (so that its gradient comes out in its own
         ``(n_out, n_in)`` layout, not transposed: cheaper when ``n_in > n_out``), else on the right.
         """
@@ -214,17 +214,17 @@ class _FusedInterval(torch.autograd.Function):
                   layer.alpha, state.plastic.trace, layer, ops)
         if torch.is_grad_enabled():
             return _FusedInterval.apply(*inputs)
-        return _FusedInterval.run(*inputs)[:8]
+        return _FusedInterval.run(*inputs, need_surrogate=False)[:8]
 
     @staticmethod
-    def run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, layer, ops) -> list[Tensor]:
+    def run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, layer, ops, need_surrogate=True) -> list[Tensor]:
         """The forward op (``ops``: :func:`sb3_spikeplastic._fast.interval_ops`): spikes, membrane, PSP state,
         refractory state, ``r_pre``, ``r_post``, then what the backward pass needs (the product's input and the
-        surrogate)."""
+        surrogate, empty without ``need_surrogate``)."""
         return ops.srm_interval_forward(
             spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace if alpha is not None else None,
             *layer._psp_filter(spikes_in.shape[1], spikes_in.dtype, spikes_in.device), layer.filter_first,
-            *layer.spike_constants)
+            *layer.spike_constants, need_surrogate)
 
     @staticmethod
     def forward(ctx, spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, layer, ops):
@@ -271,15 +271,16 @@ class _FusedPlasticInterval(torch.autograd.Function):
                   rule.psi if form.bcm else None, rule.w_m if form.modulation else None, layer, form, ops)
         if torch.is_grad_enabled():
             return _FusedPlasticInterval.apply(*inputs)
-        outputs = _FusedPlasticInterval.run(*inputs)
+        outputs = _FusedPlasticInterval.run(*inputs, need_surrogate=False)
         return [*outputs[:9], outputs[9] if form.bcm else None]
 
     @staticmethod
-    def run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m, layer, form, ops):
+    def run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m, layer, form, ops,
+            need_surrogate=True):
         return ops.plastic_interval_forward(
             spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m,
             *layer._psp_filter(spikes_in.shape[1], spikes_in.dtype, spikes_in.device), layer.filter_first,
-            *layer.spike_constants, layer.rule.e_max, form.oja, form.modulation)
+            *layer.spike_constants, layer.rule.e_max, form.oja, form.modulation, need_surrogate)
 
     @staticmethod
     def forward(ctx, spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m, layer,

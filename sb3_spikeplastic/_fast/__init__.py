@@ -9,9 +9,14 @@
   trace update and clip of every built-in rule, forward and backward, in one pass over the trace each instead of
   ~20 eager passes; equal to the eager ops to float rounding (a dot product is summed in another order).
 * :func:`plastic_linear` (``plastic_linear.cpp``), for :meth:`sb3_spikeplastic.layers.PlasticSRMLayer.project`:
-  the synaptic product ``X[b] (W + alpha * E[b])^T`` with one environment's efficacy at a time in a cache-sized
-  buffer, so that neither the ``(B, n_out, n_in)`` efficacy nor its gradient is ever materialised (eager: four
-  extra passes over trace-sized arrays); equal to the eager ops to float rounding.
+  the synaptic product ``X[b] (W + alpha * E[b])^T`` with the efficacy of a few environments at a time in a
+  cache-sized buffer, so that neither the ``(B, n_out, n_in)`` efficacy nor its gradient is ever materialised
+  (eager: four extra passes over trace-sized arrays); equal to the eager ops to float rounding.
+* :func:`interval_ops` (``srm_interval.cpp``), for :class:`sb3_spikeplastic.layers.PlasticSRMLayer`: a whole
+  layer interval (filter, product, spike loop, surrogate, rates and, for the built-in rules, the trace update) as
+  one op forward and one backward, built from the kernels above; one autograd node per layer and interval where
+  eager autograd records ~15, whose overhead dominated the small CPU networks' training step. Spikes and states
+  are bit-identical to the eager layer on the CPU; gradients equal to float rounding.
 * :func:`bernoulli_spikes` (``bernoulli.cpp``), for :meth:`sb3_spikeplastic.coding.CounterBernoulli.sample`:
   the hash sampler in one pass instead of ~12, **bit-identical** (integer hashing, exact comparisons).
 
@@ -323,7 +328,7 @@ def trace_step(E: Tensor, post: Tensor, pre: Tensor, eta: Tensor, e_max: float, 
 
 
 class _PlasticLinear(torch.autograd.Function):
-    """``X[b] (W + alpha * E[b])^T`` per environment, one environment's efficacy at a time, environments split
+    """``X[b] (W + alpha * E[b])^T`` per environment, the efficacy of a few environments at a time, blocks split
     between torch's threads (see ``plastic_linear.cpp``); the gradient of ``X`` is computed only when it is
     needed."""
 

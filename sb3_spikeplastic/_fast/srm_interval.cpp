@@ -61,7 +61,7 @@ std::vector<at::Tensor> interval_forward(const at::Tensor& x, const at::Tensor& 
                                          const std::optional<at::Tensor>& alpha, const std::optional<at::Tensor>& E,
                                          const at::Tensor& op, const at::Tensor& psp_rows, const at::Tensor& end_rows,
                                          bool filter_first, double d, double kappa, double theta, double width,
-                                         double scale) {
+                                         double scale, bool need_surrogate) {
   TORCH_CHECK(x.dim() == 3 && op.dim() == 2 && op.size(0) == x.size(1) + 2,
               "srm_interval: spikes (B, L, n_in) and a (L + 2, L + 2) filter operator");
   TORCH_CHECK(alpha.has_value() == E.has_value(), "srm_interval: alpha and E come together");
@@ -80,8 +80,10 @@ std::vector<at::Tensor> interval_forward(const at::Tensor& x, const at::Tensor& 
     end = at::matmul(end_rows, rows);
   }
   auto [spikes, membrane, rh1, rh2] = sb3_spikeplastic_fast::srm_loop_cpu(synaptic, ref_h1, ref_h2, d, kappa, theta);
-  // neurons.slayer_surrogate, op for op
-  at::Tensor surrogate = at::sub(membrane, theta).abs_().div_(-width).exp_().mul_(scale / width);
+  // neurons.slayer_surrogate, op for op; only for training (in rollouts it would be the layer's largest cost)
+  const at::Tensor surrogate = need_surrogate
+                                   ? at::sub(membrane, theta).abs_().div_(-width).exp_().mul_(scale / width)
+                                   : at::empty({0}, membrane.options());
   return {spikes, membrane, end.select(1, 0), end.select(1, 1), rh1, rh2, x.mean(1), spikes.mean(1), product_in,
           surrogate};
 }
@@ -124,9 +126,9 @@ std::vector<at::Tensor> srm_interval_forward(const at::Tensor& x, const at::Tens
                                              const std::optional<at::Tensor>& E, const at::Tensor& op,
                                              const at::Tensor& psp_rows, const at::Tensor& end_rows,
                                              bool filter_first, double d, double kappa, double theta, double width,
-                                             double scale) {
+                                             double scale, bool need_surrogate) {
   return interval_forward(x, h1, h2, ref_h1, ref_h2, W, alpha, E, op, psp_rows, end_rows, filter_first, d, kappa,
-                          theta, width, scale);
+                          theta, width, scale, need_surrogate);
 }
 
 std::vector<at::Tensor> srm_interval_backward(const at::Tensor& d_spikes, const at::Tensor& d_h1,
@@ -151,14 +153,14 @@ std::vector<at::Tensor> plastic_interval_forward(
     const at::Tensor& eta, const std::optional<at::Tensor>& eta_phi, const std::optional<at::Tensor>& psi,
     const std::optional<at::Tensor>& w_m, const at::Tensor& op, const at::Tensor& psp_rows,
     const at::Tensor& end_rows, bool filter_first, double d, double kappa, double theta, double width, double scale,
-    double e_max, bool oja, int64_t modulation) {
+    double e_max, bool oja, int64_t modulation, bool need_surrogate) {
   TORCH_CHECK(phi.has_value() == eta_phi.has_value() && phi.has_value() == psi.has_value(),
               "plastic_interval: phi, eta_phi and psi come together (BCM rules)");
   TORCH_CHECK((modulation == kUnmodulated) != w_m.has_value() && modulation >= kUnmodulated && modulation <= kTanh,
               "plastic_interval: W_m with a modulation form 1 (linear) or 2 (tanh), or neither");
   const at::NoGradGuard no_grad;
   std::vector<at::Tensor> out = interval_forward(x, h1, h2, ref_h1, ref_h2, W, alpha, E, op, psp_rows, end_rows,
-                                                 filter_first, d, kappa, theta, width, scale);
+                                                 filter_first, d, kappa, theta, width, scale, need_surrogate);
   const at::Tensor &r_pre = out[6], &r_post = out[7];
   at::Tensor post = r_post, pre = r_pre, m, new_phi;
   if (modulation != kUnmodulated) {  // plasticity.modulatory_signal
@@ -224,7 +226,7 @@ TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
   m.def(
       "srm_interval_forward(Tensor x, Tensor h1, Tensor h2, Tensor ref_h1, Tensor ref_h2, Tensor W, Tensor? alpha, "
       "Tensor? E, Tensor op, Tensor psp_rows, Tensor end_rows, bool filter_first, float d, float kappa, "
-      "float theta, float width, float scale) -> Tensor[]");
+      "float theta, float width, float scale, bool need_surrogate) -> Tensor[]");
   m.def(
       "srm_interval_backward(Tensor d_spikes, Tensor d_h1, Tensor d_h2, Tensor d_r_pre, Tensor d_r_post, "
       "Tensor product_in, Tensor W, Tensor? alpha, Tensor? E, Tensor surrogate, Tensor op, Tensor psp_rows, "
@@ -233,7 +235,7 @@ TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
       "plastic_interval_forward(Tensor x, Tensor h1, Tensor h2, Tensor ref_h1, Tensor ref_h2, Tensor W, Tensor alpha, "
       "Tensor E, Tensor? phi, Tensor eta, Tensor? eta_phi, Tensor? psi, Tensor? w_m, Tensor op, Tensor psp_rows, "
       "Tensor end_rows, bool filter_first, float d, float kappa, float theta, float width, float scale, "
-      "float e_max, bool oja, int modulation) -> Tensor[]");
+      "float e_max, bool oja, int modulation, bool need_surrogate) -> Tensor[]");
   m.def(
       "plastic_interval_backward(Tensor d_spikes, Tensor d_h1, Tensor d_h2, Tensor d_r_pre, Tensor d_r_post, "
       "Tensor d_new_E, Tensor? d_new_phi, Tensor product_in, Tensor W, Tensor alpha, Tensor E, Tensor surrogate, "
