@@ -1,5 +1,5 @@
 // One interval of a plastic SRM layer, forward and backward, each as one op (the CPU fast path of
-// sb3_spikeplastic.layers.PlasticSRMLayer on the training path). The forward pass runs the same ATen ops and
+// sb3_spikeplastic.layers.PlasticSRMLayer). The forward pass runs the same ATen ops and
 // kernels as the eager layer, in the same order, so its spikes, membrane and states are bit-identical:
 //
 //     R = [S; h1; h2]                                   (B, L + 2, n_in): the spikes and the carried PSP state
@@ -161,7 +161,7 @@ std::vector<at::Tensor> plastic_interval_forward(
   const at::NoGradGuard no_grad;
   std::vector<at::Tensor> out = interval_forward(x, h1, h2, ref_h1, ref_h2, W, alpha, E, op, psp_rows, end_rows,
                                                  filter_first, d, kappa, theta, width, scale, need_surrogate);
-  const at::Tensor &r_pre = out[6], &r_post = out[7];
+  const at::Tensor r_pre = out[6], r_post = out[7];  // handles, not references: `out` grows below
   at::Tensor post = r_post, pre = r_pre, m, new_phi;
   if (modulation != kUnmodulated) {  // plasticity.modulatory_signal
     m = at::matmul(r_post, w_m->t());
