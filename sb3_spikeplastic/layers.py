@@ -132,23 +132,22 @@ class PlasticSRMLayer(nn.Module):
 
         With ``monitor`` the output also carries the interval's neuromodulatory signal (computed once more, so
         it is off on the training path). The spikes come from :meth:`interval`, then ``E`` is updated from the
-        interval's rates and acts from the next interval on. On the CPU both run as one compiled op each way
-        (:class:`_FusedPlasticInterval` for the built-in rules, else :class:`_FusedInterval` and the rule's
-        :meth:`~sb3_spikeplastic.plasticity.PlasticityRule.step`), one autograd node when training.
+        interval's rates and acts from the next interval on. On the CPU both run as one compiled op each way, one
+        autograd node when training (:class:`_FusedInterval`; other rules than the built-in ones run their
+        :meth:`~sb3_spikeplastic.plasticity.PlasticityRule.step` after it).
         """
         ops = _fast.interval_ops()
-        fused = ops is not None and _FusedInterval.applies(self, spikes_in, state)
-        form = compiled_form(self.rule) if fused and self.plastic else None
-        if form is not None:
-            *outputs, trace, phi = _FusedPlasticInterval.run_layer(self, form, spikes_in, state, ops)
+        form = None
+        if ops is not None and _FusedInterval.applies(self, spikes_in, state):
+            form = compiled_form(self.rule) if self.plastic else None
+            *outputs, trace, phi = _FusedInterval.run_layer(self, form, spikes_in, state, ops)
+        else:
+            synaptic, psp_state = self.interval(spikes_in, state.psp, state.plastic.trace)
+            spikes, membrane, refractory = srm_spikes(synaptic, state.refractory, self.neuron)
+            outputs = (spikes, membrane, *psp_state, *refractory, spikes_in.mean(1), spikes.mean(1))
+        if form is not None:  # the op updated the trace
             plastic = PlasticState(trace, (phi,) if form.bcm else ())
         else:
-            if fused:
-                outputs = _FusedInterval.run_layer(self, spikes_in, state, ops)
-            else:
-                synaptic, psp_state = self.interval(spikes_in, state.psp, state.plastic.trace)
-                spikes, membrane, refractory = srm_spikes(synaptic, state.refractory, self.neuron)
-                outputs = (spikes, membrane, *psp_state, *refractory, spikes_in.mean(1), spikes.mean(1))
             plastic = self.rule.step(outputs[6], outputs[7], state.plastic) if self.plastic else state.plastic
         spikes, membrane, h1, h2, ref_h1, ref_h2, r_pre, r_post = outputs
         psp_state, refractory = AlphaFilterState(h1, h2), AlphaFilterState(ref_h1, ref_h2)
@@ -191,12 +190,14 @@ class PlasticSRMLayer(nn.Module):
 
 class _FusedInterval(torch.autograd.Function):
     """One layer interval on the CPU as a single autograd node: :meth:`PlasticSRMLayer.interval`, the spike
-    recursion, the surrogate and both mean rates in one compiled op forward and one backward
-    (``_fast/srm_interval.cpp``, where the backward pass is written out).
+    recursion, the surrogate, both mean rates and, for a built-in rule (``form``), the trace update with the rule's
+    terms, in one compiled op forward and one backward (``_fast/srm_interval.cpp``, where the backward pass is
+    written out; the trace-sized gradients of the product and of the update are summed in one pass).
 
-    The forward op runs the eager path's ops and kernels in the same order, so spikes, membrane and states are
-    bit-identical; the gradients are those of the eager graph (tested). Eager autograd builds ~12 nodes per layer
-    and interval, whose overhead dominates the small CPU networks' training step.
+    The forward op runs the eager layer's and rule's ops and kernels in the same order, so spikes, membrane, states
+    and the new trace are bit-identical; the gradients are those of the eager graph (tested for every built-in
+    rule). Eager autograd builds ~15 nodes per layer and interval, whose overhead dominates the small CPU networks'
+    training step.
     """
 
     @staticmethod
@@ -207,94 +208,50 @@ class _FusedInterval(torch.autograd.Function):
         return spikes_in.dim() == 3 and _fast.cpu_float_operands(spikes_in, *tensors)
 
     @staticmethod
-    def run_layer(layer: "PlasticSRMLayer", spikes_in: Tensor, state: LayerState, ops) -> list[Tensor]:
-        """The interval's spikes, membrane, PSP state, refractory state, ``r_pre`` and ``r_post``: one autograd
-        node when training, the op alone without autograd (rollouts)."""
+    def run_layer(layer: "PlasticSRMLayer", form: Optional[CompiledForm], spikes_in: Tensor, state: LayerState,
+                  ops) -> list:
+        """Spikes, membrane, PSP state, refractory state, ``r_pre``, ``r_post``, then the new trace and BCM
+        threshold (``None`` when the op does not update them): one autograd node when training, the op alone
+        without autograd (rollouts)."""
+        rule = layer.rule
+        bcm = form is not None and form.bcm
         inputs = (spikes_in, state.psp.h1, state.psp.h2, state.refractory.h1, state.refractory.h2, layer.weight,
-                  layer.alpha, state.plastic.trace, layer, ops)
+                  layer.alpha, state.plastic.trace if layer.alpha is not None else None,
+                  state.plastic.extra[0] if bcm else None, rule.eta if form is not None else None,
+                  rule.eta_phi if bcm else None, rule.psi if bcm else None,
+                  rule.w_m if form is not None and form.modulation else None, layer, form, ops)
         if torch.is_grad_enabled():
             return _FusedInterval.apply(*inputs)
-        return _FusedInterval.run(*inputs, need_surrogate=False)[:8]
-
-    @staticmethod
-    def run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, layer, ops, need_surrogate=True) -> list[Tensor]:
-        """The forward op (``ops``: :func:`sb3_spikeplastic._fast.interval_ops`): spikes, membrane, PSP state,
-        refractory state, ``r_pre``, ``r_post``, then what the backward pass needs (the product's input and the
-        surrogate, empty without ``need_surrogate``)."""
-        return ops.srm_interval_forward(
-            spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace if alpha is not None else None,
-            *layer._psp_filter(spikes_in.shape[1], spikes_in.dtype, spikes_in.device), layer.filter_first,
-            *layer.spike_constants, need_surrogate)
-
-    @staticmethod
-    def forward(ctx, spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, layer, ops):
-        *outputs, product_in, surrogate = _FusedInterval.run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha,
-                                                             trace, layer, ops)
-        ctx.ops = ops
-        ctx.save_for_backward(product_in, weight, alpha, trace, surrogate)
-        ctx.filters = (*layer._psp_filter(spikes_in.shape[1], spikes_in.dtype, spikes_in.device), layer.filter_first)
-        ctx.mark_non_differentiable(*_constant_outputs(ctx, outputs))
-        return tuple(outputs)
-
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, d_spikes, _d_membrane, d_h1, d_h2, _d_ref_h1, _d_ref_h2, d_r_pre, d_r_post):
-        product_in, weight, alpha, trace, surrogate = ctx.saved_tensors
-        need_rows = any(ctx.needs_input_grad[:3])
-        d_x, d_h1, d_h2, d_w, d_alpha, d_trace = ctx.ops.srm_interval_backward(
-            d_spikes, d_h1, d_h2, d_r_pre, d_r_post, product_in, weight, alpha, trace if alpha is not None else None,
-            surrogate, *ctx.filters, need_rows)
-        if not need_rows:
-            d_x = d_h1 = d_h2 = None
-        if alpha is None:
-            d_alpha = d_trace = None
-        return d_x, d_h1, d_h2, None, None, d_w, d_alpha, d_trace, None, None
-
-
-class _FusedPlasticInterval(torch.autograd.Function):
-    """:class:`_FusedInterval` and a built-in rule's trace update (its terms, the update and the clip) as one op
-    each way, one autograd node (``_fast/srm_interval.cpp``): the trace-sized gradients of the product and of the
-    update are summed in one pass, not by autograd.
-
-    The forward op runs the eager rule's ops in the same order (new trace and BCM threshold bit-identical); the
-    gradients are those of the eager graph (tested for every built-in rule).
-    """
-
-    @staticmethod
-    def run_layer(layer: "PlasticSRMLayer", form: CompiledForm, spikes_in: Tensor, state: LayerState, ops) -> list:
-        """The 8 outputs of :meth:`_FusedInterval.run_layer`, then the new trace and BCM threshold (``None`` for
-        the other rules)."""
-        rule = layer.rule
-        phi = state.plastic.extra[0] if form.bcm else None
-        inputs = (spikes_in, state.psp.h1, state.psp.h2, state.refractory.h1, state.refractory.h2, layer.weight,
-                  layer.alpha, state.plastic.trace, phi, rule.eta, rule.eta_phi if form.bcm else None,
-                  rule.psi if form.bcm else None, rule.w_m if form.modulation else None, layer, form, ops)
-        if torch.is_grad_enabled():
-            return _FusedPlasticInterval.apply(*inputs)
-        outputs = _FusedPlasticInterval.run(*inputs, need_surrogate=False)
-        return [*outputs[:9], outputs[9] if form.bcm else None]
+        return _FusedInterval.outputs(_FusedInterval.run(*inputs, need_surrogate=False)[:10], form)
 
     @staticmethod
     def run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m, layer, form, ops,
-            need_surrogate=True):
-        return ops.plastic_interval_forward(
+            need_surrogate=True) -> list[Tensor]:
+        """The forward op: the 10 outputs of :meth:`run_layer` (empty tensors for ``None``), then what the backward
+        pass needs."""
+        modulation, oja = (form.modulation, form.oja) if form is not None else (0, False)
+        return ops.srm_interval_forward(
             spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m,
             *layer._psp_filter(spikes_in.shape[1], spikes_in.dtype, spikes_in.device), layer.filter_first,
-            *layer.spike_constants, layer.rule.e_max, form.oja, form.modulation, need_surrogate)
+            *layer.spike_constants, layer.rule.e_max, oja, modulation, need_surrogate)
+
+    @staticmethod
+    def outputs(outputs: list, form: Optional[CompiledForm]) -> list:
+        """``None`` for the new trace and BCM threshold where the op left them empty."""
+        return [*outputs[:8], outputs[8] if form is not None else None,
+                outputs[9] if form is not None and form.bcm else None]
 
     @staticmethod
     def forward(ctx, spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m, layer,
                 form, ops):
-        *outputs, product_in, surrogate, p, pre, m = _FusedPlasticInterval.run(
+        *outputs, product_in, surrogate, p, pre, m = _FusedInterval.run(
             spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m, layer, form, ops)
-        ctx.save_for_backward(product_in, weight, alpha, trace, surrogate, p, pre, m if form.modulation else None,
-                              outputs[6], outputs[7], phi, eta, eta_phi, psi, w_m)
+        ctx.save_for_backward(product_in, weight, alpha, trace, surrogate, p, pre, m, outputs[6], outputs[7], phi,
+                              eta, eta_phi, psi, w_m)
         ctx.constants = (*layer._psp_filter(spikes_in.shape[1], spikes_in.dtype, spikes_in.device),
                          layer.filter_first, layer.rule.e_max, form, ops)
         ctx.mark_non_differentiable(*_constant_outputs(ctx, outputs))
-        if not form.bcm:
-            outputs[9] = None
-        return tuple(outputs)
+        return tuple(_FusedInterval.outputs(outputs, form))
 
     @staticmethod
     @torch.autograd.function.once_differentiable
@@ -302,20 +259,19 @@ class _FusedPlasticInterval(torch.autograd.Function):
         product_in, weight, alpha, trace, surrogate, p, pre, m, r_pre, r_post, phi, eta, eta_phi, psi, w_m = \
             ctx.saved_tensors
         operator, psp_rows, end_rows, filter_first, e_max, form, ops = ctx.constants
+        modulation, oja = (form.modulation, form.oja) if form is not None else (0, False)
         need_rows = any(ctx.needs_input_grad[:3])
-        (d_x, d_h1, d_h2, d_w, d_alpha, d_trace, d_phi, d_eta, d_eta_phi, d_psi,
-         d_w_m) = ops.plastic_interval_backward(
-            d_spikes, d_h1, d_h2, d_r_pre, d_r_post, d_trace, d_phi if form.bcm else None, product_in, weight,
-            alpha, trace, surrogate, p, pre, m, r_pre, r_post, phi, eta, eta_phi, psi, w_m, operator, psp_rows,
-            end_rows, filter_first, need_rows, e_max, form.oja, form.modulation)
+        grads = ops.srm_interval_backward(
+            d_spikes, d_h1, d_h2, d_r_pre, d_r_post, d_trace, d_phi, product_in, weight, alpha, trace, surrogate, p,
+            pre, m if modulation else None, r_pre, r_post, phi, eta, eta_phi, psi, w_m, operator, psp_rows,
+            end_rows, filter_first, need_rows, e_max, oja, modulation)
+        d_x, d_h1, d_h2, d_w, d_alpha, d_trace, d_phi, d_eta_phi, d_psi, d_eta, d_w_m = grads
         if not need_rows:
             d_x = d_h1 = d_h2 = None
-        if not form.bcm:
-            d_phi = d_eta_phi = d_psi = None
-        if not form.modulation:
-            d_w_m = None
-        return (d_x, d_h1, d_h2, None, None, d_w, d_alpha, d_trace, d_phi, d_eta, d_eta_phi, d_psi, d_w_m, None,
-                None, None)
+        plastic, bcm = alpha is not None, phi is not None  # the op's gradients are empty tensors where these are not
+        return (d_x, d_h1, d_h2, None, None, d_w, d_alpha if plastic else None, d_trace if plastic else None,
+                d_phi if bcm else None, d_eta if eta is not None else None, d_eta_phi if bcm else None,
+                d_psi if bcm else None, d_w_m if w_m is not None else None, None, None, None)
 
 
 def _constant_outputs(ctx, outputs: list[Tensor]) -> list[Tensor]:

@@ -18,7 +18,7 @@
 // plus dW, dalpha, dE from the product's backward. One op each way replaces ~12 autograd nodes and ~25 Python
 // calls per layer and interval, which dominate the small CPU networks' training step.
 //
-// plastic_interval_forward/backward add a built-in rule's trace update to the same op (sb3_spikeplastic.plasticity,
+// With eta given (a layer with a built-in rule), the same op adds the rule's trace update (sb3_spikeplastic.plasticity,
 // paper eqs. 6-16): post = r_post or M * r_post with M = W_m r_post (or tanh of it), pre = r_pre or the BCM term
 // r_pre * (r_pre - (phi + psi)) with phi' = (1 - eta_phi) phi + eta_phi r_pre, then E' = trace_step(E, post, pre)
 // (trace_step.cpp), op for op as the eager rule. Backward, the trace step's dE is added to the product's in the
@@ -120,103 +120,94 @@ std::vector<at::Tensor> interval_backward(const at::Tensor& d_spikes, const at::
   return {d_x, d_rh1, d_rh2, dW, d_alpha.defined() ? d_alpha : none, dE.defined() ? dE : none};
 }
 
-std::vector<at::Tensor> srm_interval_forward(const at::Tensor& x, const at::Tensor& h1, const at::Tensor& h2,
-                                             const at::Tensor& ref_h1, const at::Tensor& ref_h2, const at::Tensor& W,
-                                             const std::optional<at::Tensor>& alpha,
-                                             const std::optional<at::Tensor>& E, const at::Tensor& op,
-                                             const at::Tensor& psp_rows, const at::Tensor& end_rows,
-                                             bool filter_first, double d, double kappa, double theta, double width,
-                                             double scale, bool need_surrogate) {
-  return interval_forward(x, h1, h2, ref_h1, ref_h2, W, alpha, E, op, psp_rows, end_rows, filter_first, d, kappa,
-                          theta, width, scale, need_surrogate);
-}
-
-std::vector<at::Tensor> srm_interval_backward(const at::Tensor& d_spikes, const at::Tensor& d_h1,
-                                              const at::Tensor& d_h2, const at::Tensor& d_r_pre,
-                                              const at::Tensor& d_r_post, const at::Tensor& product_in,
-                                              const at::Tensor& W, const std::optional<at::Tensor>& alpha,
-                                              const std::optional<at::Tensor>& E, const at::Tensor& surrogate,
-                                              const at::Tensor& op, const at::Tensor& psp_rows,
-                                              const at::Tensor& end_rows, bool filter_first, bool need_rows) {
-  return interval_backward(d_spikes, d_h1, d_h2, d_r_pre, d_r_post, product_in, W, alpha, E, surrogate, op, psp_rows,
-                           end_rows, filter_first, need_rows);
-}
-
 // Modulation forms of the rule terms (plasticity.MODULATION_FORMS, 0 for an unmodulated rule).
-constexpr int64_t kUnmodulated = 0, kLinear = 1, kTanh = 2;
+constexpr int64_t kUnmodulated = 0, kTanh = 2;
 
-// The interval, then the trace update. -> the 10 outputs of interval_forward, then E', phi' (empty unless BCM), and
-// for the backward pass p (the trace step's post - [E pre]), pre and M (empty unless modulated).
-std::vector<at::Tensor> plastic_interval_forward(
+// The interval, then (when eta is given: a built-in rule's layer) the trace update. -> spikes, membrane, psp h1',
+// psp h2', refractory h1', refractory h2', r_pre, r_post, E', phi' (empty unless BCM), then for the backward pass
+// the product's input, the surrogate (empty unless need_surrogate), p (the trace step's post - [E pre]), pre and M
+// (empty unless modulated); E', p and pre are empty without a trace update.
+std::vector<at::Tensor> srm_interval_forward(
     const at::Tensor& x, const at::Tensor& h1, const at::Tensor& h2, const at::Tensor& ref_h1, const at::Tensor& ref_h2,
-    const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E, const std::optional<at::Tensor>& phi,
-    const at::Tensor& eta, const std::optional<at::Tensor>& eta_phi, const std::optional<at::Tensor>& psi,
+    const at::Tensor& W, const std::optional<at::Tensor>& alpha, const std::optional<at::Tensor>& E,
+    const std::optional<at::Tensor>& phi, const std::optional<at::Tensor>& eta,
+    const std::optional<at::Tensor>& eta_phi, const std::optional<at::Tensor>& psi,
     const std::optional<at::Tensor>& w_m, const at::Tensor& op, const at::Tensor& psp_rows,
     const at::Tensor& end_rows, bool filter_first, double d, double kappa, double theta, double width, double scale,
     double e_max, bool oja, int64_t modulation, bool need_surrogate) {
+  TORCH_CHECK(!eta.has_value() || E.has_value(), "srm_interval: a trace update needs E");
   TORCH_CHECK(phi.has_value() == eta_phi.has_value() && phi.has_value() == psi.has_value(),
-              "plastic_interval: phi, eta_phi and psi come together (BCM rules)");
+              "srm_interval: phi, eta_phi and psi come together (BCM rules)");
   TORCH_CHECK((modulation == kUnmodulated) != w_m.has_value() && modulation >= kUnmodulated && modulation <= kTanh,
-              "plastic_interval: W_m with a modulation form 1 (linear) or 2 (tanh), or neither");
+              "srm_interval: W_m with a modulation form 1 (linear) or 2 (tanh), or neither");
   const at::NoGradGuard no_grad;
   std::vector<at::Tensor> out = interval_forward(x, h1, h2, ref_h1, ref_h2, W, alpha, E, op, psp_rows, end_rows,
                                                  filter_first, d, kappa, theta, width, scale, need_surrogate);
-  const at::Tensor r_pre = out[6], r_post = out[7];  // handles, not references: `out` grows below
-  at::Tensor post = r_post, pre = r_pre, m, new_phi;
-  if (modulation != kUnmodulated) {  // plasticity.modulatory_signal
-    m = at::matmul(r_post, w_m->t());
-    if (modulation == kTanh) m = at::tanh(m);
-    post = m * r_post;
+  const at::Tensor none = at::empty({0}, W.options());
+  at::Tensor new_E = none, new_phi = none, p = none, pre = none, m = none;
+  if (eta.has_value()) {
+    const at::Tensor r_pre = out[6], r_post = out[7];
+    at::Tensor post = r_post;
+    pre = r_pre;
+    if (modulation != kUnmodulated) {  // plasticity.modulatory_signal
+      m = at::matmul(r_post, w_m->t());
+      if (modulation == kTanh) m = at::tanh(m);
+      post = m * r_post;
+    }
+    if (phi.has_value()) {  // plasticity.bcm_presynaptic_term and bcm_threshold_update
+      pre = r_pre * (r_pre - (*phi + *psi));
+      new_phi = at::rsub(*eta_phi, 1) * *phi + *eta_phi * r_pre;
+    }
+    std::tie(new_E, p) = sb3_spikeplastic_fast::trace_step_forward(*E, post, pre, eta->item<double>(), e_max, oja);
   }
-  if (phi.has_value()) {  // plasticity.bcm_presynaptic_term and bcm_threshold_update
-    pre = r_pre * (r_pre - (*phi + *psi));
-    new_phi = at::rsub(*eta_phi, 1) * *phi + *eta_phi * r_pre;
-  }
-  auto [new_E, p] = sb3_spikeplastic_fast::trace_step_forward(E, post, pre, eta.item<double>(), e_max, oja);
-  const at::Tensor none = at::empty({0}, E.options());
-  out.insert(out.begin() + 8, {new_E, new_phi.defined() ? new_phi : none});
-  out.insert(out.end(), {p, pre, m.defined() ? m : none});
+  out.insert(out.begin() + 8, {new_E, new_phi});
+  out.insert(out.end(), {p, pre, m});
   return out;
 }
 
-// -> dS, dh1, dh2 (empty unless need_rows), dW, dalpha, dE, dphi, deta, deta_phi, dpsi (empty unless BCM), dW_m
-// (empty unless modulated)
-std::vector<at::Tensor> plastic_interval_backward(
+// -> dS, dh1, dh2 (empty unless need_rows), dW, dalpha, dE (empty for a static layer), dphi, deta_phi, dpsi (empty
+// unless BCM), deta (empty without a trace update), dW_m (empty unless modulated)
+std::vector<at::Tensor> srm_interval_backward(
     const at::Tensor& d_spikes, const at::Tensor& d_h1, const at::Tensor& d_h2, const at::Tensor& d_r_pre,
-    const at::Tensor& d_r_post, const at::Tensor& d_new_E, const std::optional<at::Tensor>& d_new_phi,
-    const at::Tensor& product_in, const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E,
-    const at::Tensor& surrogate, const at::Tensor& p, const at::Tensor& pre, const std::optional<at::Tensor>& m,
-    const at::Tensor& r_pre, const at::Tensor& r_post, const std::optional<at::Tensor>& phi, const at::Tensor& eta,
+    const at::Tensor& d_r_post, const std::optional<at::Tensor>& d_new_E, const std::optional<at::Tensor>& d_new_phi,
+    const at::Tensor& product_in, const at::Tensor& W, const std::optional<at::Tensor>& alpha,
+    const std::optional<at::Tensor>& E, const at::Tensor& surrogate, const at::Tensor& p, const at::Tensor& pre,
+    const std::optional<at::Tensor>& m, const at::Tensor& r_pre, const at::Tensor& r_post,
+    const std::optional<at::Tensor>& phi, const std::optional<at::Tensor>& eta,
     const std::optional<at::Tensor>& eta_phi, const std::optional<at::Tensor>& psi,
     const std::optional<at::Tensor>& w_m, const at::Tensor& op, const at::Tensor& psp_rows,
     const at::Tensor& end_rows, bool filter_first, bool need_rows, double e_max, bool oja, int64_t modulation) {
   const at::NoGradGuard no_grad;
-  auto [dE_trace, d_post, d_pre, d_eta] =
-      sb3_spikeplastic_fast::trace_step_backward(d_new_E, E, p, pre, eta.item<double>(), e_max, oja);
-  const at::Tensor none = at::empty({0}, E.options());
-  at::Tensor d_rpost = d_r_post, d_rpre = d_r_pre, d_wm = none, d_phi = none, d_eta_phi = none, d_psi = none;
-  if (modulation != kUnmodulated) {
-    at::Tensor d_m = d_post * r_post;
-    d_rpost = d_rpost + d_post * *m;
-    if (modulation == kTanh) d_m = d_m * (1 - *m * *m);
-    d_wm = at::mm(d_m.t(), r_post);
-    d_rpost = d_rpost + at::mm(d_m, *w_m);
-  } else {
-    d_rpost = d_rpost + d_post;
-  }
-  if (phi.has_value()) {
-    const at::Tensor d_threshold = -(d_pre * r_pre);  // of phi + psi
-    d_rpre = d_rpre + d_pre * (2 * r_pre - (*phi + *psi)) + *d_new_phi * *eta_phi;
-    d_phi = d_threshold + *d_new_phi * at::rsub(*eta_phi, 1);
-    d_psi = d_threshold.sum(0);
-    d_eta_phi = (*d_new_phi * (r_pre - *phi)).sum();
-  } else {
-    d_rpre = d_rpre + d_pre;
+  const at::Tensor none = at::empty({0}, W.options());
+  at::Tensor d_rpost = d_r_post, d_rpre = d_r_pre, dE_trace, d_eta = none, d_wm = none, d_phi = none,
+             d_eta_phi = none, d_psi = none;
+  if (eta.has_value()) {
+    at::Tensor d_post, d_pre;
+    std::tie(dE_trace, d_post, d_pre, d_eta) =
+        sb3_spikeplastic_fast::trace_step_backward(*d_new_E, *E, p, pre, eta->item<double>(), e_max, oja);
+    if (modulation != kUnmodulated) {
+      at::Tensor d_m = d_post * r_post;
+      d_rpost = d_rpost + d_post * *m;
+      if (modulation == kTanh) d_m = d_m * (1 - *m * *m);
+      d_wm = at::mm(d_m.t(), r_post);
+      d_rpost = d_rpost + at::mm(d_m, *w_m);
+    } else {
+      d_rpost = d_rpost + d_post;
+    }
+    if (phi.has_value()) {
+      const at::Tensor d_threshold = -(d_pre * r_pre);  // of phi + psi
+      d_rpre = d_rpre + d_pre * (2 * r_pre - (*phi + *psi)) + *d_new_phi * *eta_phi;
+      d_phi = d_threshold + *d_new_phi * at::rsub(*eta_phi, 1);
+      d_psi = d_threshold.sum(0);
+      d_eta_phi = (*d_new_phi * (r_pre - *phi)).sum();
+    } else {
+      d_rpre = d_rpre + d_pre;
+    }
   }
   std::vector<at::Tensor> grads = interval_backward(d_spikes, d_h1, d_h2, d_rpre, d_rpost, product_in, W, alpha, E,
                                                     surrogate, op, psp_rows, end_rows, filter_first, need_rows,
                                                     dE_trace);
-  grads.insert(grads.end(), {d_phi, d_eta, d_eta_phi, d_psi, d_wm});
+  grads.insert(grads.end(), {d_phi, d_eta_phi, d_psi, d_eta, d_wm});
   return grads;
 }
 
@@ -225,21 +216,13 @@ std::vector<at::Tensor> plastic_interval_backward(
 TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
   m.def(
       "srm_interval_forward(Tensor x, Tensor h1, Tensor h2, Tensor ref_h1, Tensor ref_h2, Tensor W, Tensor? alpha, "
-      "Tensor? E, Tensor op, Tensor psp_rows, Tensor end_rows, bool filter_first, float d, float kappa, "
-      "float theta, float width, float scale, bool need_surrogate) -> Tensor[]");
-  m.def(
-      "srm_interval_backward(Tensor d_spikes, Tensor d_h1, Tensor d_h2, Tensor d_r_pre, Tensor d_r_post, "
-      "Tensor product_in, Tensor W, Tensor? alpha, Tensor? E, Tensor surrogate, Tensor op, Tensor psp_rows, "
-      "Tensor end_rows, bool filter_first, bool need_rows) -> Tensor[]");
-  m.def(
-      "plastic_interval_forward(Tensor x, Tensor h1, Tensor h2, Tensor ref_h1, Tensor ref_h2, Tensor W, Tensor alpha, "
-      "Tensor E, Tensor? phi, Tensor eta, Tensor? eta_phi, Tensor? psi, Tensor? w_m, Tensor op, Tensor psp_rows, "
+      "Tensor? E, Tensor? phi, Tensor? eta, Tensor? eta_phi, Tensor? psi, Tensor? w_m, Tensor op, Tensor psp_rows, "
       "Tensor end_rows, bool filter_first, float d, float kappa, float theta, float width, float scale, "
       "float e_max, bool oja, int modulation, bool need_surrogate) -> Tensor[]");
   m.def(
-      "plastic_interval_backward(Tensor d_spikes, Tensor d_h1, Tensor d_h2, Tensor d_r_pre, Tensor d_r_post, "
-      "Tensor d_new_E, Tensor? d_new_phi, Tensor product_in, Tensor W, Tensor alpha, Tensor E, Tensor surrogate, "
-      "Tensor p, Tensor pre, Tensor? m, Tensor r_pre, Tensor r_post, Tensor? phi, Tensor eta, Tensor? eta_phi, "
+      "srm_interval_backward(Tensor d_spikes, Tensor d_h1, Tensor d_h2, Tensor d_r_pre, Tensor d_r_post, "
+      "Tensor? d_new_E, Tensor? d_new_phi, Tensor product_in, Tensor W, Tensor? alpha, Tensor? E, Tensor surrogate, "
+      "Tensor p, Tensor pre, Tensor? m, Tensor r_pre, Tensor r_post, Tensor? phi, Tensor? eta, Tensor? eta_phi, "
       "Tensor? psi, Tensor? w_m, Tensor op, Tensor psp_rows, Tensor end_rows, bool filter_first, bool need_rows, "
       "float e_max, bool oja, int modulation) -> Tensor[]");
 }
@@ -247,6 +230,4 @@ TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
 TORCH_LIBRARY_IMPL(sb3_spikeplastic_fast, CPU, m) {
   m.impl("srm_interval_forward", &srm_interval_forward);
   m.impl("srm_interval_backward", &srm_interval_backward);
-  m.impl("plastic_interval_forward", &plastic_interval_forward);
-  m.impl("plastic_interval_backward", &plastic_interval_backward);
 }
