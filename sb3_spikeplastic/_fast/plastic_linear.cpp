@@ -11,7 +11,7 @@
 //
 //     forward:   eff = W + alpha * E[b];          Y[b] = X[b] eff^T
 //     backward:  G = dY[b]^T X[b]                 (the gradient of W_eff[b], in W's layout)
-//                dE[b] = alpha * G,   dW += G,   dalpha += E[b] * G       (one pass over G and E[b])
+//                dE[b] = alpha * G (+ dE_init[b]),  dW += G,  dalpha += E[b] * G    (one pass over G and E[b])
 //                dX[b] = dY[b] (W + alpha * E[b])                         (only when X needs a gradient)
 //
 // Environments are independent, so they are split between threads (dW and dalpha are summed per thread, then
