@@ -4,15 +4,21 @@ Two groups of rows, each algorithm at one and at every other requested torch thr
 
 * the paper network (``paper.yml``: 12 x 50 inputs, 64-64 hidden, 6 x 100 outputs, T = 50; ``static`` and
   ``ndp-oja``) against ``mlp`` and ``recurrent``, all with the same PPO settings (8 envs, ``n_steps`` 256, 10
-  epochs, batch 2048 transitions = 64 chunks of 32); ``ndp-oja-passes`` runs each minibatch in 4 passes of 16
-  chunks (``chunks_per_pass``: the same update in a quarter of the memory);
+  epochs, batch 2048 transitions = 64 chunks of 32), ``chunks_per_pass`` at its default (``"auto"``: ndp-oja
+  runs each minibatch in two passes of 32 chunks, static in one); ``ndp-oja-one-pass`` runs each minibatch in
+  one pass (``chunks_per_pass=None``: faster, more memory);
 * the shipped CPU entry (``entry``: ``ppo.yml``'s HalfCheetah-v5, 17 x 10 inputs, T = 10, its own settings)
   against ``entry-recurrent`` (``ppo_lstm.yml``: RecurrentPPO with the same PPO settings as the entry);
 * ``tmaze``: the T-maze entry (``ppo.yml``'s TMazeCue-v0), the small network that ``train --torch-threads auto``
   keeps on one thread.
 
-Every row runs in a process of its own (its thread count set first; its peak RSS its own), times ``--rollouts``
-rollouts + updates after one warm-up rollout + update, and reports env-steps/s, peak RSS and a roofline line:
+Every row runs in a process of its own (its thread count set first; its peak RSS its own) and times, after one
+warm-up rollout + update, the rollouts + updates that cover one whole episode of every environment (HalfCheetah:
+4 rollouts of 256 steps for its 1000-step episodes; ``--rollouts`` sets another number). Whole episodes, because
+an update's cost can depend on whether its rollout holds an episode start: sb3-contrib's RecurrentPPO runs its
+LSTM one step at a time through every sequence of such an update (``_process_sequence``), ~20 times slower than
+in one call, and on HalfCheetah that is one update in 3.9 (the warm-up is always one of them). Timing whole
+episodes measures each algorithm at its long-run average. It reports env-steps/s, peak RSS and a roofline line:
 the dense multiply-adds of its networks per training env step (rollout forward + ``n_epochs`` x forward and
 backward, counting a backward pass as two forwards; for the spiking network ``T`` products per layer), as
 GFLOP/s achieved, against the machine's dense float32 matrix-product rate at the same thread count.
@@ -31,12 +37,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import resource
 import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Optional
 
 RESULTS = Path(__file__).parent / "results" / "learn_throughput.json"
 RESULTS_CUDA = RESULTS.with_name("learn_throughput_cuda.json")  # --device cuda
@@ -49,7 +57,7 @@ LABELS = {
     "static": "SpikePlastic static, paper network",
     "ndp-oja": "SpikePlastic ndp-oja, paper network",
     "ndp-oja-eager": "SpikePlastic ndp-oja, paper network, no CUDA graphs",
-    "ndp-oja-passes": "SpikePlastic ndp-oja, paper network, chunks_per_pass 16",
+    "ndp-oja-one-pass": "SpikePlastic ndp-oja, paper network, one pass",
     "entry": "SpikePlastic CPU entry (ppo.yml, dp-oja)",
     "entry-recurrent": "RecurrentPPO, the entry's settings (ppo_lstm.yml)",
     "tmaze": "SpikePlastic T-maze entry (ppo.yml, TMazeCue-v0)",
@@ -129,11 +137,20 @@ def make_model(key: str, device: str):
         paper.pop(name, None)
     rule = "static" if key == "static" else "ndp-oja"
     return PPO("SpikePlasticPolicy", env, bptt_steps=32, cuda_graphs=key != "ndp-oja-eager",
-               chunks_per_pass=16 if key == "ndp-oja-passes" else None, policy_kwargs=dict(paper, rule=rule), **common)
+               chunks_per_pass=None if key == "ndp-oja-one-pass" else "auto", policy_kwargs=dict(paper, rule=rule),
+               **common)
 
 
-def run_row(key: str, threads: int, device: str, rollouts: int) -> dict:
-    """One row, in this process: build, warm up (first rollout + update: allocations, lazy compilation), time."""
+def episode_rollouts(model) -> int:
+    """Rollouts that cover one whole episode of every environment (at least 2): ``ceil(max_episode_steps /
+    n_steps)``, or 2 for environments without a step limit."""
+    limit = model.get_env().get_attr("spec")[0].max_episode_steps
+    return 2 if not limit else max(2, math.ceil(limit / model.n_steps))
+
+
+def run_row(key: str, threads: int, device: str, rollouts: Optional[int]) -> dict:
+    """One row, in this process: build, warm up (first rollout + update: allocations, lazy compilation), time
+    ``rollouts`` rollouts + updates (default: :func:`episode_rollouts`)."""
     import torch
 
     torch.set_num_threads(threads)
@@ -141,6 +158,7 @@ def run_row(key: str, threads: int, device: str, rollouts: int) -> dict:
 
     keep_freed_memory()  # as `sb3-spikeplastic train` does
     model = make_model(key, device)
+    rollouts = rollouts or episode_rollouts(model)
     per_rollout = model.n_steps * model.n_envs
     model.learn(per_rollout)
     start = time.perf_counter()
@@ -152,14 +170,16 @@ def run_row(key: str, threads: int, device: str, rollouts: int) -> dict:
                env_steps_per_s=steps_per_s, peak_rss_mb=peak_rss_mb(), train_flops_per_step=flops,
                achieved_gflops=flops * steps_per_s / 1e9, matmul_gflops=matmul_gflops(device))
     if getattr(model, "network_state", None) is not None:
+        row["chunks_per_pass"] = model._pass_size() or model.batch_size // model.bptt_steps
         row["state_bytes_per_env"] = model.network_state.nbytes() / model.n_envs
         row["snapshot_bytes_per_rollout"] = model.rollout_buffer.snapshot_nbytes()
     return row
 
 
 def run_in_subprocess(key: str, threads: int, args) -> dict:
-    command = [sys.executable, __file__, "--row", key, "--threads", str(threads), "--device", args.device,
-               "--rollouts", str(args.rollouts)]
+    command = [sys.executable, __file__, "--row", key, "--threads", str(threads), "--device", args.device]
+    if args.rollouts:
+        command += ["--rollouts", str(args.rollouts)]
     result = subprocess.run(command, capture_output=True, text=True)
     if result.returncode != 0:
         raise RuntimeError(f"{key} with {threads} threads failed:\n{result.stderr[-3000:]}")
@@ -179,7 +199,8 @@ def ratios(rows: list[dict]) -> dict:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--rollouts", type=int, default=2, help="timed rollouts+updates per row")
+    parser.add_argument("--rollouts", type=int,
+                        help="timed rollouts+updates per row (default: one whole episode of every environment)")
     parser.add_argument("--threads", type=int, nargs="+",
                         help="torch thread counts to run every row at (default: 1 and the number of CPUs)")
     parser.add_argument("--device", default="cpu")

@@ -236,6 +236,18 @@ class SpikingPlasticNetwork(nn.Module):
     def sizes(self) -> list[int]:
         return [self.layers[0].n_in] + [layer.n_out for layer in self.layers]
 
+    def backward_bytes_per_step(self, dtype: torch.dtype = torch.float32) -> int:
+        """Memory that backpropagation keeps per environment step of one sequence, estimated from the sizes: per
+        layer and interval, the trace ``E`` (plastic layers), the ``L + 2`` rows its product reads (the spikes and
+        the carried PSP state, filtered or not), its surrogate gradient ``(L, n_out)`` and both rates. The rule
+        terms' vectors are left out (a few percent)."""
+        per_interval = 0
+        for layer in self.layers:
+            per_interval += (self.interval + 3) * layer.n_in + (self.interval + 1) * layer.n_out
+            if layer.plastic:
+                per_interval += layer.n_out * layer.n_in
+        return per_interval * (self.steps // self.interval) * torch.empty(0, dtype=dtype).element_size()
+
     def initial_state(self, batch: int, seed: int = 0, device=None, dtype: torch.dtype = torch.float32) -> NetworkState:
         """Initial state of ``batch`` environments; ``seed`` picks the input-noise streams."""
         device = device if device is not None else self.layers[0].weight.device

@@ -307,3 +307,28 @@ def test_forward_sequence_equals_stepwise_forward_with_resets():
         # without the resets the outputs differ (so the resets were applied)
         outs_nr, _ = net.forward_sequence(obs, torch.zeros(Lseq, B), state0)
     assert not torch.equal(outs_nr[4].action[0], outs[4].action[0]) or not torch.equal(outs_nr[3].action, outs[3].action)
+
+
+@pytest.mark.parametrize("rule,interval", [("ndp-oja", 10), ("static", 5)])
+def test_backward_bytes_per_step_estimates_what_backpropagation_keeps(rule, interval):
+    """The estimate that ``PPO(chunks_per_pass="auto")`` sizes its passes by, against the tensors autograd
+    actually saves (distinct storages, the parameters left out) over a 4-step sequence: within 10 %."""
+    torch.manual_seed(0)
+    net = SpikingPlasticNetwork(PopulationEncoder([-3] * 6, [3] * 6, pop_size=20),
+                                ContinuousDecoder([-1] * 2, [1] * 2, pop_size=40), (48,), steps=10, rule=rule,
+                                plasticity_interval=interval)
+    Lseq, B = 4, 6
+    parameters = {p.untyped_storage().data_ptr() for p in net.parameters()}
+    saved: dict[int, int] = {}
+
+    def pack(t):
+        storage = t.untyped_storage()
+        if storage.data_ptr() not in parameters:
+            saved[storage.data_ptr()] = storage.nbytes()
+        return t
+
+    obs = torch.rand(Lseq, B, 6) * 6 - 3
+    with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
+        outs, _ = net.forward_sequence(obs, torch.zeros(Lseq, B), net.initial_state(B))
+    estimate = Lseq * B * net.backward_bytes_per_step()
+    assert sum(saved.values()) == pytest.approx(estimate, rel=0.1)

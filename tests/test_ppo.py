@@ -326,7 +326,28 @@ def test_chunks_per_pass_gives_the_whole_minibatchs_gradient_and_statistics(monk
         assert parts[key] == pytest.approx(whole[key], rel=1e-4, abs=1e-7), key
 
 
-def test_chunks_per_pass_must_divide_the_minibatch():
-    with pytest.raises(ValueError, match=r"chunks_per_pass=3 must divide the chunks per minibatch, "
-                                         r"batch_size // bptt_steps = 4"):
-        tmaze_model(n_envs=2, n_steps=32, batch_size=64, bptt_steps=16, chunks_per_pass=3)
+@pytest.mark.parametrize("value", [3, 0, "half"])
+def test_chunks_per_pass_must_divide_the_minibatch(value):
+    with pytest.raises(ValueError, match=rf"chunks_per_pass={value!r} must divide the chunks per minibatch, "
+                                         r"batch_size // bptt_steps = 4, or be None or 'auto'"):
+        tmaze_model(n_envs=2, n_steps=32, batch_size=64, bptt_steps=16, chunks_per_pass=value)
+
+
+def test_auto_chunks_per_pass_keeps_the_graph_within_the_budget(monkeypatch):
+    """``"auto"`` (the default) runs a small network's minibatch in one pass, and splits it into the largest
+    divisor of its chunk count whose estimated graph fits the budget; the choice is logged."""
+    import sb3_spikeplastic.ppo as ppo_module
+
+    model = tmaze_model(n_envs=2, n_steps=32, batch_size=64, bptt_steps=8)  # 8 chunks per minibatch
+    assert model.chunks_per_pass == "auto" and model._pass_size() is None
+    per_chunk = model.bptt_steps * model.policy.snn.backward_bytes_per_step()
+    for budget_chunks, expected in ((8, None), (7, 4), (3, 2), (1, 1), (0.5, 1)):
+        monkeypatch.setattr(ppo_module, "AUTO_PASS_GRAPH_BYTES", budget_chunks * per_chunk)
+        assert model._pass_size() == expected, budget_chunks
+    monkeypatch.setattr(ppo_module, "AUTO_PASS_GRAPH_BYTES", 3 * per_chunk)
+    splits = []
+    split = ppo_module.ChunkSamples.split
+    monkeypatch.setattr(ppo_module.ChunkSamples, "split", lambda batch, n: splits.append(n) or split(batch, n))
+    model.learn(64)
+    assert splits and set(splits) == {2}
+    assert model.logger.name_to_value["train/chunks_per_pass"] == 2  # the update's records, not yet dumped
