@@ -251,6 +251,9 @@ class _FusedInterval(torch.autograd.Function):
         ctx.constants = (*layer._psp_filter(spikes_in.shape[1], spikes_in.dtype, spikes_in.device),
                          layer.filter_first, layer.rule.e_max, form, ops)
         ctx.mark_non_differentiable(*_constant_outputs(ctx, outputs))
+        # Outputs the loss does not reach (the membrane, the output layer's spikes, unused rates, the final trace)
+        # get None, which the op reads as zero, instead of a zero-filled tensor of their size.
+        ctx.set_materialize_grads(False)
         return tuple(_FusedInterval.outputs(outputs, form))
 
     @staticmethod

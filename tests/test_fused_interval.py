@@ -34,9 +34,12 @@ def make_layer(rule: str, n_in: int, n_out: int, dtype=torch.float64) -> Plastic
                            alpha_init_std=5.0).to(dtype)
 
 
-def run_intervals(layer, fused: bool, monkeypatch, dtype=torch.float64, batch=4, length=6, intervals=3):
+def run_intervals(layer, fused: bool, monkeypatch, dtype=torch.float64, batch=4, length=6, intervals=3,
+                  rates_only=False):
     """Chain ``intervals`` intervals from the initial state; return every output, the final state and the
-    gradients of a loss that reads spikes, rates, the carried PSP state and the trace."""
+    gradients of a loss that reads the spikes, the carried PSP state and the trace, or (``rates_only``) only the
+    output rates, as the decoder reads the output layer's: then autograd passes no gradient for the spikes, the
+    input rates and the final state."""
     with monkeypatch.context() as patch:
         if not fused:
             patch.setattr(_FusedInterval, "applies", staticmethod(lambda *args: False))
@@ -50,9 +53,13 @@ def run_intervals(layer, fused: bool, monkeypatch, dtype=torch.float64, batch=4,
         for k in range(intervals):
             out, state = layer(spikes_in[k] * 1.0, state)
             outputs.append(out)
-            loss = loss + (out.spikes * weights[k]).sum()
-        loss = loss + (0.3 * state.psp.h1 + 0.7 * state.psp.h2).sum()
-        if layer.plastic:
+            if rates_only:
+                loss = loss + (out.rate * weights[k, :, 0]).sum()
+            else:
+                loss = loss + (out.spikes * weights[k]).sum()
+        if not rates_only:
+            loss = loss + (0.3 * state.psp.h1 + 0.7 * state.psp.h2).sum()
+        if layer.plastic and not rates_only:
             loss = loss + 5.0 * state.plastic.trace.sum() + sum(3.0 * x.sum() for x in state.plastic.extra)
         params = list(layer.parameters())
         grads = torch.autograd.grad(loss, params + [spikes_in], allow_unused=True)
@@ -86,6 +93,21 @@ def test_fused_interval_equals_eager_layer(rule, n_in, n_out, monkeypatch):
         if a is not None:
             assert float(b.abs().max()) > 0
             torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("rule", ["dp-oja", "ndp-bcm+tanh", "static"])
+@pytest.mark.parametrize("n_in, n_out", [(30, 20), (20, 30)], ids=["product-first", "filter-first"])
+def test_gradients_when_the_loss_reads_only_the_rates(rule, n_in, n_out, monkeypatch):
+    """The outputs the loss does not reach get no gradient tensor (the op reads them as zero): the gradients are
+    still the eager graph's."""
+    layer = make_layer(rule, n_in, n_out)
+    _, _, fused = run_intervals(layer, True, monkeypatch, rates_only=True)
+    _, _, eager = run_intervals(layer, False, monkeypatch, rates_only=True)
+    for a, b in zip(fused, eager):
+        assert (a is None) == (b is None)
+        if a is not None:
+            torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+    assert float(fused[0].abs().max()) > 0
 
 
 def test_first_layer_inputs_without_gradient(monkeypatch):

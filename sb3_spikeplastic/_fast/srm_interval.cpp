@@ -55,6 +55,17 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> product_backward(
   return sb3_spikeplastic_fast::plastic_linear_backward(grad, x, W, *alpha, *E, need_x, dE_init);
 }
 
+// Autograd passes no gradient (an undefined tensor here) for an output that the loss does not reach, where it
+// would otherwise fill a zero tensor of the output's size (the output layer's spikes, a hidden layer's rates):
+// a + b, or b where a is undefined.
+at::Tensor plus(const at::Tensor& a, const at::Tensor& b) { return a.defined() ? a + b : b; }
+
+at::Tensor or_zeros(const std::optional<at::Tensor>& t, const at::Tensor& like) {
+  return t.has_value() && t->defined() ? *t : at::zeros_like(like);
+}
+
+at::Tensor defined_or_empty(const std::optional<at::Tensor>& t) { return t.has_value() ? *t : at::Tensor(); }
+
 // -> spikes, membrane, psp h1', psp h2', refractory h1', refractory h2', r_pre, r_post, product input, surrogate
 std::vector<at::Tensor> interval_forward(const at::Tensor& x, const at::Tensor& h1, const at::Tensor& h2,
                                          const at::Tensor& ref_h1, const at::Tensor& ref_h2, const at::Tensor& W,
@@ -89,8 +100,9 @@ std::vector<at::Tensor> interval_forward(const at::Tensor& x, const at::Tensor& 
 }
 
 // -> dS, dh1, dh2 (empty unless need_rows), dW, dalpha, dE (empty for a static layer); dE_init: a gradient of E
-// from elsewhere, added to the product's
-std::vector<at::Tensor> interval_backward(const at::Tensor& d_spikes, const at::Tensor& d_h1, const at::Tensor& d_h2,
+// from elsewhere, added to the product's. d_spikes, d_r_pre and d_r_post may be undefined (zero).
+std::vector<at::Tensor> interval_backward(const at::Tensor& d_spikes, const std::optional<at::Tensor>& d_h1,
+                                          const std::optional<at::Tensor>& d_h2,
                                           const at::Tensor& d_r_pre, const at::Tensor& d_r_post,
                                           const at::Tensor& product_in, const at::Tensor& W,
                                           const std::optional<at::Tensor>& alpha, const std::optional<at::Tensor>& E,
@@ -99,21 +111,33 @@ std::vector<at::Tensor> interval_backward(const at::Tensor& d_spikes, const at::
                                           bool need_rows, const at::Tensor& dE_init = at::Tensor()) {
   const at::NoGradGuard no_grad;
   const int64_t L = surrogate.size(1);
-  const at::Tensor d_synaptic = (d_spikes + (d_r_post / L).unsqueeze(1)) * surrogate;
+  at::Tensor d_synaptic;
+  if (d_r_post.defined()) {
+    d_synaptic = plus(d_spikes, (d_r_post / L).unsqueeze(1)) * surrogate;
+  } else {
+    d_synaptic = d_spikes.defined() ? d_spikes * surrogate : at::zeros_like(surrogate);
+  }
   at::Tensor d_rows;
   at::Tensor d_in, dW, d_alpha, dE;
   if (filter_first) {
     std::tie(d_in, dW, d_alpha, dE) = product_backward(d_synaptic, product_in, W, alpha, E, need_rows, dE_init);
-    if (need_rows) d_rows = at::matmul(op.t(), at::cat({d_in, d_h1.unsqueeze(1), d_h2.unsqueeze(1)}, 1));
+    if (need_rows) {
+      d_rows = at::matmul(op.t(), at::cat({d_in, or_zeros(d_h1, product_in.select(1, 0)).unsqueeze(1),
+                                           or_zeros(d_h2, product_in.select(1, 0)).unsqueeze(1)}, 1));
+    }
   } else {
     std::tie(d_in, dW, d_alpha, dE) =
         product_backward(at::matmul(psp_rows.t(), d_synaptic), product_in, W, alpha, E, need_rows, dE_init);
-    if (need_rows) d_rows = d_in + at::matmul(end_rows.t(), at::stack({d_h1, d_h2}, 1));
+    if (need_rows) {
+      const at::Tensor& like = product_in.select(1, 0);
+      d_rows = d_in + at::matmul(end_rows.t(), at::stack({or_zeros(d_h1, like), or_zeros(d_h2, like)}, 1));
+    }
   }
   const at::Tensor none = at::empty({0}, W.options());
   at::Tensor d_x = none, d_rh1 = none, d_rh2 = none;
   if (need_rows) {
-    d_x = d_rows.narrow(1, 0, L) + (d_r_pre / L).unsqueeze(1);
+    d_x = d_rows.narrow(1, 0, L);
+    if (d_r_pre.defined()) d_x = d_x + (d_r_pre / L).unsqueeze(1);
     d_rh1 = d_rows.select(1, L);
     d_rh2 = d_rows.select(1, L + 1);
   }
@@ -168,8 +192,10 @@ std::vector<at::Tensor> srm_interval_forward(
 // -> dS, dh1, dh2 (empty unless need_rows), dW, dalpha, dE (empty for a static layer), dphi, deta_phi, dpsi (empty
 // unless BCM), deta (empty without a trace update), dW_m (empty unless modulated)
 std::vector<at::Tensor> srm_interval_backward(
-    const at::Tensor& d_spikes, const at::Tensor& d_h1, const at::Tensor& d_h2, const at::Tensor& d_r_pre,
-    const at::Tensor& d_r_post, const std::optional<at::Tensor>& d_new_E, const std::optional<at::Tensor>& d_new_phi,
+    const std::optional<at::Tensor>& d_spikes, const std::optional<at::Tensor>& d_h1,
+    const std::optional<at::Tensor>& d_h2, const std::optional<at::Tensor>& d_r_pre,
+    const std::optional<at::Tensor>& d_r_post, const std::optional<at::Tensor>& d_new_E,
+    const std::optional<at::Tensor>& d_new_phi,
     const at::Tensor& product_in, const at::Tensor& W, const std::optional<at::Tensor>& alpha,
     const std::optional<at::Tensor>& E, const at::Tensor& surrogate, const at::Tensor& p, const at::Tensor& pre,
     const std::optional<at::Tensor>& m, const at::Tensor& r_pre, const at::Tensor& r_post,
@@ -179,32 +205,34 @@ std::vector<at::Tensor> srm_interval_backward(
     const at::Tensor& end_rows, bool filter_first, bool need_rows, double e_max, bool oja, int64_t modulation) {
   const at::NoGradGuard no_grad;
   const at::Tensor none = at::empty({0}, W.options());
-  at::Tensor d_rpost = d_r_post, d_rpre = d_r_pre, dE_trace, d_eta = none, d_wm = none, d_phi = none,
-             d_eta_phi = none, d_psi = none;
+  at::Tensor d_rpost = defined_or_empty(d_r_post), d_rpre = defined_or_empty(d_r_pre), dE_trace, d_eta = none,
+             d_wm = none, d_phi = none, d_eta_phi = none, d_psi = none;
   if (eta.has_value()) {
     at::Tensor d_post, d_pre;
     std::tie(dE_trace, d_post, d_pre, d_eta) =
-        sb3_spikeplastic_fast::trace_step_backward(*d_new_E, *E, p, pre, eta->item<double>(), e_max, oja);
+        sb3_spikeplastic_fast::trace_step_backward(or_zeros(d_new_E, *E), *E, p, pre, eta->item<double>(), e_max, oja);
     if (modulation != kUnmodulated) {
       at::Tensor d_m = d_post * r_post;
-      d_rpost = d_rpost + d_post * *m;
+      d_rpost = plus(d_rpost, d_post * *m);
       if (modulation == kTanh) d_m = d_m * (1 - *m * *m);
       d_wm = at::mm(d_m.t(), r_post);
       d_rpost = d_rpost + at::mm(d_m, *w_m);
     } else {
-      d_rpost = d_rpost + d_post;
+      d_rpost = plus(d_rpost, d_post);
     }
     if (phi.has_value()) {
+      const at::Tensor d_new_phi_or_zero = or_zeros(d_new_phi, *phi);
       const at::Tensor d_threshold = -(d_pre * r_pre);  // of phi + psi
-      d_rpre = d_rpre + d_pre * (2 * r_pre - (*phi + *psi)) + *d_new_phi * *eta_phi;
-      d_phi = d_threshold + *d_new_phi * at::rsub(*eta_phi, 1);
+      d_rpre = plus(d_rpre, d_pre * (2 * r_pre - (*phi + *psi))) + d_new_phi_or_zero * *eta_phi;
+      d_phi = d_threshold + d_new_phi_or_zero * at::rsub(*eta_phi, 1);
       d_psi = d_threshold.sum(0);
-      d_eta_phi = (*d_new_phi * (r_pre - *phi)).sum();
+      d_eta_phi = (d_new_phi_or_zero * (r_pre - *phi)).sum();
     } else {
-      d_rpre = d_rpre + d_pre;
+      d_rpre = plus(d_rpre, d_pre);
     }
   }
-  std::vector<at::Tensor> grads = interval_backward(d_spikes, d_h1, d_h2, d_rpre, d_rpost, product_in, W, alpha, E,
+  std::vector<at::Tensor> grads = interval_backward(defined_or_empty(d_spikes), d_h1, d_h2, d_rpre, d_rpost,
+                                                    product_in, W, alpha, E,
                                                     surrogate, op, psp_rows, end_rows, filter_first, need_rows,
                                                     dE_trace);
   grads.insert(grads.end(), {d_phi, d_eta_phi, d_psi, d_eta, d_wm});
@@ -220,7 +248,7 @@ TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
       "Tensor end_rows, bool filter_first, float d, float kappa, float theta, float width, float scale, "
       "float e_max, bool oja, int modulation, bool need_surrogate) -> Tensor[]");
   m.def(
-      "srm_interval_backward(Tensor d_spikes, Tensor d_h1, Tensor d_h2, Tensor d_r_pre, Tensor d_r_post, "
+      "srm_interval_backward(Tensor? d_spikes, Tensor? d_h1, Tensor? d_h2, Tensor? d_r_pre, Tensor? d_r_post, "
       "Tensor? d_new_E, Tensor? d_new_phi, Tensor product_in, Tensor W, Tensor? alpha, Tensor? E, Tensor surrogate, "
       "Tensor p, Tensor pre, Tensor? m, Tensor r_pre, Tensor r_post, Tensor? phi, Tensor? eta, Tensor? eta_phi, "
       "Tensor? psi, Tensor? w_m, Tensor op, Tensor psp_rows, Tensor end_rows, bool filter_first, bool need_rows, "
