@@ -52,6 +52,31 @@ class LayerOutput(NamedTuple):
     input_rate: Tensor
 
 
+class _IntervalConstants(NamedTuple):
+    """What the fused interval op takes besides the tensors that change from call to call, fixed per layer,
+    interval length, dtype and device (computed once, not on every network step).
+
+    :param filters: the alpha-filter operator, its PSP rows and its end-state rows
+        (:meth:`PlasticSRMLayer._psp_filter`).
+    :param filter_first: :attr:`PlasticSRMLayer.filter_first`.
+    :param spike: ``(d, kappa, theta, width, scale)`` (:func:`~sb3_spikeplastic.neurons.spike_constants`).
+    :param e_max: the rule's trace bound.
+    :param form: the rule's :class:`~sb3_spikeplastic.plasticity.CompiledForm`; ``None`` when the op does not update
+        the trace (static layers, rules of one's own).
+    """
+
+    filters: tuple[Tensor, Tensor, Tensor]
+    filter_first: bool
+    spike: tuple[float, float, float, float, float]
+    e_max: float
+    form: Optional[CompiledForm]
+
+    @property
+    def rule_flags(self) -> tuple[bool, int]:
+        """``(oja, modulation)`` as the op takes them."""
+        return (self.form.oja, self.form.modulation) if self.form is not None else (False, 0)
+
+
 class PlasticSRMLayer(nn.Module):
     """SRM layer with plastic synapses.
 
@@ -80,6 +105,7 @@ class PlasticSRMLayer(nn.Module):
         self.weight = nn.Parameter(w_init_mean + w_init_std * torch.randn(n_out, n_in))
         self.alpha = nn.Parameter(alpha_init_mean + alpha_init_std * torch.randn(n_out, n_in)) if rule.has_trace else None
         self._filters: dict[tuple, tuple] = {}
+        self._constants: dict[tuple, _IntervalConstants] = {}
 
     @property
     def plastic(self) -> bool:
@@ -139,8 +165,9 @@ class PlasticSRMLayer(nn.Module):
         ops = _fast.interval_ops()
         form = None
         if ops is not None and _FusedInterval.applies(self, spikes_in, state):
-            form = compiled_form(self.rule) if self.plastic else None
-            *outputs, trace, phi = _FusedInterval.run_layer(self, form, spikes_in, state, ops)
+            constants = self._interval_constants(spikes_in.shape[1], spikes_in.dtype, spikes_in.device)
+            form = constants.form
+            *outputs, trace, phi = _FusedInterval.run_layer(self, constants, spikes_in, state, ops)
         else:
             synaptic, psp_state = self.interval(spikes_in, state.psp, state.plastic.trace)
             spikes, membrane, refractory = srm_spikes(synaptic, state.refractory, self.neuron)
@@ -175,12 +202,14 @@ class PlasticSRMLayer(nn.Module):
         end = end_rows @ rows
         return psp_rows @ self.project(rows, trace, efficacy_left=True), AlphaFilterState(end[:, 0], end[:, 1])
 
-    @property
-    def spike_constants(self) -> tuple[float, float, float, float, float]:
-        """``(d, kappa, theta, width, scale)`` of the refractory recursion and the SLAYER surrogate, as
-        :func:`~sb3_spikeplastic.neurons.srm_spike_loop` and :func:`~sb3_spikeplastic.neurons.slayer_surrogate`
-        compute them."""
-        return spike_constants(self.neuron)
+    def _interval_constants(self, length: int, dtype, device) -> _IntervalConstants:
+        """The fused op's fixed arguments for intervals of ``length`` steps (cached)."""
+        key = (length, dtype, device)
+        if key not in self._constants:
+            form = compiled_form(self.rule) if self.plastic else None
+            self._constants[key] = _IntervalConstants(self._psp_filter(length, dtype, device), self.filter_first,
+                                                      spike_constants(self.neuron), self.rule.e_max, form)
+        return self._constants[key]
 
     @property
     def filter_first(self) -> bool:
@@ -208,32 +237,31 @@ class _FusedInterval(torch.autograd.Function):
         return spikes_in.dim() == 3 and _fast.cpu_float_operands(spikes_in, *tensors)
 
     @staticmethod
-    def run_layer(layer: "PlasticSRMLayer", form: Optional[CompiledForm], spikes_in: Tensor, state: LayerState,
+    def run_layer(layer: "PlasticSRMLayer", constants: _IntervalConstants, spikes_in: Tensor, state: LayerState,
                   ops) -> list:
         """Spikes, membrane, PSP state, refractory state, ``r_pre``, ``r_post``, then the new trace and BCM
         threshold (``None`` when the op does not update them): one autograd node when training, the op alone
         without autograd (rollouts)."""
-        rule = layer.rule
+        rule, form = layer.rule, constants.form
         bcm = form is not None and form.bcm
         inputs = (spikes_in, state.psp.h1, state.psp.h2, state.refractory.h1, state.refractory.h2, layer.weight,
                   layer.alpha, state.plastic.trace if layer.alpha is not None else None,
                   state.plastic.extra[0] if bcm else None, rule.eta if form is not None else None,
                   rule.eta_phi if bcm else None, rule.psi if bcm else None,
-                  rule.w_m if form is not None and form.modulation else None, layer, form, ops)
+                  rule.w_m if form is not None and form.modulation else None, constants, ops)
         if torch.is_grad_enabled():
             return _FusedInterval.apply(*inputs)
         return _FusedInterval.outputs(_FusedInterval.run(*inputs, need_surrogate=False)[:10], form)
 
     @staticmethod
-    def run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m, layer, form, ops,
-            need_surrogate=True) -> list[Tensor]:
+    def run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m,
+            constants: _IntervalConstants, ops, need_surrogate=True) -> list[Tensor]:
         """The forward op: the 10 outputs of :meth:`run_layer` (empty tensors for ``None``), then what the backward
         pass needs."""
-        modulation, oja = (form.modulation, form.oja) if form is not None else (0, False)
+        oja, modulation = constants.rule_flags
         return ops.srm_interval_forward(
-            spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m,
-            *layer._psp_filter(spikes_in.shape[1], spikes_in.dtype, spikes_in.device), layer.filter_first,
-            *layer.spike_constants, layer.rule.e_max, oja, modulation, need_surrogate)
+            spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m, *constants.filters,
+            constants.filter_first, *constants.spike, constants.e_max, oja, modulation, need_surrogate)
 
     @staticmethod
     def outputs(outputs: list, form: Optional[CompiledForm]) -> list:
@@ -242,39 +270,38 @@ class _FusedInterval(torch.autograd.Function):
                 outputs[9] if form is not None and form.bcm else None]
 
     @staticmethod
-    def forward(ctx, spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m, layer,
-                form, ops):
+    def forward(ctx, spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m,
+                constants, ops):
         *outputs, product_in, surrogate, p, pre, m = _FusedInterval.run(
-            spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m, layer, form, ops)
+            spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m, constants, ops)
         ctx.save_for_backward(product_in, weight, alpha, trace, surrogate, p, pre, m, outputs[6], outputs[7], phi,
                               eta, eta_phi, psi, w_m)
-        ctx.constants = (*layer._psp_filter(spikes_in.shape[1], spikes_in.dtype, spikes_in.device),
-                         layer.filter_first, layer.rule.e_max, form, ops)
+        ctx.constants, ctx.ops = constants, ops
         ctx.mark_non_differentiable(*_constant_outputs(ctx, outputs))
         # Outputs the loss does not reach (the membrane, the output layer's spikes, unused rates, the final trace)
         # get None, which the op reads as zero, instead of a zero-filled tensor of their size.
         ctx.set_materialize_grads(False)
-        return tuple(_FusedInterval.outputs(outputs, form))
+        return tuple(_FusedInterval.outputs(outputs, constants.form))
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, d_spikes, _d_membrane, d_h1, d_h2, _d_ref_h1, _d_ref_h2, d_r_pre, d_r_post, d_trace, d_phi):
         product_in, weight, alpha, trace, surrogate, p, pre, m, r_pre, r_post, phi, eta, eta_phi, psi, w_m = \
             ctx.saved_tensors
-        operator, psp_rows, end_rows, filter_first, e_max, form, ops = ctx.constants
-        modulation, oja = (form.modulation, form.oja) if form is not None else (0, False)
+        constants = ctx.constants
+        oja, modulation = constants.rule_flags
         need_rows = any(ctx.needs_input_grad[:3])
-        grads = ops.srm_interval_backward(
+        grads = ctx.ops.srm_interval_backward(
             d_spikes, d_h1, d_h2, d_r_pre, d_r_post, d_trace, d_phi, product_in, weight, alpha, trace, surrogate, p,
-            pre, m if modulation else None, r_pre, r_post, phi, eta, eta_phi, psi, w_m, operator, psp_rows,
-            end_rows, filter_first, need_rows, e_max, oja, modulation)
+            pre, m if modulation else None, r_pre, r_post, phi, eta, eta_phi, psi, w_m, *constants.filters,
+            constants.filter_first, need_rows, constants.e_max, oja, modulation)
         d_x, d_h1, d_h2, d_w, d_alpha, d_trace, d_phi, d_eta_phi, d_psi, d_eta, d_w_m = grads
         if not need_rows:
             d_x = d_h1 = d_h2 = None
         plastic, bcm = alpha is not None, phi is not None  # the op's gradients are empty tensors where these are not
         return (d_x, d_h1, d_h2, None, None, d_w, d_alpha if plastic else None, d_trace if plastic else None,
                 d_phi if bcm else None, d_eta if eta is not None else None, d_eta_phi if bcm else None,
-                d_psi if bcm else None, d_w_m if w_m is not None else None, None, None, None)
+                d_psi if bcm else None, d_w_m if w_m is not None else None, None, None)
 
 
 def _constant_outputs(ctx, outputs: list[Tensor]) -> list[Tensor]:

@@ -55,16 +55,15 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> product_backward(
   return sb3_spikeplastic_fast::plastic_linear_backward(grad, x, W, *alpha, *E, need_x, dE_init);
 }
 
-// Autograd passes no gradient (an undefined tensor here) for an output that the loss does not reach, where it
-// would otherwise fill a zero tensor of the output's size (the output layer's spikes, a hidden layer's rates):
-// a + b, or b where a is undefined.
+// Autograd passes no gradient for an output that the loss does not reach (the output layer's spikes, a hidden
+// layer's rates, a chunk's final state), where it would otherwise fill a zero tensor of the output's size. The
+// backward pass takes such a gradient as an undefined tensor and reads it as zero:
+at::Tensor given(const std::optional<at::Tensor>& t) { return t.has_value() ? *t : at::Tensor(); }
+
+// a + b, with a missing a read as zero
 at::Tensor plus(const at::Tensor& a, const at::Tensor& b) { return a.defined() ? a + b : b; }
 
-at::Tensor or_zeros(const std::optional<at::Tensor>& t, const at::Tensor& like) {
-  return t.has_value() && t->defined() ? *t : at::zeros_like(like);
-}
-
-at::Tensor defined_or_empty(const std::optional<at::Tensor>& t) { return t.has_value() ? *t : at::Tensor(); }
+at::Tensor or_zeros(const at::Tensor& t, const at::Tensor& like) { return t.defined() ? t : at::zeros_like(like); }
 
 // -> spikes, membrane, psp h1', psp h2', refractory h1', refractory h2', r_pre, r_post, product input, surrogate
 std::vector<at::Tensor> interval_forward(const at::Tensor& x, const at::Tensor& h1, const at::Tensor& h2,
@@ -100,9 +99,8 @@ std::vector<at::Tensor> interval_forward(const at::Tensor& x, const at::Tensor& 
 }
 
 // -> dS, dh1, dh2 (empty unless need_rows), dW, dalpha, dE (empty for a static layer); dE_init: a gradient of E
-// from elsewhere, added to the product's. d_spikes, d_r_pre and d_r_post may be undefined (zero).
-std::vector<at::Tensor> interval_backward(const at::Tensor& d_spikes, const std::optional<at::Tensor>& d_h1,
-                                          const std::optional<at::Tensor>& d_h2,
+// from elsewhere, added to the product's. Undefined output gradients are zero.
+std::vector<at::Tensor> interval_backward(const at::Tensor& d_spikes, const at::Tensor& d_h1, const at::Tensor& d_h2,
                                           const at::Tensor& d_r_pre, const at::Tensor& d_r_post,
                                           const at::Tensor& product_in, const at::Tensor& W,
                                           const std::optional<at::Tensor>& alpha, const std::optional<at::Tensor>& E,
@@ -122,14 +120,15 @@ std::vector<at::Tensor> interval_backward(const at::Tensor& d_spikes, const std:
   if (filter_first) {
     std::tie(d_in, dW, d_alpha, dE) = product_backward(d_synaptic, product_in, W, alpha, E, need_rows, dE_init);
     if (need_rows) {
-      d_rows = at::matmul(op.t(), at::cat({d_in, or_zeros(d_h1, product_in.select(1, 0)).unsqueeze(1),
-                                           or_zeros(d_h2, product_in.select(1, 0)).unsqueeze(1)}, 1));
+      const at::Tensor like = product_in.select(1, 0);  // (B, n_in), the PSP state's shape
+      d_rows = at::matmul(op.t(),
+                          at::cat({d_in, or_zeros(d_h1, like).unsqueeze(1), or_zeros(d_h2, like).unsqueeze(1)}, 1));
     }
   } else {
     std::tie(d_in, dW, d_alpha, dE) =
         product_backward(at::matmul(psp_rows.t(), d_synaptic), product_in, W, alpha, E, need_rows, dE_init);
     if (need_rows) {
-      const at::Tensor& like = product_in.select(1, 0);
+      const at::Tensor like = product_in.select(1, 0);
       d_rows = d_in + at::matmul(end_rows.t(), at::stack({or_zeros(d_h1, like), or_zeros(d_h2, like)}, 1));
     }
   }
@@ -205,12 +204,13 @@ std::vector<at::Tensor> srm_interval_backward(
     const at::Tensor& end_rows, bool filter_first, bool need_rows, double e_max, bool oja, int64_t modulation) {
   const at::NoGradGuard no_grad;
   const at::Tensor none = at::empty({0}, W.options());
-  at::Tensor d_rpost = defined_or_empty(d_r_post), d_rpre = defined_or_empty(d_r_pre), dE_trace, d_eta = none,
+  at::Tensor d_rpost = given(d_r_post), d_rpre = given(d_r_pre), dE_trace, d_eta = none,
              d_wm = none, d_phi = none, d_eta_phi = none, d_psi = none;
   if (eta.has_value()) {
     at::Tensor d_post, d_pre;
     std::tie(dE_trace, d_post, d_pre, d_eta) =
-        sb3_spikeplastic_fast::trace_step_backward(or_zeros(d_new_E, *E), *E, p, pre, eta->item<double>(), e_max, oja);
+        sb3_spikeplastic_fast::trace_step_backward(or_zeros(given(d_new_E), *E), *E, p, pre, eta->item<double>(),
+                                                   e_max, oja);
     if (modulation != kUnmodulated) {
       at::Tensor d_m = d_post * r_post;
       d_rpost = plus(d_rpost, d_post * *m);
@@ -221,7 +221,7 @@ std::vector<at::Tensor> srm_interval_backward(
       d_rpost = plus(d_rpost, d_post);
     }
     if (phi.has_value()) {
-      const at::Tensor d_new_phi_or_zero = or_zeros(d_new_phi, *phi);
+      const at::Tensor d_new_phi_or_zero = or_zeros(given(d_new_phi), *phi);
       const at::Tensor d_threshold = -(d_pre * r_pre);  // of phi + psi
       d_rpre = plus(d_rpre, d_pre * (2 * r_pre - (*phi + *psi))) + d_new_phi_or_zero * *eta_phi;
       d_phi = d_threshold + d_new_phi_or_zero * at::rsub(*eta_phi, 1);
@@ -231,7 +231,7 @@ std::vector<at::Tensor> srm_interval_backward(
       d_rpre = plus(d_rpre, d_pre);
     }
   }
-  std::vector<at::Tensor> grads = interval_backward(defined_or_empty(d_spikes), d_h1, d_h2, d_rpre, d_rpost,
+  std::vector<at::Tensor> grads = interval_backward(given(d_spikes), given(d_h1), given(d_h2), d_rpre, d_rpost,
                                                     product_in, W, alpha, E,
                                                     surrogate, op, psp_rows, end_rows, filter_first, need_rows,
                                                     dE_trace);
