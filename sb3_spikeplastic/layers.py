@@ -225,7 +225,8 @@ class _FusedInterval(torch.autograd.Function):
 
     The forward op runs the eager layer's and rule's ops and kernels in the same order, so spikes, membrane, states
     and the new trace are bit-identical; the gradients are those of the eager graph (tested for every built-in
-    rule). Eager autograd builds ~15 nodes per layer and interval, whose overhead dominates the small CPU networks'
+    rule), with the surrogate computed inside the spike loop (within 2 ulp of :func:`~sb3_spikeplastic.neurons.
+    slayer_surrogate` in float32, whose exponential is vectorised differently). Eager autograd builds ~15 nodes per layer and interval, whose overhead dominates the small CPU networks'
     training step.
     """
 
@@ -242,16 +243,22 @@ class _FusedInterval(torch.autograd.Function):
         """Spikes, membrane, PSP state, refractory state, ``r_pre``, ``r_post``, then the new trace and BCM
         threshold (``None`` when the op does not update them): one autograd node when training, the op alone
         without autograd (rollouts)."""
-        rule, form = layer.rule, constants.form
-        bcm = form is not None and form.bcm
-        inputs = (spikes_in, state.psp.h1, state.psp.h2, state.refractory.h1, state.refractory.h2, layer.weight,
-                  layer.alpha, state.plastic.trace if layer.alpha is not None else None,
-                  state.plastic.extra[0] if bcm else None, rule.eta if form is not None else None,
-                  rule.eta_phi if bcm else None, rule.psi if bcm else None,
-                  rule.w_m if form is not None and form.modulation else None, constants, ops)
+        inputs = _FusedInterval.arguments(layer, constants, spikes_in, state, ops)
         if torch.is_grad_enabled():
             return _FusedInterval.apply(*inputs)
-        return _FusedInterval.outputs(_FusedInterval.run(*inputs, need_surrogate=False)[:10], form)
+        return _FusedInterval.outputs(_FusedInterval.run(*inputs, need_surrogate=False)[:10], constants.form)
+
+    @staticmethod
+    def arguments(layer: "PlasticSRMLayer", constants: _IntervalConstants, spikes_in: Tensor, state: LayerState,
+                  ops) -> tuple:
+        """The arguments of :meth:`run` (and of ``apply``) for one interval of ``layer``."""
+        rule, form = layer.rule, constants.form
+        bcm = form is not None and form.bcm
+        return (spikes_in, state.psp.h1, state.psp.h2, state.refractory.h1, state.refractory.h2, layer.weight,
+                layer.alpha, state.plastic.trace if layer.alpha is not None else None,
+                state.plastic.extra[0] if bcm else None, rule.eta if form is not None else None,
+                rule.eta_phi if bcm else None, rule.psi if bcm else None,
+                rule.w_m if form is not None and form.modulation else None, constants, ops)
 
     @staticmethod
     def run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m,

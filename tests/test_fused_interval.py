@@ -7,7 +7,7 @@ import torch
 
 from sb3_spikeplastic import _fast
 from sb3_spikeplastic.layers import PlasticSRMLayer, _FusedInterval
-from sb3_spikeplastic.neurons import SRMParameters
+from sb3_spikeplastic.neurons import SRMParameters, slayer_surrogate
 from sb3_spikeplastic.plasticity import DPOjaRule, get_rule_class
 
 pytestmark = pytest.mark.skipif(_fast.load_ops() is None, reason="compiled ops unavailable")
@@ -151,6 +151,25 @@ def test_float32_gradients_agree(monkeypatch):
     for a, b in zip(fused, eager):
         if a is not None:
             torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5 * float(b.abs().max()))
+
+
+def test_float32_surrogate_within_two_ulp_of_slayer_surrogate():
+    """The op computes the surrogate in its spike loop with an exponential of its own (vectorised): within 2 ulp of
+    ``neurons.slayer_surrogate`` from the threshold to membranes so far from it that ``exp`` underflows."""
+    layer = make_layer("dp-oja", 20, 300, torch.float32)
+    with torch.no_grad():
+        layer.weight.mul_(100.0)  # membranes up to thousands of mV from the threshold
+    spikes_in = (torch.rand(4, 50, 20, generator=torch.Generator().manual_seed(2)) < 0.4).float()
+    constants = layer._interval_constants(50, torch.float32, spikes_in.device)
+    with torch.no_grad():
+        outputs = _FusedInterval.run(*_FusedInterval.arguments(layer, constants, spikes_in, layer.initial_state(4),
+                                                               _fast.interval_ops()))
+    membrane, surrogate = outputs[1], outputs[11]
+    width = layer.neuron.tau_rho * layer.neuron.theta
+    distance = (membrane - layer.neuron.theta).abs() / width
+    assert distance.min() < 0.1 and distance.max() > 87.3  # near the threshold and past exp's float32 range
+    reference = slayer_surrogate(membrane, layer.neuron)
+    torch.testing.assert_close(surrogate, reference, rtol=2 * 2.0**-23, atol=2e-39)
 
 
 def test_disabled_compilation_uses_the_eager_layer(monkeypatch):

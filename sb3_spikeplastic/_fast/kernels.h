@@ -11,6 +11,11 @@ namespace sb3_spikeplastic_fast {
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> srm_loop_cpu(const at::Tensor& synaptic,
                                                                       const at::Tensor& h1, const at::Tensor& h2,
                                                                       double d, double kappa, double theta);
+// The same loop, with SLAYER's surrogate gradient of the membrane (neurons.slayer_surrogate) as a fifth output
+// when need_surrogate (an empty tensor otherwise).
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> srm_loop_with_surrogate_cpu(
+    const at::Tensor& synaptic, const at::Tensor& h1, const at::Tensor& h2, double d, double kappa, double theta,
+    double width, double scale, bool need_surrogate);
 
 // plastic_linear.cpp: Y[b] = X[b] (W + alpha * E[b])^T and its gradients (dX, dW, dalpha, dE); dE starts from
 // dE_init when it is given (a gradient of E from elsewhere, added in the same pass).

@@ -5,7 +5,8 @@
 //     R = [S; h1; h2]                                   (B, L + 2, n_in): the spikes and the carried PSP state
 //     filter first (n_in <= n_out):  F = K R,  syn = P(F[:L]),  (h1', h2') = F[L:]
 //     otherwise:                     syn = Kpsp P(R),   (h1', h2') = Kend R
-//     (s, u, refractory') = srm_loop(syn),  rho = SLAYER surrogate(u),  r_pre = mean_t S,  r_post = mean_t s
+//     (s, u, refractory', rho) = srm_loop(syn)  (rho: the SLAYER surrogate of u, in the same loop),
+//     r_pre = mean_t S,  r_post = mean_t s
 //
 // with P the product X (W + alpha * E_b)^T (plastic_linear.cpp) or X W^T (a static layer) and K = [Kpsp; Kend]
 // the interval's alpha-filter operator. The backward pass (the refractory path is not differentiated, as in
@@ -89,11 +90,9 @@ std::vector<at::Tensor> interval_forward(const at::Tensor& x, const at::Tensor& 
     synaptic = at::matmul(psp_rows, product(rows, W, alpha, E));
     end = at::matmul(end_rows, rows);
   }
-  auto [spikes, membrane, rh1, rh2] = sb3_spikeplastic_fast::srm_loop_cpu(synaptic, ref_h1, ref_h2, d, kappa, theta);
-  // neurons.slayer_surrogate, op for op; only for training (in rollouts it would be the layer's largest cost)
-  const at::Tensor surrogate = need_surrogate
-                                   ? at::sub(membrane, theta).abs_().div_(-width).exp_().mul_(scale / width)
-                                   : at::empty({0}, membrane.options());
+  // the surrogate (neurons.slayer_surrogate) only for training: in rollouts it would be the layer's largest cost
+  auto [spikes, membrane, rh1, rh2, surrogate] = sb3_spikeplastic_fast::srm_loop_with_surrogate_cpu(
+      synaptic, ref_h1, ref_h2, d, kappa, theta, width, scale, need_surrogate);
   return {spikes, membrane, end.select(1, 0), end.select(1, 1), rh1, rh2, x.mean(1), spikes.mean(1), product_in,
           surrogate};
 }

@@ -19,6 +19,7 @@
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
 #include <ATen/core/Tensor.h>
+#include <ATen/ops/empty.h>
 #include <ATen/ops/empty_like.h>
 #include <c10/core/ScalarType.h>
 #include <torch/library.h>
@@ -29,21 +30,70 @@
 #include "srm_loop_checks.h"
 
 #include <algorithm>
+#include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <tuple>
 
 namespace {
 
-template <typename scalar_t>
+// GCC if-converts (and so vectorises) the comparisons below only when floating-point operations may be assumed
+// not to trap; the results do not change (no reassociation, no contraction).
+#if defined(__GNUC__) && !defined(__clang__)
+#define SB3SP_VECTORISE_SELECTS __attribute__((optimize("no-trapping-math")))
+#else
+#define SB3SP_VECTORISE_SELECTS
+#endif
+
+// exp(x) for x <= 0 in float32, written so that the compiler vectorises it (glibc's expf does not vectorise
+// without -ffast-math): x = n ln2 + r with |r| <= ln2 / 2 (Cody-Waite: ln2 in two parts, so that n ln2 is exact),
+// exp(r) by its Taylor polynomial of degree 7 (truncation < 1e-8 relative), 2^n by the exponent bits. Within
+// 2 ulp of exp; 0 below -87.3, where exp leaves float32's normal range.
+SB3SP_VECTORISE_SELECTS inline float exp_nonpositive(float x) {
+  const float clamped = x < -87.3f ? -87.3f : x;
+  const float n = __builtin_floorf(clamped * 1.44269504088896341f + 0.5f);
+  const float r = (clamped - n * 0.693145751953125f) - n * 1.42860682030941723212e-6f;
+  float poly = 1.f / 5040.f;
+  poly = poly * r + 1.f / 720.f;
+  poly = poly * r + 1.f / 120.f;
+  poly = poly * r + 1.f / 24.f;
+  poly = poly * r + 1.f / 6.f;
+  poly = poly * r + 0.5f;
+  poly = poly * r + 1.f;
+  poly = poly * r + 1.f;
+  const int32_t bits = (static_cast<int32_t>(n) + 127) << 23;
+  float two_n;
+  std::memcpy(&two_n, &bits, sizeof two_n);
+  const float y = poly * two_n;
+  return x < -87.3f ? 0.f : y;
+}
+
+// SLAYER's surrogate gradient of one step's membrane, scale_w * exp(|u - theta| / neg_width): the ops of
+// neurons.slayer_surrogate in their order, up to the exponential (within 2 ulp of torch.exp in float32).
+SB3SP_VECTORISE_SELECTS void surrogate_row(const float* __restrict u, float* __restrict g, int64_t n, float theta,
+                                           float neg_width, float scale_w) {
+  for (int64_t j = 0; j < n; ++j) g[j] = exp_nonpositive(__builtin_fabsf(u[j] - theta) / neg_width) * scale_w;
+}
+
+void surrogate_row(const double* __restrict u, double* __restrict g, int64_t n, double theta, double neg_width,
+                   double scale_w) {
+  for (int64_t j = 0; j < n; ++j) g[j] = std::exp(std::abs(u[j] - theta) / neg_width) * scale_w;
+}
+
+// Per neuron and step, in this order (see the top of the file); with kSurrogate also the surrogate gradient of
+// each step's membrane while it is in L1, instead of in five passes over the whole membrane afterwards.
+template <typename scalar_t, bool kSurrogate>
 void srm_rows(const scalar_t* __restrict syn, scalar_t* __restrict h1, scalar_t* __restrict h2,
-              scalar_t* __restrict spikes, scalar_t* __restrict membrane, int64_t length, int64_t n,
-              scalar_t d, scalar_t kappa, scalar_t theta) {
+              scalar_t* __restrict spikes, scalar_t* __restrict membrane, scalar_t* __restrict surrogate,
+              int64_t length, int64_t n, scalar_t d, scalar_t kappa, scalar_t theta, scalar_t neg_width,
+              scalar_t scale_w) {
   const scalar_t one = scalar_t(1);
   const scalar_t zero = scalar_t(0);
   for (int64_t t = 0; t < length; ++t) {
     const scalar_t* __restrict x = syn + t * n;
     scalar_t* __restrict u_out = membrane + t * n;
     scalar_t* __restrict s_out = spikes + t * n;
+    scalar_t* __restrict g_out = surrogate + t * n;
     for (int64_t j = 0; j < n; ++j) {
       const scalar_t a1 = h1[j];
       const scalar_t a2 = (h2[j] + a1) * d;
@@ -56,49 +106,76 @@ void srm_rows(const scalar_t* __restrict syn, scalar_t* __restrict h1, scalar_t*
       u_out[j] = u;
       s_out[j] = s;
     }
+    if constexpr (kSurrogate) surrogate_row(u_out, g_out, n, theta, neg_width, scale_w);
   }
+}
+
+}  // namespace
+
+namespace {
+
+// The loop over the batch's rows; surrogate is undefined unless the surrogate is wanted.
+void run_srm_loop(const at::Tensor& syn, at::Tensor& spikes, at::Tensor& membrane, at::Tensor& h1, at::Tensor& h2,
+                  const at::Tensor& surrogate, double d, double kappa, double theta, double width, double scale) {
+  const int64_t batch = syn.size(0), length = syn.size(1), n = syn.size(2);
+  const int64_t row = length * n;
+  // about 32k element-steps per task, the ATen default grain
+  const int64_t grain = row > 0 ? std::max<int64_t>(1, 32768 / row) : batch;
+  AT_DISPATCH_FLOATING_TYPES(syn.scalar_type(), "srm_loop_cpu", [&] {
+    const scalar_t d_s = static_cast<scalar_t>(d);
+    const scalar_t kappa_s = static_cast<scalar_t>(kappa);
+    const scalar_t theta_s = static_cast<scalar_t>(theta);
+    // as PyTorch rounds the Python-float operands of div_(-width) and mul_(scale / width)
+    const scalar_t neg_width = static_cast<scalar_t>(-width);
+    const scalar_t scale_w = static_cast<scalar_t>(scale / width);
+    const scalar_t* syn_p = syn.data_ptr<scalar_t>();
+    scalar_t* h1_p = h1.data_ptr<scalar_t>();
+    scalar_t* h2_p = h2.data_ptr<scalar_t>();
+    scalar_t* s_p = spikes.data_ptr<scalar_t>();
+    scalar_t* u_p = membrane.data_ptr<scalar_t>();
+    scalar_t* g_p = surrogate.defined() ? surrogate.data_ptr<scalar_t>() : nullptr;
+    const CallerDenormalMode mode;
+    at::parallel_for(0, batch, grain, [&](int64_t begin, int64_t end) {
+      const DenormalModeScope denormals(mode);
+      for (int64_t b = begin; b < end; ++b) {
+        if (g_p != nullptr) {
+          srm_rows<scalar_t, true>(syn_p + b * row, h1_p + b * n, h2_p + b * n, s_p + b * row, u_p + b * row,
+                                   g_p + b * row, length, n, d_s, kappa_s, theta_s, neg_width, scale_w);
+        } else {
+          srm_rows<scalar_t, false>(syn_p + b * row, h1_p + b * n, h2_p + b * n, s_p + b * row, u_p + b * row,
+                                    nullptr, length, n, d_s, kappa_s, theta_s, neg_width, scale_w);
+        }
+      }
+    });
+  });
 }
 
 }  // namespace
 
 namespace sb3_spikeplastic_fast {
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> srm_loop_cpu(const at::Tensor& synaptic,
-                                                                      const at::Tensor& h1, const at::Tensor& h2,
-                                                                      double d, double kappa, double theta) {
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> srm_loop_with_surrogate_cpu(
+    const at::Tensor& synaptic, const at::Tensor& h1, const at::Tensor& h2, double d, double kappa, double theta,
+    double width, double scale, bool need_surrogate) {
   check_srm_operands(synaptic, h1, h2);
-  const int64_t batch = synaptic.size(0), length = synaptic.size(1), n = synaptic.size(2);
   TORCH_CHECK(synaptic.device().is_cpu() && h1.device().is_cpu() && h2.device().is_cpu(),
               "srm_loop: CPU tensors only");
-
   const at::Tensor syn = synaptic.contiguous();
   at::Tensor spikes = at::empty_like(syn, at::MemoryFormat::Contiguous);
   at::Tensor membrane = at::empty_like(syn, at::MemoryFormat::Contiguous);
   at::Tensor new_h1 = h1.clone(at::MemoryFormat::Contiguous);
   at::Tensor new_h2 = h2.clone(at::MemoryFormat::Contiguous);
+  const at::Tensor surrogate = need_surrogate ? at::empty_like(syn, at::MemoryFormat::Contiguous) : at::Tensor();
+  run_srm_loop(syn, spikes, membrane, new_h1, new_h2, surrogate, d, kappa, theta, width, scale);
+  return std::make_tuple(spikes, membrane, new_h1, new_h2,
+                         need_surrogate ? surrogate : at::empty({0}, syn.options()));
+}
 
-  const int64_t row = length * n;
-  // about 32k element-steps per task, the ATen default grain
-  const int64_t grain = row > 0 ? std::max<int64_t>(1, 32768 / row) : batch;
-
-  AT_DISPATCH_FLOATING_TYPES(syn.scalar_type(), "srm_loop_cpu", [&] {
-    const scalar_t d_s = static_cast<scalar_t>(d);
-    const scalar_t kappa_s = static_cast<scalar_t>(kappa);
-    const scalar_t theta_s = static_cast<scalar_t>(theta);
-    const scalar_t* syn_p = syn.data_ptr<scalar_t>();
-    scalar_t* h1_p = new_h1.data_ptr<scalar_t>();
-    scalar_t* h2_p = new_h2.data_ptr<scalar_t>();
-    scalar_t* s_p = spikes.data_ptr<scalar_t>();
-    scalar_t* u_p = membrane.data_ptr<scalar_t>();
-    const CallerDenormalMode mode;
-    at::parallel_for(0, batch, grain, [&](int64_t begin, int64_t end) {
-      const DenormalModeScope denormals(mode);
-      for (int64_t b = begin; b < end; ++b) {
-        srm_rows<scalar_t>(syn_p + b * row, h1_p + b * n, h2_p + b * n, s_p + b * row, u_p + b * row, length, n,
-                           d_s, kappa_s, theta_s);
-      }
-    });
-  });
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> srm_loop_cpu(const at::Tensor& synaptic,
+                                                                      const at::Tensor& h1, const at::Tensor& h2,
+                                                                      double d, double kappa, double theta) {
+  auto [spikes, membrane, new_h1, new_h2, unused] =
+      srm_loop_with_surrogate_cpu(synaptic, h1, h2, d, kappa, theta, 1.0, 1.0, false);
   return std::make_tuple(spikes, membrane, new_h1, new_h2);
 }
 
