@@ -22,11 +22,11 @@ evaluates the final model (``final_eval``: held-out seeds, written to ``final_ev
 ``final_eval_best.json`` for ``best_model.zip``) and records the mean return as the trial's value, with the run
 folder and the evaluations as user attributes. Workers on one machine or several (same ``--storage``) share the
 cells: the first trials take the grid's points one each, later ones the points not started, and a worker that
-finds its cell already done or taken by an earlier trial marks its trial pruned (``duplicate_of``) instead of
-training it. A killed worker's cell is failed after the heartbeat grace period and queued again
-(:mod:`sb3_spikeplastic.studies`); a worker whose cells are all taken waits until every cell has finished, so that
-it can take over such a cell. A cell interrupted with Ctrl-C is queued again too; a cell whose training raised is
-left failed (``--retry-failed`` queues it again).
+finds its cell already done or taken by an earlier trial (it waits until every earlier running trial has chosen
+its cell) marks its trial pruned (``duplicate_of``) instead of training it. A killed worker's cell is failed
+after the heartbeat grace period and queued again (:mod:`sb3_spikeplastic.studies`); a worker whose cells are all
+taken waits until every cell has finished, so that it can take over such a cell. A cell interrupted with Ctrl-C
+is queued again too; a cell whose training raised is left failed (``--retry-failed`` queues it again).
 
 The results (:func:`write_summary`): ``grid.csv``, one row per cell, and ``grid.md``, per variant and
 environment the final return and success rate per seed with their mean ± standard deviation.
@@ -58,6 +58,8 @@ FINAL_EVAL_KEYS = ("episodes", "seed", "n_envs", "best_model")
 SETTINGS_KEY = "grid"
 #: Seconds a worker without a cell to start waits before it looks at the study again.
 POLL_INTERVAL = 5
+#: Seconds between checks while an earlier trial has not chosen its cell yet (:meth:`CellRunner.duplicate_of`).
+CLAIM_POLL_INTERVAL = 0.1
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.+-]*$")
 
 
@@ -344,14 +346,30 @@ class CellRunner:
         self.current: Optional[int] = None  # the number of the trial being run
 
     def duplicate_of(self, study, trial) -> Optional[int]:
-        """The trial that owns ``trial``'s cell, if another one does: done, queued, or running since earlier."""
-        for other in study.get_trials(deepcopy=False):
-            if other.number == trial.number or other.params != trial.params:
-                continue
-            state = other.state.name
-            if state in ("COMPLETE", "WAITING") or (state == "RUNNING" and other.number < trial.number):
-                return other.number
-        return None
+        """The trial that owns ``trial``'s cell, if another one does: done, queued, or running with a lower number.
+
+        Trial numbers order the claims on a cell, so a running trial with a lower number must have chosen its cell
+        before this one can decide: two workers that start the same cell at once would otherwise each check before
+        the other had chosen, and both train it. So this waits (polling the storage) while a lower-numbered running
+        trial has no cell yet; a worker killed before choosing is failed after the heartbeat grace period.
+        """
+        import optuna
+
+        n_params = len(trial.params)
+        while True:
+            undecided = False
+            for other in study.get_trials(deepcopy=False):
+                if other.number == trial.number:
+                    continue
+                state, earlier = other.state.name, other.number < trial.number
+                running_earlier = state == "RUNNING" and earlier
+                if other.params == trial.params and (state in ("COMPLETE", "WAITING") or running_earlier):
+                    return other.number
+                undecided |= running_earlier and len(other.params) < n_params
+            if not undecided:
+                return None
+            time.sleep(CLAIM_POLL_INTERVAL)
+            optuna.storages.fail_stale_trials(study)
 
     def __call__(self, trial) -> float:
         import optuna

@@ -3,6 +3,7 @@ the summary, the T-maze grid file, and bad input."""
 
 import csv
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -88,6 +89,34 @@ def test_a_dead_workers_cell_is_run_again(files, storage):
     assert rerun.system_attrs["failed_trial"] == dead.number
     assert sorted(cells_of(study)) == [("large", 0), ("small", 0)]  # every cell once
     assert any(f"(trial {rerun.number}): done" in line for line in lines)
+
+
+@pytest.mark.filterwarnings("ignore:Heartbeat of storage")  # the trials are made by hand
+def test_a_trial_waits_for_an_earlier_trial_to_choose_its_cell(files):
+    """Two workers starting the same cell at once: the later trial checks while the earlier one has not chosen
+    its cell yet. It waits for that choice and steps aside; the earlier trial does not wait for the later one."""
+    grid = grid_mod.load_grid(files / "tiny.yml").select(seeds=[0])
+    job = grid_mod.prepare(grid, files / "g", "tiny", heartbeat_interval=1, grace_period=60)
+    study = job.open_study()
+    space = grid.search_space()
+    cell = {"env": "CartPole-v1", "variant": "small", "seed": 0}
+
+    def choose(trial, delay=0.0):  # what CellRunner's suggest_categorical calls store
+        time.sleep(delay)
+        for name, value in cell.items():
+            study._storage.set_trial_param(trial._trial_id, name, space[name].index(value),
+                                           optuna.distributions.CategoricalDistribution(space[name]))
+
+    earlier, later = study.ask(), study.ask()
+    choose(later)
+    chooser = threading.Thread(target=choose, args=(earlier, 0.5))
+    chooser.start()
+    runner = grid_mod.CellRunner(job)
+    start = time.monotonic()
+    assert runner.duplicate_of(study, study.trials[later.number]) == earlier.number
+    assert time.monotonic() - start >= 0.5
+    chooser.join()
+    assert runner.duplicate_of(study, study.trials[earlier.number]) is None
 
 
 @pytest.mark.parametrize("text, message", [
