@@ -223,11 +223,11 @@ class _FusedInterval(torch.autograd.Function):
     terms, in one compiled op forward and one backward (``_fast/srm_interval.cpp``, where the backward pass is
     written out; the trace-sized gradients of the product and of the update are summed in one pass).
 
-    The forward op runs the eager layer's and rule's ops and kernels in the same order, so spikes, membrane, states
-    and the new trace are bit-identical; the gradients are those of the eager graph (tested for every built-in
-    rule), with the surrogate computed inside the spike loop (within 2 ulp of :func:`~sb3_spikeplastic.neurons.
-    slayer_surrogate` in float32, whose exponential is vectorised differently). Eager autograd builds ~15 nodes per layer and interval, whose overhead dominates the small CPU networks'
-    training step.
+    The forward op runs the eager layer's and rule's ops and kernels in the same order, so spikes, membrane, rates,
+    states and the new trace are bit-identical; the gradients are those of the eager graph (tested for every
+    built-in rule) up to the surrogate, which the spike loop computes with an exponential of its own (within 2 ulp
+    of :func:`~sb3_spikeplastic.neurons.slayer_surrogate` in float32). Eager autograd builds ~15 nodes per layer
+    and interval, whose overhead dominates the small CPU networks' training step.
     """
 
     @staticmethod

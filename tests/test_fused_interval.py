@@ -81,6 +81,7 @@ def test_fused_interval_equals_eager_layer(rule, n_in, n_out, monkeypatch):
     assert sum(float(o.spikes.detach().sum()) for o in eager_out) > 0
     for a, b in zip(fused_out, eager_out):
         assert torch.equal(a.spikes, b.spikes) and torch.equal(a.membrane, b.membrane)
+        assert torch.equal(a.rate, b.rate) and torch.equal(a.input_rate, b.input_rate)
     for a, b in zip(fused_state.psp + fused_state.refractory, eager_state.psp + eager_state.refractory):
         assert torch.equal(a, b)
     for a, b in zip(fused_state.plastic, eager_state.plastic):  # the trace, and the BCM threshold
@@ -155,7 +156,8 @@ def test_float32_gradients_agree(monkeypatch):
 
 def test_float32_surrogate_within_two_ulp_of_slayer_surrogate():
     """The op computes the surrogate in its spike loop with an exponential of its own (vectorised): within 2 ulp of
-    ``neurons.slayer_surrogate`` from the threshold to membranes so far from it that ``exp`` underflows."""
+    ``neurons.slayer_surrogate`` from the threshold to membranes so far from it that ``exp`` underflows. The rates
+    it counts in the same loop equal ``spikes.mean(1)``."""
     layer = make_layer("dp-oja", 20, 300, torch.float32)
     with torch.no_grad():
         layer.weight.mul_(100.0)  # membranes up to thousands of mV from the threshold
@@ -165,6 +167,7 @@ def test_float32_surrogate_within_two_ulp_of_slayer_surrogate():
         outputs = _FusedInterval.run(*_FusedInterval.arguments(layer, constants, spikes_in, layer.initial_state(4),
                                                                _fast.interval_ops()))
     membrane, surrogate = outputs[1], outputs[11]
+    assert torch.equal(outputs[7], outputs[0].mean(1))  # r_post, counted in the same loop
     width = layer.neuron.tau_rho * layer.neuron.theta
     distance = (membrane - layer.neuron.theta).abs() / width
     assert distance.min() < 0.1 and distance.max() > 87.3  # near the threshold and past exp's float32 range

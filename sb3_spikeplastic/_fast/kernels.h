@@ -11,9 +11,10 @@ namespace sb3_spikeplastic_fast {
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> srm_loop_cpu(const at::Tensor& synaptic,
                                                                       const at::Tensor& h1, const at::Tensor& h2,
                                                                       double d, double kappa, double theta);
-// The same loop, with SLAYER's surrogate gradient of the membrane (neurons.slayer_surrogate) as a fifth output
-// when need_surrogate (an empty tensor otherwise).
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> srm_loop_with_surrogate_cpu(
+// The same loop as the fused interval needs it -> (spikes, membrane, h1, h2, surrogate, rate): also SLAYER's
+// surrogate gradient of the membrane (neurons.slayer_surrogate) when need_surrogate (an empty tensor otherwise),
+// and the spike rates over the interval, spikes.mean(1), bit-identical.
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> srm_loop_interval_cpu(
     const at::Tensor& synaptic, const at::Tensor& h1, const at::Tensor& h2, double d, double kappa, double theta,
     double width, double scale, bool need_surrogate);
 

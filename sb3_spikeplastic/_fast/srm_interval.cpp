@@ -5,8 +5,8 @@
 //     R = [S; h1; h2]                                   (B, L + 2, n_in): the spikes and the carried PSP state
 //     filter first (n_in <= n_out):  F = K R,  syn = P(F[:L]),  (h1', h2') = F[L:]
 //     otherwise:                     syn = Kpsp P(R),   (h1', h2') = Kend R
-//     (s, u, refractory', rho) = srm_loop(syn)  (rho: the SLAYER surrogate of u, in the same loop),
-//     r_pre = mean_t S,  r_post = mean_t s
+//     (s, u, refractory', rho, r_post) = srm_loop(syn)  (in the same loop: rho, the SLAYER surrogate of u,
+//     and r_post = mean_t s),  r_pre = mean_t S
 //
 // with P the product X (W + alpha * E_b)^T (plastic_linear.cpp) or X W^T (a static layer) and K = [Kpsp; Kend]
 // the interval's alpha-filter operator. The backward pass (the refractory path is not differentiated, as in
@@ -30,8 +30,10 @@
 //                 dpsi = sum_b -dpre r_pre,  deta_phi = sum dphi' (r_pre - phi)
 
 #include <ATen/ATen.h>
+#include <ATen/Parallel.h>
 #include <torch/library.h>
 
+#include "denormal_mode.h"
 #include "kernels.h"
 
 #include <optional>
@@ -66,6 +68,46 @@ at::Tensor plus(const at::Tensor& a, const at::Tensor& b) { return a.defined() ?
 
 at::Tensor or_zeros(const at::Tensor& t, const at::Tensor& like) { return t.defined() ? t : at::zeros_like(like); }
 
+// dL/dsyn = (dL/ds + dL/dr_post / L) * rho in one pass over the interval, where the ATen expression
+// (d_spikes + (d_r_post / L).unsqueeze(1)) * surrogate makes two and a broadcast: the same operations in the
+// same order, so the same values. An undefined d_spikes or d_r_post is zero; d_spikes may be a view with gaps
+// between its rows (the next layer's input gradient, a slice of its filter rows).
+at::Tensor synaptic_gradient(const at::Tensor& d_spikes, const at::Tensor& d_r_post, const at::Tensor& surrogate) {
+  if (!d_spikes.defined() && !d_r_post.defined()) return at::zeros_like(surrogate);
+  const at::Tensor rho = surrogate.contiguous();
+  const int64_t B = rho.size(0), L = rho.size(1), n = rho.size(2);
+  const at::Tensor ds = !d_spikes.defined() || d_spikes.stride(2) == 1 ? d_spikes : d_spikes.contiguous();
+  const at::Tensor dr = d_r_post.defined() ? (d_r_post / L).contiguous() : at::Tensor();
+  at::Tensor out = at::empty_like(rho, at::MemoryFormat::Contiguous);
+  AT_DISPATCH_FLOATING_TYPES(rho.scalar_type(), "synaptic_gradient", [&] {
+    const scalar_t* rho_p = rho.data_ptr<scalar_t>();
+    const scalar_t* ds_p = ds.defined() ? ds.data_ptr<scalar_t>() : nullptr;
+    const scalar_t* dr_p = dr.defined() ? dr.data_ptr<scalar_t>() : nullptr;
+    const int64_t ds_b = ds.defined() ? ds.stride(0) : 0, ds_t = ds.defined() ? ds.stride(1) : 0;
+    scalar_t* out_p = out.data_ptr<scalar_t>();
+    const CallerDenormalMode mode;
+    at::parallel_for(0, B, 1, [&](int64_t begin, int64_t end) {
+      const DenormalModeScope denormals(mode);
+      for (int64_t b = begin; b < end; ++b) {
+        for (int64_t t = 0; t < L; ++t) {
+          const scalar_t* __restrict r = rho_p + (b * L + t) * n;
+          scalar_t* __restrict o = out_p + (b * L + t) * n;
+          const scalar_t* __restrict s = ds_p != nullptr ? ds_p + b * ds_b + t * ds_t : nullptr;
+          const scalar_t* __restrict q = dr_p != nullptr ? dr_p + b * n : nullptr;
+          if (s != nullptr && q != nullptr) {
+            for (int64_t j = 0; j < n; ++j) o[j] = (s[j] + q[j]) * r[j];
+          } else if (s != nullptr) {
+            for (int64_t j = 0; j < n; ++j) o[j] = s[j] * r[j];
+          } else {
+            for (int64_t j = 0; j < n; ++j) o[j] = q[j] * r[j];
+          }
+        }
+      }
+    });
+  });
+  return out;
+}
+
 // -> spikes, membrane, psp h1', psp h2', refractory h1', refractory h2', r_pre, r_post, product input, surrogate
 std::vector<at::Tensor> interval_forward(const at::Tensor& x, const at::Tensor& h1, const at::Tensor& h2,
                                          const at::Tensor& ref_h1, const at::Tensor& ref_h2, const at::Tensor& W,
@@ -91,9 +133,9 @@ std::vector<at::Tensor> interval_forward(const at::Tensor& x, const at::Tensor& 
     end = at::matmul(end_rows, rows);
   }
   // the surrogate (neurons.slayer_surrogate) only for training: in rollouts it would be the layer's largest cost
-  auto [spikes, membrane, rh1, rh2, surrogate] = sb3_spikeplastic_fast::srm_loop_with_surrogate_cpu(
+  auto [spikes, membrane, rh1, rh2, surrogate, r_post] = sb3_spikeplastic_fast::srm_loop_interval_cpu(
       synaptic, ref_h1, ref_h2, d, kappa, theta, width, scale, need_surrogate);
-  return {spikes, membrane, end.select(1, 0), end.select(1, 1), rh1, rh2, x.mean(1), spikes.mean(1), product_in,
+  return {spikes, membrane, end.select(1, 0), end.select(1, 1), rh1, rh2, x.mean(1), r_post, product_in,
           surrogate};
 }
 
@@ -108,12 +150,7 @@ std::vector<at::Tensor> interval_backward(const at::Tensor& d_spikes, const at::
                                           bool need_rows, const at::Tensor& dE_init = at::Tensor()) {
   const at::NoGradGuard no_grad;
   const int64_t L = surrogate.size(1);
-  at::Tensor d_synaptic;
-  if (d_r_post.defined()) {
-    d_synaptic = plus(d_spikes, (d_r_post / L).unsqueeze(1)) * surrogate;
-  } else {
-    d_synaptic = d_spikes.defined() ? d_spikes * surrogate : at::zeros_like(surrogate);
-  }
+  const at::Tensor d_synaptic = synaptic_gradient(d_spikes, d_r_post, surrogate);
   at::Tensor d_rows;
   at::Tensor d_in, dW, d_alpha, dE;
   if (filter_first) {

@@ -21,6 +21,7 @@
 #include <ATen/core/Tensor.h>
 #include <ATen/ops/empty.h>
 #include <ATen/ops/empty_like.h>
+#include <ATen/ops/zeros_like.h>
 #include <c10/core/ScalarType.h>
 #include <torch/library.h>
 
@@ -80,13 +81,14 @@ void surrogate_row(const double* __restrict u, double* __restrict g, int64_t n, 
   for (int64_t j = 0; j < n; ++j) g[j] = std::exp(std::abs(u[j] - theta) / neg_width) * scale_w;
 }
 
-// Per neuron and step, in this order (see the top of the file); with kSurrogate also the surrogate gradient of
-// each step's membrane while it is in L1, instead of in five passes over the whole membrane afterwards.
+// Per neuron and step, in this order (see the top of the file), and each neuron's spike rate over the interval
+// (rate starts at zero); with kSurrogate also the surrogate gradient of each step's membrane while it is in L1,
+// instead of in five passes over the whole membrane afterwards.
 template <typename scalar_t, bool kSurrogate>
 void srm_rows(const scalar_t* __restrict syn, scalar_t* __restrict h1, scalar_t* __restrict h2,
               scalar_t* __restrict spikes, scalar_t* __restrict membrane, scalar_t* __restrict surrogate,
-              int64_t length, int64_t n, scalar_t d, scalar_t kappa, scalar_t theta, scalar_t neg_width,
-              scalar_t scale_w) {
+              scalar_t* __restrict rate, int64_t length, int64_t n, scalar_t d, scalar_t kappa, scalar_t theta,
+              scalar_t neg_width, scalar_t scale_w) {
   const scalar_t one = scalar_t(1);
   const scalar_t zero = scalar_t(0);
   for (int64_t t = 0; t < length; ++t) {
@@ -105,18 +107,19 @@ void srm_rows(const scalar_t* __restrict syn, scalar_t* __restrict h1, scalar_t*
       h1[j] = b1 + s;
       u_out[j] = u;
       s_out[j] = s;
+      rate[j] += s;  // a count of 0/1 values: exact in any order
     }
     if constexpr (kSurrogate) surrogate_row(u_out, g_out, n, theta, neg_width, scale_w);
   }
+  // spikes.mean(1) as ATen computes it: the (exact) sum divided by the length
+  const scalar_t steps = static_cast<scalar_t>(length);
+  for (int64_t j = 0; j < n; ++j) rate[j] = rate[j] / steps;
 }
-
-}  // namespace
-
-namespace {
 
 // The loop over the batch's rows; surrogate is undefined unless the surrogate is wanted.
 void run_srm_loop(const at::Tensor& syn, at::Tensor& spikes, at::Tensor& membrane, at::Tensor& h1, at::Tensor& h2,
-                  const at::Tensor& surrogate, double d, double kappa, double theta, double width, double scale) {
+                  const at::Tensor& surrogate, at::Tensor& rate, double d, double kappa, double theta, double width,
+                  double scale) {
   const int64_t batch = syn.size(0), length = syn.size(1), n = syn.size(2);
   const int64_t row = length * n;
   // about 32k element-steps per task, the ATen default grain
@@ -134,16 +137,18 @@ void run_srm_loop(const at::Tensor& syn, at::Tensor& spikes, at::Tensor& membran
     scalar_t* s_p = spikes.data_ptr<scalar_t>();
     scalar_t* u_p = membrane.data_ptr<scalar_t>();
     scalar_t* g_p = surrogate.defined() ? surrogate.data_ptr<scalar_t>() : nullptr;
+    scalar_t* r_p = rate.data_ptr<scalar_t>();
     const CallerDenormalMode mode;
     at::parallel_for(0, batch, grain, [&](int64_t begin, int64_t end) {
       const DenormalModeScope denormals(mode);
       for (int64_t b = begin; b < end; ++b) {
         if (g_p != nullptr) {
           srm_rows<scalar_t, true>(syn_p + b * row, h1_p + b * n, h2_p + b * n, s_p + b * row, u_p + b * row,
-                                   g_p + b * row, length, n, d_s, kappa_s, theta_s, neg_width, scale_w);
+                                   g_p + b * row, r_p + b * n, length, n, d_s, kappa_s, theta_s, neg_width,
+                                   scale_w);
         } else {
           srm_rows<scalar_t, false>(syn_p + b * row, h1_p + b * n, h2_p + b * n, s_p + b * row, u_p + b * row,
-                                    nullptr, length, n, d_s, kappa_s, theta_s, neg_width, scale_w);
+                                    nullptr, r_p + b * n, length, n, d_s, kappa_s, theta_s, neg_width, scale_w);
         }
       }
     });
@@ -154,7 +159,7 @@ void run_srm_loop(const at::Tensor& syn, at::Tensor& spikes, at::Tensor& membran
 
 namespace sb3_spikeplastic_fast {
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> srm_loop_with_surrogate_cpu(
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> srm_loop_interval_cpu(
     const at::Tensor& synaptic, const at::Tensor& h1, const at::Tensor& h2, double d, double kappa, double theta,
     double width, double scale, bool need_surrogate) {
   check_srm_operands(synaptic, h1, h2);
@@ -165,17 +170,18 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> srm_loop_
   at::Tensor membrane = at::empty_like(syn, at::MemoryFormat::Contiguous);
   at::Tensor new_h1 = h1.clone(at::MemoryFormat::Contiguous);
   at::Tensor new_h2 = h2.clone(at::MemoryFormat::Contiguous);
+  at::Tensor rate = at::zeros_like(new_h1);
   const at::Tensor surrogate = need_surrogate ? at::empty_like(syn, at::MemoryFormat::Contiguous) : at::Tensor();
-  run_srm_loop(syn, spikes, membrane, new_h1, new_h2, surrogate, d, kappa, theta, width, scale);
+  run_srm_loop(syn, spikes, membrane, new_h1, new_h2, surrogate, rate, d, kappa, theta, width, scale);
   return std::make_tuple(spikes, membrane, new_h1, new_h2,
-                         need_surrogate ? surrogate : at::empty({0}, syn.options()));
+                         need_surrogate ? surrogate : at::empty({0}, syn.options()), rate);
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> srm_loop_cpu(const at::Tensor& synaptic,
                                                                       const at::Tensor& h1, const at::Tensor& h2,
                                                                       double d, double kappa, double theta) {
-  auto [spikes, membrane, new_h1, new_h2, unused] =
-      srm_loop_with_surrogate_cpu(synaptic, h1, h2, d, kappa, theta, 1.0, 1.0, false);
+  auto [spikes, membrane, new_h1, new_h2, surrogate, rate] =
+      srm_loop_interval_cpu(synaptic, h1, h2, d, kappa, theta, 1.0, 1.0, false);
   return std::make_tuple(spikes, membrane, new_h1, new_h2);
 }
 
