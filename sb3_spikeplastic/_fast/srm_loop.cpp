@@ -95,7 +95,6 @@ void srm_rows(const scalar_t* __restrict syn, scalar_t* __restrict h1, scalar_t*
     const scalar_t* __restrict x = syn + t * n;
     scalar_t* __restrict u_out = membrane + t * n;
     scalar_t* __restrict s_out = spikes + t * n;
-    scalar_t* __restrict g_out = surrogate + t * n;
     for (int64_t j = 0; j < n; ++j) {
       const scalar_t a1 = h1[j];
       const scalar_t a2 = (h2[j] + a1) * d;
@@ -109,7 +108,7 @@ void srm_rows(const scalar_t* __restrict syn, scalar_t* __restrict h1, scalar_t*
       s_out[j] = s;
       rate[j] += s;  // a count of 0/1 values: exact in any order
     }
-    if constexpr (kSurrogate) surrogate_row(u_out, g_out, n, theta, neg_width, scale_w);
+    if constexpr (kSurrogate) surrogate_row(u_out, surrogate + t * n, n, theta, neg_width, scale_w);
   }
   // spikes.mean(1) as ATen computes it: the (exact) sum divided by the length
   const scalar_t steps = static_cast<scalar_t>(length);
