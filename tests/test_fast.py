@@ -353,6 +353,69 @@ def test_allocator_settings_take_effect_on_glibc():
     assert keep_freed_memory() is True
 
 
+_BLOCK_CACHE_CHECK = """
+import torch
+from sb3_spikeplastic import _fast
+from sb3_spikeplastic._fast.allocator import cache_freed_blocks
+ops = _fast.load_ops()
+assert ops is not None, _fast.build_error()
+assert ops.cpu_block_cache_bytes() == 0
+early = torch.empty(2**18)  # allocated before: freed through the allocator it came from
+assert cache_freed_blocks(min_bytes=2**16, max_cached_bytes=3 * 2**20) and cache_freed_blocks()
+a = torch.ones(2**18)  # 1 MiB
+address = a.data_ptr()
+del a, early
+assert ops.cpu_block_cache_bytes() == 2**20
+b = torch.empty(2**18)  # the same size: the same block, taken out of the cache
+assert b.data_ptr() == address and ops.cpu_block_cache_bytes() == 0
+c, d = torch.empty(2**19), torch.empty(2**19)  # 2 MiB each: the second one freed would pass the 3 MiB cap
+del b, c, d
+assert ops.cpu_block_cache_bytes() == 3 * 2**20, ops.cpu_block_cache_bytes()
+small = torch.empty(100)  # under min_bytes: not cached
+del small
+assert ops.cpu_block_cache_bytes() == 3 * 2**20
+"""
+
+_BLOCK_CACHE_TRAINING = """
+import hashlib, sys, torch
+torch.set_num_threads(1)
+if sys.argv[1] == "cache":
+    from sb3_spikeplastic._fast.allocator import cache_freed_blocks
+    assert cache_freed_blocks()
+from sb3_spikeplastic import PPO
+model = PPO("SpikePlasticPolicy", "TMazeCue-v0", n_steps=64, batch_size=64, bptt_steps=16, n_epochs=2, seed=3,
+            policy_kwargs=dict(rule="ndp-oja", hidden_sizes=(128, 128)))  # traces of 64 KB per environment
+model.learn(128)
+digest = hashlib.sha256()
+for tensor in model.policy.state_dict().values():
+    digest.update(tensor.numpy().tobytes())
+if sys.argv[1] == "cache":  # the cache was used
+    from sb3_spikeplastic import _fast
+    assert _fast.load_ops().cpu_block_cache_bytes() > 0
+print(digest.hexdigest())
+"""
+
+
+def _run_python(code: str, *args: str) -> str:
+    env = dict(os.environ)
+    env.pop(_fast.NO_COMPILE_ENV, None)
+    result = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, env=env, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    return result.stdout.strip().splitlines()[-1] if result.stdout.strip() else ""
+
+
+def test_block_cache_hands_a_freed_block_back_by_its_size(compiled):
+    """In a process of its own (the allocator is process-wide): a freed block of at least ``min_bytes`` is kept,
+    the next allocation of its size gets it back, and the cap and the minimum size hold."""
+    _run_python(_BLOCK_CACHE_CHECK)
+
+
+def test_training_with_the_block_cache_is_bit_identical(compiled):
+    """A reused block holds the values of its last tensor where a fresh one may not: training must read no
+    memory before writing it. Two short ndp-oja runs, with and without the cache, end with the same parameters."""
+    assert _run_python(_BLOCK_CACHE_TRAINING, "cache") == _run_python(_BLOCK_CACHE_TRAINING, "plain")
+
+
 def test_build_directory_depends_on_the_sources(monkeypatch, tmp_path):
     """Each version of the C++/CUDA sources builds in its own cache directory (two installed versions sharing a
     cache must not rebuild over each other's library)."""

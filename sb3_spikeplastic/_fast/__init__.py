@@ -19,6 +19,9 @@
   are bit-identical to the eager layer on the CPU; gradients equal to float rounding.
 * :func:`bernoulli_spikes` (``bernoulli.cpp``), for :meth:`sb3_spikeplastic.coding.CounterBernoulli.sample`:
   the hash sampler in one pass instead of ~12, **bit-identical** (integer hashing, exact comparisons).
+* ``cache_cpu_blocks`` (``block_cache.cpp``), for :func:`sb3_spikeplastic._fast.allocator.cache_freed_blocks`:
+  torch's CPU allocator replaced by one that keeps freed large blocks by exact size for the next allocation of
+  that size (a training step allocates the same sizes in every BPTT step), where glibc searches its bins.
 
 On CUDA, :func:`srm_loop` runs ``srm_loop_cuda.cu`` instead: one thread per neuron walks the interval's steps,
 one launch per layer where eager PyTorch launches ~350 kernels (T = 50), **bit-identical** to the eager loop on
@@ -60,7 +63,8 @@ NO_COMPILE_ENV = "SB3_SPIKEPLASTIC_NO_COMPILE"
 BUILD_DIR_ENV = "SB3_SPIKEPLASTIC_BUILD_DIR"
 _EXTENSION = "sb3_spikeplastic_fast"
 _SOURCES = [Path(__file__).with_name(name)
-            for name in ("srm_loop.cpp", "trace_step.cpp", "plastic_linear.cpp", "srm_interval.cpp", "bernoulli.cpp")]
+            for name in ("srm_loop.cpp", "trace_step.cpp", "plastic_linear.cpp", "srm_interval.cpp", "bernoulli.cpp",
+                         "block_cache.cpp")]
 
 _CUDA_EXTENSION = "sb3_spikeplastic_fast_cuda"
 _CUDA_SOURCES = [Path(__file__).with_name("srm_loop_cuda.cu")]
