@@ -197,6 +197,19 @@ def ratios(rows: list[dict]) -> dict:
             for name, (a, b) in RATIOS.items() if a in best and b in best}
 
 
+def print_row(row: dict) -> None:
+    print(f"{row['name']:52s} {row['threads']:7d} {row['env_steps_per_s']:11.1f} {row['peak_rss_mb']:7.0f} MB "
+          f"{row['achieved_gflops']:8.1f} {row['achieved_gflops'] / row['matmul_gflops']:8.1%}", flush=True)
+
+
+def median_run(runs: list[dict]) -> dict:
+    """The run with the median env-steps/s (the lower middle one of an even count), with every run's env-steps/s
+    in ``env_steps_per_s_runs``. Rows drift by ~15 % within minutes on a shared machine, and not all alike: medians
+    of interleaved rounds compare rows more reliably than one round."""
+    ordered = sorted(runs, key=lambda row: row["env_steps_per_s"])
+    return dict(ordered[(len(ordered) - 1) // 2], env_steps_per_s_runs=[row["env_steps_per_s"] for row in runs])
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--rollouts", type=int,
@@ -208,8 +221,12 @@ def main(argv=None) -> int:
     parser.add_argument("--output", type=Path, help=f"default: {RESULTS} ({RESULTS_CUDA.name} with --device cuda)")
     parser.add_argument("--check", action="store_true",
                         help="exit 1 if a spiking/RecurrentPPO ratio falls > 30%% below the committed result")
+    parser.add_argument("--repeats", type=int, default=1,
+                        help="rounds over all rows, interleaved; each row reports its median round (default 1)")
     parser.add_argument("--row", help=argparse.SUPPRESS)  # internal: run one row in this process, print JSON
     args = parser.parse_args(argv)
+    if args.repeats < 1:
+        parser.error(f"--repeats {args.repeats}: must be a positive number of rounds")
     cuda = args.device.startswith("cuda")
     if args.row:
         print(json.dumps(run_row(args.row, args.threads[0], args.device, args.rollouts)))
@@ -226,13 +243,20 @@ def main(argv=None) -> int:
         print("sb3-contrib not installed (pip install -e '.[bench]'): RecurrentPPO rows skipped", file=sys.stderr)
         keys = [k for k in keys if "recurrent" not in k]
     print(f"{'row':52s} {'threads':>7s} {'env-steps/s':>11s} {'peak RSS':>9s} {'GFLOP/s':>8s} {'of matmul':>9s}")
-    rows = []
-    for key in keys:
-        for n in threads:
-            row = run_in_subprocess(key, n, args)
-            rows.append(row)
-            print(f"{row['name']:52s} {n:7d} {row['env_steps_per_s']:11.1f} {row['peak_rss_mb']:7.0f} MB "
-                  f"{row['achieved_gflops']:8.1f} {row['achieved_gflops'] / row['matmul_gflops']:8.1%}", flush=True)
+    runs: dict[tuple[str, int], list[dict]] = {}
+    for round_ in range(args.repeats):
+        if args.repeats > 1:
+            print(f"round {round_ + 1} of {args.repeats}")
+        for key in keys:
+            for n in threads:
+                row = run_in_subprocess(key, n, args)
+                runs.setdefault((key, n), []).append(row)
+                print_row(row)
+    rows = [median_run(found) for found in runs.values()]
+    if args.repeats > 1:
+        print(f"median of {args.repeats} rounds")
+        for row in rows:
+            print_row(row)
     found = ratios(rows)
     for name, value in found.items():
         print(f"{name} (each at its best thread count): {value:.3f}")

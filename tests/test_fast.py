@@ -378,20 +378,18 @@ assert ops.cpu_block_cache_bytes() == 3 * 2**20
 
 _BLOCK_CACHE_TRAINING = """
 import hashlib, sys, torch
+from sb3_spikeplastic import PPO, _fast
+from sb3_spikeplastic._fast import allocator
 torch.set_num_threads(1)
-if sys.argv[1] == "cache":
-    from sb3_spikeplastic._fast.allocator import cache_freed_blocks
-    assert cache_freed_blocks()
-from sb3_spikeplastic import PPO
+cache = sys.argv[1] == "cache"
 model = PPO("SpikePlasticPolicy", "TMazeCue-v0", n_steps=64, batch_size=64, bptt_steps=16, n_epochs=2, seed=3,
-            policy_kwargs=dict(rule="ndp-oja", hidden_sizes=(128, 128)))  # traces of 64 KB per environment
+            policy_kwargs=dict(rule="ndp-oja", hidden_sizes=(128, 128)),  # traces of 64 KB per environment
+            keep_freed_memory=cache)
 model.learn(128)
 digest = hashlib.sha256()
 for tensor in model.policy.state_dict().values():
     digest.update(tensor.numpy().tobytes())
-if sys.argv[1] == "cache":  # the cache was used
-    from sb3_spikeplastic import _fast
-    assert _fast.load_ops().cpu_block_cache_bytes() > 0
+assert allocator._cache_installed == cache and (_fast.load_ops().cpu_block_cache_bytes() > 0) == cache
 print(digest.hexdigest())
 """
 

@@ -4,19 +4,21 @@ glibc's bins.
 A training step allocates and frees the same few hundred 0.1-10 MB tensors in every BPTT step (trace-sized
 arrays, ``(batch, T, n)`` activations and their gradients). Two settings make that cheap:
 
-* glibc (:func:`keep_freed_memory`'s first part): by default glibc serves each large block from ``mmap`` and
-  unmaps it on free, so the next step page-faults it back in (measured: ~3.7k faults, ~12 ms per call of a
-  ``(64, 50, 600)`` layer). Raising ``M_MMAP_THRESHOLD`` to its maximum (32 MiB on 64-bit) and
-  ``M_TRIM_THRESHOLD`` keeps them in the heap: 10 % faster training steps (``PPO`` chunk step, static and
-  ndp-oja).
-* torch's CPU allocator (:func:`cache_freed_blocks`, ``block_cache.cpp``): glibc still searches, splits and
+* :func:`keep_freed_memory` (glibc): by default glibc serves each large block from ``mmap`` and unmaps it on
+  free, so the next step page-faults it back in (measured: ~3.7k faults, ~12 ms per call of a ``(64, 50, 600)``
+  layer). Raising ``M_MMAP_THRESHOLD`` to its maximum (32 MiB on 64-bit) and ``M_TRIM_THRESHOLD`` keeps them in
+  the heap: 10 % faster training steps (``PPO`` chunk step, static and ndp-oja). ``sb3-spikeplastic train``,
+  ``optimize`` and ``grid`` apply it.
+* :func:`cache_freed_blocks` (torch's CPU allocator, ``block_cache.cpp``): glibc still searches, splits and
   coalesces its bins for every large block, ~5 % of the main thread's time on the paper network. A cache of
   freed blocks by exact size hands the same block back in O(1): the paper network's training step at batch 32
   on two threads takes ~6 % less time (median over 8 interleaved pairs of runs, 13.2-15.4 against 13.8-16.0 ms
-  per env step) and peaks at 1.13 instead of 1.32-1.38 GB (glibc's bins fragment).
+  per env step) and peaks at 1.13 instead of 1.32-1.38 GB (glibc's bins fragment). Exact sizes suit the spiking
+  policies, whose shapes repeat from step to step; a workload of ever-changing shapes would fill the cache with
+  blocks it never reuses (sb3-contrib's RecurrentPPO, with its padded sequences of varying length, peaked 0.3 GB
+  higher), so ``PPO`` installs it for spiking policies only (``PPO(keep_freed_memory=True)``).
 
-Both are process-wide and keep freed memory in the process (up to the peak it used); ``sb3-spikeplastic train``,
-``optimize`` and ``grid`` apply them.
+Both are process-wide and keep freed memory in the process (up to the peak it used).
 """
 
 from __future__ import annotations
@@ -34,9 +36,7 @@ CACHE_MAX_BYTES = 2 * 1024**3
 
 
 def keep_freed_memory() -> bool:
-    """Apply both settings for this process (the glibc part only on glibc, the cache only where the compiled ops
-    load); returns whether the glibc settings took effect."""
-    cache_freed_blocks()
+    """Apply the glibc settings for this process; returns whether they took effect (glibc only)."""
     name = ctypes.util.find_library("c")
     if name is None:
         return False
