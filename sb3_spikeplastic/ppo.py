@@ -75,7 +75,7 @@ class PPO(SB3PPO):
         minibatch. Must divide ``batch_size // bptt_steps``. ``None``: the whole minibatch in one pass.
         ``"auto"``: on the CPU, the most chunks per pass (a divisor) whose graph stays within
         :data:`AUTO_PASS_GRAPH_BYTES` (768 MiB; the paper's HalfCheetah network with a plastic rule runs its
-        64-chunk minibatches in two passes, peaking at ~1.4 GB instead of ~2.2 GB for 4-8 % less speed; the smaller
+        64-chunk minibatches in two passes, peaking at ~1.1 GB instead of ~1.8 GB for 3-16 % less speed; the smaller
         networks in one); on a GPU, one pass. ``train/chunks_per_pass`` logs the choice.
     :param flush_denormal: for recurrent policies, set torch's flush-denormal mode
         (``torch.set_flush_denormal(True)``, process-wide) when the model is set up. The PSP filters of silent
