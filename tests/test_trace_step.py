@@ -153,6 +153,25 @@ def test_fused_plastic_linear_equals_eager(fused, dtype, x_grad):
     assert _fast.plastic_linear(x[:1], W, alpha, E) is None  # a batch that would broadcast
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["f32", "f64"])
+def test_fused_plastic_linear_one_environment_per_block(fused, dtype):
+    """At the paper network's sizes (600 -> 64) a block holds one environment, whose products call BLAS directly
+    (where torch's MKL exports it): the output and its four gradients equal the eager ops, for both layouts of
+    the product (64 -> 600 too)."""
+    g = torch.Generator().manual_seed(4)
+    for n_in, n_out in ((600, 64), (64, 600)):
+        x = (torch.rand(3, 11, n_in, generator=g) < 0.2).to(dtype).requires_grad_()
+        W, alpha = (0.1 * torch.randn(n_out, n_in, generator=g, dtype=dtype) for _ in range(2))
+        W, alpha = W.requires_grad_(), alpha.requires_grad_()
+        E = torch.randn(3, n_out, n_in, generator=g, dtype=dtype).requires_grad_()
+        upstream = torch.randn(3, 11, n_out, generator=g, dtype=dtype)
+        out, ref = _fast.plastic_linear(x, W, alpha, E), x @ torch.addcmul(W, alpha, E).transpose(1, 2)
+        torch.testing.assert_close(out, ref, **TOL[dtype])
+        for a, b in zip(torch.autograd.grad((out * upstream).sum(), (x, W, alpha, E)),
+                        torch.autograd.grad((ref * upstream).sum(), (x, W, alpha, E))):
+            torch.testing.assert_close(a, b, **TOL[dtype])
+
+
 @pytest.mark.parametrize("threads", [1, 2])
 def test_fused_plastic_linear_splits_environments_between_threads(fused, threads):
     """Environments big enough to be split between threads (each thread sums its own dW and dalpha): values and

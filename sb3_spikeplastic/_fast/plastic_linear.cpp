@@ -6,8 +6,9 @@
 // the backward its gradient dW_eff of the same size, then reads both again for dW, dalpha and dE: four extra
 // passes over trace-sized arrays. Here the efficacy (or its gradient) of a block of a few environments is built
 // in a buffer that stays in cache (at most ~256 KB), used by one batched matrix product and overwritten by the next
-// block's; a block, not one environment, because each product call costs microseconds of dispatch, which at
-// the CPU entry's sizes (16 environments, 12 x 170 x 64) was most of the layer's time:
+// block's; a block, not one environment, because each at::bmm_out call costs microseconds of dispatch, which at
+// the CPU entry's sizes (16 environments, 12 x 170 x 64) was most of the layer's time. Where a block holds one
+// environment (the paper network's 600 x 64 layers), its products call BLAS directly instead (gemm below):
 //
 //     forward:   eff = W + alpha * E[b];          Y[b] = X[b] eff^T
 //     backward:  G = dY[b]^T X[b]                 (the gradient of W_eff[b], in W's layout)
@@ -21,6 +22,7 @@
 //
 // Equal to the eager ops to float rounding (sums run in another order).
 
+#include <ATen/Context.h>
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
 #include <ATen/core/grad_mode.h>
@@ -37,8 +39,48 @@
 
 #include <algorithm>
 #include <tuple>
+#include <type_traits>
+
+// BLAS's own matrix product, which torch's MKL build exports (LP64). Declared weak: where the library does not
+// export it (other BLAS builds) these are null and the products go through at::bmm_out instead.
+extern "C" {
+void sgemm_(const char* transa, const char* transb, const int* m, const int* n, const int* k, const float* alpha,
+            const float* a, const int* lda, const float* b, const int* ldb, const float* beta, float* c,
+            const int* ldc) __attribute__((weak));
+void dgemm_(const char* transa, const char* transb, const int* m, const int* n, const int* k, const double* alpha,
+            const double* a, const int* lda, const double* b, const int* ldb, const double* beta, double* c,
+            const int* ldc) __attribute__((weak));
+}
 
 namespace {
+
+// Whether gemm<scalar_t> can call BLAS directly, for blocks of one environment: a function call where
+// at::bmm_out adds dispatch, views and checks to each environment's product (the paper network's training pass:
+// ~5 % of its time). MKL only: called from the pool's threads, it runs single-threaded inside their parallel
+// region, which other BLAS libraries need not do.
+template <typename scalar_t>
+bool has_blas() {
+  static const bool mkl = at::globalContext().hasMKL();
+  if constexpr (std::is_same_v<scalar_t, float>) {
+    return mkl && sgemm_ != nullptr;
+  } else {
+    return mkl && dgemm_ != nullptr;
+  }
+}
+
+// Column-major C (m, n) = op(A) op(B), BLAS's convention; a row-major (r, c) matrix is a column-major (c, r) one.
+template <typename scalar_t>
+void gemm(char transa, char transb, int64_t m, int64_t n, int64_t k, const scalar_t* a, int64_t lda,
+          const scalar_t* b, int64_t ldb, scalar_t* c, int64_t ldc) {
+  const int m_ = static_cast<int>(m), n_ = static_cast<int>(n), k_ = static_cast<int>(k);
+  const int lda_ = static_cast<int>(lda), ldb_ = static_cast<int>(ldb), ldc_ = static_cast<int>(ldc);
+  const scalar_t one = 1, zero = 0;
+  if constexpr (std::is_same_v<scalar_t, float>) {
+    sgemm_(&transa, &transb, &m_, &n_, &k_, &one, a, &lda_, b, &ldb_, &zero, c, &ldc_);
+  } else {
+    dgemm_(&transa, &transb, &m_, &n_, &k_, &one, a, &lda_, b, &ldb_, &zero, c, &ldc_);
+  }
+}
 
 void check_operands(const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E) {
   TORCH_CHECK(X.dim() == 3 && W.dim() == 2 && E.dim() == 3 && W.sizes() == alpha.sizes() && E.size(0) == X.size(0) &&
@@ -103,6 +145,9 @@ at::Tensor plastic_linear_forward(const at::Tensor& X_in, const at::Tensor& W_in
   const int64_t nb = block_size(B, N), blocks = (B + nb - 1) / nb;
   AT_DISPATCH_FLOATING_TYPES(E.scalar_type(), "plastic_linear_forward", [&] {
     const scalar_t *w_p = W.data_ptr<scalar_t>(), *a_p = alpha.data_ptr<scalar_t>(), *e_p = E.data_ptr<scalar_t>();
+    const scalar_t* x_p = X.data_ptr<scalar_t>();
+    scalar_t* y_p = Y.data_ptr<scalar_t>();
+    const bool blas = has_blas<scalar_t>();
     const CallerDenormalMode mode;
     at::parallel_for(0, blocks, 1, [&](int64_t begin, int64_t end) {
       const DenormalModeScope denormals(mode);
@@ -112,8 +157,12 @@ at::Tensor plastic_linear_forward(const at::Tensor& X_in, const at::Tensor& W_in
       for (int64_t block = begin; block < end; ++block) {
         const int64_t b0 = block * nb, n = std::min(nb, B - b0);
         for (int64_t b = 0; b < n; ++b) efficacy_into<scalar_t>(w_p, a_p, e_p + (b0 + b) * N, buf_p + b * N, N);
-        at::Tensor y = Y.narrow(0, b0, n);
-        at::bmm_out(y, X.narrow(0, b0, n), buf.narrow(0, 0, n).transpose(1, 2));
+        if (blas && n == 1) {  // Y[b0] (R, O) = X[b0] (R, I) eff^T
+          gemm<scalar_t>('T', 'N', O, R, I, buf_p, I, x_p + b0 * R * I, I, y_p + b0 * R * O, O);
+        } else {
+          at::Tensor y = Y.narrow(0, b0, n);
+          at::bmm_out(y, X.narrow(0, b0, n), buf.narrow(0, 0, n).transpose(1, 2));
+        }
       }
     });
   });
@@ -142,6 +191,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> plastic_linear_backwa
   AT_DISPATCH_FLOATING_TYPES(E.scalar_type(), "plastic_linear_backward", [&] {
     const scalar_t *w_p = W.data_ptr<scalar_t>(), *a_p = alpha.data_ptr<scalar_t>(), *e_p = E.data_ptr<scalar_t>();
     scalar_t *de_p = dE.data_ptr<scalar_t>(), *acc_p = acc.data_ptr<scalar_t>();
+    const scalar_t *x_p = X.data_ptr<scalar_t>(), *g_p = g.data_ptr<scalar_t>();
+    scalar_t* dx_p = need_x_grad ? dX.data_ptr<scalar_t>() : nullptr;
+    const bool blas = has_blas<scalar_t>();
     const scalar_t* de0_p = dE_init.defined() ? dE_init.data_ptr<scalar_t>() : nullptr;
     const CallerDenormalMode mode;
     at::parallel_for(0, blocks, 1, [&](int64_t begin, int64_t end) {
@@ -153,9 +205,12 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> plastic_linear_backwa
       scalar_t* G_p = G.data_ptr<scalar_t>();
       for (int64_t block = begin; block < end; ++block) {
         const int64_t b0 = block * nb, n = std::min(nb, B - b0);
-        const at::Tensor gy = g.narrow(0, b0, n);
-        at::Tensor G_n = G.narrow(0, 0, n);
-        at::bmm_out(G_n, gy.transpose(1, 2), X.narrow(0, b0, n));
+        if (blas && n == 1) {  // G (O, I) = dY[b0]^T (O, R) X[b0] (R, I)
+          gemm<scalar_t>('N', 'T', I, O, R, x_p + b0 * R * I, I, g_p + b0 * R * O, O, G_p, I);
+        } else {
+          at::Tensor G_n = G.narrow(0, 0, n);
+          at::bmm_out(G_n, g.narrow(0, b0, n).transpose(1, 2), X.narrow(0, b0, n));
+        }
         for (int64_t b = 0; b < n; ++b) {
           const scalar_t* e_b = e_p + (b0 + b) * N;
           scalar_t* de_b = de_p + (b0 + b) * N;
@@ -170,8 +225,12 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> plastic_linear_backwa
         if (need_x_grad) {
           // G is consumed: its buffer now holds the block's efficacy.
           for (int64_t b = 0; b < n; ++b) efficacy_into<scalar_t>(w_p, a_p, e_p + (b0 + b) * N, G_p + b * N, N);
-          at::Tensor dx = dX.narrow(0, b0, n);
-          at::bmm_out(dx, gy, G_n);
+          if (blas && n == 1) {  // dX[b0] (R, I) = dY[b0] (R, O) eff (O, I)
+            gemm<scalar_t>('N', 'N', I, R, O, G_p, I, g_p + b0 * R * O, O, dx_p + b0 * R * I, I);
+          } else {
+            at::Tensor dx = dX.narrow(0, b0, n);
+            at::bmm_out(dx, g.narrow(0, b0, n), G.narrow(0, 0, n));
+          }
         }
       }
     });
