@@ -19,6 +19,11 @@ from torch import Tensor, nn
 
 from . import _fast
 
+#: the place cells' exponent floor: exp(-87) ~ 1.6e-38 is still a normal float32
+EXP_FLOOR = -87.0
+#: the smallest ``p_min`` for which the floor is applied, well above exp(EXP_FLOOR) in any rounding
+EXP_FLOOR_MIN_P = 1e-37
+
 # Constants as signed int32 (products wrap modulo 2**32, which is what the hash needs).
 _C1 = 0x7FEB352D
 _C2 = 0x846CA68B - (1 << 32)
@@ -151,9 +156,17 @@ class PopulationEncoder(nn.Module):
         return self._tuning(torch.maximum(torch.minimum(x, self.high), self.low))
 
     def _tuning(self, x: Tensor) -> Tensor:
-        """The place cells' probabilities for values ``(batch, P)`` of the encoded dimensions."""
-        p = torch.exp(-self.beta * (self.centres - x.unsqueeze(-1)) ** 2)
-        return p.clamp(self.p_min, 1.0).flatten(1)
+        """The place cells' probabilities for values ``(batch, P)`` of the encoded dimensions.
+
+        With ``p_min >= EXP_FLOOR_MIN_P`` the exponent is floored at :data:`EXP_FLOOR`: the cells far from ``x``
+        (~40 % of them at the paper's beta = 15) would otherwise underflow, which the CPU's ``exp`` takes on a slow
+        path (~70x: 245 against 3.5 us for the paper network's 32 x 600 cells), and they end at ``p_min`` either
+        way, so the probabilities are bit-identical.
+        """
+        exponent = -self.beta * (self.centres - x.unsqueeze(-1)) ** 2
+        if self.p_min >= EXP_FLOOR_MIN_P:
+            exponent = exponent.clamp(min=EXP_FLOOR)
+        return torch.exp(exponent).clamp(self.p_min, 1.0).flatten(1)
 
     def rms_rate(self) -> float:
         """Root-mean-square firing probability over cells, for ``x`` uniform within the bounds (for weight init)."""
