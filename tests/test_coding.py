@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from sb3_spikeplastic.coding import (
-    ContinuousDecoder,
     EXP_FLOOR,
+    ContinuousDecoder,
     CounterBernoulli,
     DiscreteDecoder,
     PopulationEncoder,
@@ -46,13 +46,14 @@ def test_encoder_probabilities_match_formula():
 
 @pytest.mark.parametrize("p_min", [0.05, 0.0], ids=["floor", "no-floor"])
 def test_encoder_exponent_floor_leaves_the_probabilities_bit_identical(p_min):
-    """At the paper's beta = 15 over [-3, 3] over a third of the cells' exponents lie below -87 (where exp
-    underflows); the floored exponent gives exactly the unfloored formula's probabilities. Without a floor
+    """With the paper's beta = 15 over [-3, 3], more than a third of the cells' exponents lie below -87 (where
+    exp underflows); the floored exponent gives exactly the unfloored formula's probabilities. Without a floor
     probability the tiny values are the formula's own."""
     enc = PopulationEncoder([-3.0] * 4, [3.0] * 4, pop_size=50, beta=15.0, p_min=p_min)
     x = torch.tensor([[-3.0, 3.0, 0.0, 1.234], [2.9, -0.7, -2.2, 0.01]])
-    direct = torch.exp(-enc.beta * (enc.centres - x.unsqueeze(-1)) ** 2).clamp(p_min, 1.0).flatten(1)
-    assert bool((-enc.beta * (enc.centres - x.unsqueeze(-1)) ** 2 < EXP_FLOOR).float().mean() > 0.3)
+    exponent = -enc.beta * (enc.centres - x.unsqueeze(-1)) ** 2
+    assert bool((exponent < EXP_FLOOR).float().mean() > 0.3)
+    direct = torch.exp(exponent).clamp(p_min, 1.0).flatten(1)
     assert torch.equal(enc.probabilities(x), direct)
     if p_min == 0.0:
         assert bool((enc.probabilities(x) < math.exp(EXP_FLOOR)).any())  # not floored: smaller values remain
