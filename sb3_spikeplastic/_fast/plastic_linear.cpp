@@ -12,11 +12,12 @@
 //
 //     forward:   eff = W + alpha * E[b];          Y[b] = X[b] eff^T
 //     backward:  G = dY[b]^T X[b]                 (the gradient of W_eff[b], in W's layout)
-//                dE[b] = alpha * G (+ dE_init[b]),  dW += G,  dalpha += E[b] * G    (one pass over G and E[b])
+//                dE[b] = alpha * G (+ dE_init[b]),  dW += G,  dalpha += E[b] * G    (one pass over G and E[b],
+//                                                         which also writes the efficacy over G when dX is needed)
 //                dX[b] = dY[b] (W + alpha * E[b])                         (only when X needs a gradient)
 //
 // Environments are independent, so they are split between threads (dW and dalpha are summed per thread, then
-// added). The products stay dense: X's rows are binary spikes, but skipping the silent inputs (gathering the
+// added; a thread's first row fills its sums, so they are not zero-filled first). The products stay dense: X's rows are binary spikes, but skipping the silent inputs (gathering the
 // efficacy's columns of the firing ones) needs the efficacy transposed per environment, which costs more than it
 // saves at these sizes (benchmarks/README.md, "Sparse products").
 //
@@ -40,6 +41,7 @@
 #include <algorithm>
 #include <tuple>
 #include <type_traits>
+#include <vector>
 
 // BLAS's own matrix product, which torch's MKL build exports (LP64). Declared weak: where the library does not
 // export it (other BLAS builds) these are null and the products go through at::bmm_out instead.
@@ -113,10 +115,12 @@ inline void efficacy_into(const scalar_t* __restrict w, const scalar_t* __restri
 }
 
 // One row of the efficacy's gradient g: dE = g * alpha (+ de0, another gradient of E, when given), and the batch
-// sums dW += g, dalpha += g * E.
-template <typename scalar_t>
-inline void efficacy_grad_row(const scalar_t* __restrict g, const scalar_t* __restrict e,
-                              const scalar_t* __restrict a, const scalar_t* __restrict de0, scalar_t* __restrict de,
+// sums dW += g, dalpha += g * E (or, for a thread's first row, dW = g, dalpha = g * E: its sums start unfilled).
+// With w given, g's row is then overwritten with the efficacy's row w + alpha * E, which the input's gradient
+// needs next: E's row is read once for both.
+template <typename scalar_t, bool first>
+inline void efficacy_grad_row(scalar_t* __restrict g, const scalar_t* __restrict e, const scalar_t* __restrict a,
+                              const scalar_t* __restrict w, const scalar_t* __restrict de0, scalar_t* __restrict de,
                               scalar_t* __restrict dw, scalar_t* __restrict da, int64_t n) {
   if (de0 != nullptr) {
 #pragma omp simd
@@ -125,10 +129,22 @@ inline void efficacy_grad_row(const scalar_t* __restrict g, const scalar_t* __re
 #pragma omp simd
     for (int64_t i = 0; i < n; ++i) de[i] = g[i] * a[i];
   }
+  if constexpr (first) {
 #pragma omp simd
-  for (int64_t i = 0; i < n; ++i) {
-    dw[i] += g[i];
-    da[i] += g[i] * e[i];
+    for (int64_t i = 0; i < n; ++i) {
+      dw[i] = g[i];
+      da[i] = g[i] * e[i];
+    }
+  } else {
+#pragma omp simd
+    for (int64_t i = 0; i < n; ++i) {
+      dw[i] += g[i];
+      da[i] += g[i] * e[i];
+    }
+  }
+  if (w != nullptr) {
+#pragma omp simd
+    for (int64_t i = 0; i < n; ++i) g[i] = w[i] + a[i] * e[i];
   }
 }
 
@@ -184,8 +200,10 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> plastic_linear_backwa
                   g.scalar_type() == E.scalar_type(),
               "plastic_linear: the gradient does not match Y (B, L, o)");
   at::Tensor dE = at::empty_like(E, at::MemoryFormat::Contiguous);
-  // Per-thread sums of dW and dalpha, added up at the end.
-  at::Tensor acc = at::zeros({at::get_num_threads(), 2, O, I}, W.options());
+  // Per-thread sums of dW and dalpha, added up at the end; a thread's first row fills its sums (no zero-fill).
+  const int64_t threads = at::get_num_threads();
+  at::Tensor acc = at::empty({threads, 2, O, I}, W.options());
+  std::vector<char> used(threads, 0);
   at::Tensor dX = need_x_grad ? at::empty_like(X, at::MemoryFormat::Contiguous) : at::empty({0}, X.options());
   const int64_t nb = block_size(B, N), blocks = (B + nb - 1) / nb;
   AT_DISPATCH_FLOATING_TYPES(E.scalar_type(), "plastic_linear_backward", [&] {
@@ -199,8 +217,11 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> plastic_linear_backwa
     at::parallel_for(0, blocks, 1, [&](int64_t begin, int64_t end) {
       const DenormalModeScope denormals(mode);
       at::NoGradGuard no_grad;
-      scalar_t* dw_t = acc_p + at::get_thread_num() * 2 * N;
+      const int64_t tid = at::get_thread_num();
+      scalar_t* dw_t = acc_p + tid * 2 * N;
       scalar_t* da_t = dw_t + N;
+      bool first = used[tid] == 0;
+      used[tid] = 1;
       at::Tensor G = at::empty({nb, O, I}, W.options());
       scalar_t* G_p = G.data_ptr<scalar_t>();
       for (int64_t block = begin; block < end; ++block) {
@@ -211,20 +232,27 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> plastic_linear_backwa
           at::Tensor G_n = G.narrow(0, 0, n);
           at::bmm_out(G_n, g.narrow(0, b0, n).transpose(1, 2), X.narrow(0, b0, n));
         }
+        // G is consumed row by row; with need_x_grad its buffer then holds the block's efficacy.
         for (int64_t b = 0; b < n; ++b) {
           const scalar_t* e_b = e_p + (b0 + b) * N;
           scalar_t* de_b = de_p + (b0 + b) * N;
-          const scalar_t* G_b = G_p + b * N;
+          scalar_t* G_b = G_p + b * N;
           const scalar_t* de0_b = de0_p != nullptr ? de0_p + (b0 + b) * N : nullptr;
           for (int64_t o = 0; o < O; ++o) {
             const int64_t off = o * I;
-            efficacy_grad_row<scalar_t>(G_b + off, e_b + off, a_p + off, de0_b != nullptr ? de0_b + off : nullptr,
-                                        de_b + off, dw_t + off, da_t + off, I);
+            const scalar_t* de0_row = de0_b != nullptr ? de0_b + off : nullptr;
+            const scalar_t* w_row = need_x_grad ? w_p + off : nullptr;
+            if (first) {
+              efficacy_grad_row<scalar_t, true>(G_b + off, e_b + off, a_p + off, w_row, de0_row, de_b + off,
+                                                dw_t + off, da_t + off, I);
+            } else {
+              efficacy_grad_row<scalar_t, false>(G_b + off, e_b + off, a_p + off, w_row, de0_row, de_b + off,
+                                                 dw_t + off, da_t + off, I);
+            }
           }
+          first = false;
         }
         if (need_x_grad) {
-          // G is consumed: its buffer now holds the block's efficacy.
-          for (int64_t b = 0; b < n; ++b) efficacy_into<scalar_t>(w_p, a_p, e_p + (b0 + b) * N, G_p + b * N, N);
           if (blas && n == 1) {  // dX[b0] (R, I) = dY[b0] (R, O) eff (O, I)
             gemm<scalar_t>('N', 'N', I, R, O, G_p, I, g_p + b0 * R * O, O, dx_p + b0 * R * I, I);
           } else {
@@ -235,7 +263,16 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> plastic_linear_backwa
       }
     });
   });
-  const at::Tensor sums = acc.sum(0);
+  at::Tensor sums;
+  for (int64_t t = 0; t < threads; ++t) {
+    if (!used[t]) continue;
+    if (!sums.defined()) {
+      sums = acc.select(0, t);
+    } else {
+      sums.add_(acc.select(0, t));
+    }
+  }
+  if (!sums.defined()) sums = at::zeros({2, O, I}, W.options());  // an empty batch
   return std::make_tuple(dX, sums.select(0, 0), sums.select(0, 1), dE);
 }
 
