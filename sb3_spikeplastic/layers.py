@@ -153,7 +153,8 @@ class PlasticSRMLayer(nn.Module):
             self._filters[key] = (op, op[:length].contiguous(), op[length:].contiguous())
         return self._filters[key]
 
-    def forward(self, spikes_in: Tensor, state: LayerState, monitor: bool = False) -> tuple[LayerOutput, LayerState]:
+    def forward(self, spikes_in: Tensor, state: LayerState, monitor: bool = False,
+                defer_update: bool = False) -> tuple[LayerOutput, LayerState]:
         """Run one plasticity interval of presynaptic spikes ``(batch, L, n_in)``.
 
         With ``monitor`` the output also carries the interval's neuromodulatory signal (computed once more, so
@@ -161,12 +162,30 @@ class PlasticSRMLayer(nn.Module):
         interval's rates and acts from the next interval on. On the CPU both run as one compiled op each way, one
         autograd node when training (:class:`_FusedInterval`; other rules than the built-in ones run their
         :meth:`~sb3_spikeplastic.plasticity.PlasticityRule.step` after it).
+
+        With ``defer_update`` (a built-in rule on the CPU, without ``monitor``) the update is returned as the state's
+        :attr:`~sb3_spikeplastic.plasticity.PlasticState.pending` instead, and the next interval applies it in its
+        own pass over ``E`` (:class:`_DeferredInterval`): the same values, one pass over the trace fewer each way.
+        A pending update in ``state`` is always applied first.
         """
         ops = _fast.interval_ops()
         form = None
-        if ops is not None and _FusedInterval.applies(self, spikes_in, state):
+        fused = ops is not None and _FusedInterval.applies(self, spikes_in, state)
+        if fused:
             constants = self._interval_constants(spikes_in.shape[1], spikes_in.dtype, spikes_in.device)
             form = constants.form
+        pending = state.plastic.pending if self.plastic else None
+        if form is not None and (defer_update or pending is not None) and not monitor:
+            *outputs, trace, phi, p, q = _DeferredInterval.run_layer(self, constants, spikes_in, state, ops)
+            plastic = PlasticState(state.plastic.trace if trace is None else trace, (phi,) if form.bcm else ())
+            if defer_update:
+                plastic = plastic._replace(pending=(p, q))
+            else:
+                plastic = self.rule.apply_pending(plastic._replace(pending=(p, q)))
+            return self._output(outputs, state, plastic, monitor)
+        if pending is not None:
+            state = state._replace(plastic=self.rule.apply_pending(state.plastic))
+        if fused:
             *outputs, trace, phi = _FusedInterval.run_layer(self, constants, spikes_in, state, ops)
         else:
             synaptic, psp_state = self.interval(spikes_in, state.psp, state.plastic.trace)
@@ -176,6 +195,10 @@ class PlasticSRMLayer(nn.Module):
             plastic = PlasticState(trace, (phi,) if form.bcm else ())
         else:
             plastic = self.rule.step(outputs[6], outputs[7], state.plastic) if self.plastic else state.plastic
+        return self._output(outputs, state, plastic, monitor)
+
+    def _output(self, outputs: list, state: LayerState, plastic: PlasticState,
+                monitor: bool) -> tuple[LayerOutput, LayerState]:
         spikes, membrane, h1, h2, ref_h1, ref_h2, r_pre, r_post = outputs
         psp_state, refractory = AlphaFilterState(h1, h2), AlphaFilterState(ref_h1, ref_h2)
         modulation = self.rule.modulation(r_post) if monitor and self.plastic else None
@@ -308,6 +331,80 @@ class _FusedInterval(torch.autograd.Function):
         plastic, bcm = alpha is not None, phi is not None  # the op's gradients are empty tensors where these are not
         return (d_x, d_h1, d_h2, None, None, d_w, d_alpha if plastic else None, d_trace if plastic else None,
                 d_phi if bcm else None, d_eta if eta is not None else None, d_eta_phi if bcm else None,
+                d_psi if bcm else None, d_w_m if w_m is not None else None, None, None)
+
+
+class _DeferredInterval(torch.autograd.Function):
+    """:class:`_FusedInterval` with the trace update deferred (``srm_interval_deferred_*`` in
+    ``_fast/srm_interval.cpp``): the op first applies the state's pending update ``clip((1 - eta) E + (eta p) (x)
+    q)`` in the pass over ``E`` that builds the efficacy, and returns its own update as ``(p, q)`` for the next
+    interval, where :class:`_FusedInterval` passes over ``E`` once more for it. Outputs as
+    :meth:`_FusedInterval.run_layer`'s, the trace being the one this interval used (``None`` when it had no pending
+    update: the input trace), then ``p`` and ``q``; the same values bit for bit, gradients equal to float rounding
+    (tested).
+    """
+
+    @staticmethod
+    def run_layer(layer: "PlasticSRMLayer", constants: _IntervalConstants, spikes_in: Tensor,
+                  state: LayerState, ops) -> list:
+        rule, form = layer.rule, constants.form
+        bcm = form.bcm
+        p, q = state.plastic.pending if state.plastic.pending is not None else (None, None)
+        inputs = (spikes_in, state.psp.h1, state.psp.h2, state.refractory.h1, state.refractory.h2, layer.weight,
+                  layer.alpha, state.plastic.trace, p, q, state.plastic.extra[0] if bcm else None, rule.eta,
+                  rule.eta_phi if bcm else None, rule.psi if bcm else None, rule.w_m if form.modulation else None,
+                  constants, ops)
+        if torch.is_grad_enabled():
+            return list(_DeferredInterval.apply(*inputs))
+        return _DeferredInterval.outputs(_DeferredInterval.run(*inputs, need_surrogate=False), p is not None, bcm)
+
+    @staticmethod
+    def run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, p_prev, q_prev, phi, eta, eta_phi, psi, w_m,
+            constants: _IntervalConstants, ops, need_surrogate=True) -> list[Tensor]:
+        oja, modulation = constants.rule_flags
+        return ops.srm_interval_deferred_forward(
+            spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, p_prev, q_prev, phi, eta, eta_phi, psi, w_m,
+            *constants.filters, constants.filter_first, *constants.spike, constants.e_max, oja, modulation,
+            need_surrogate)
+
+    @staticmethod
+    def outputs(outputs: list, pending: bool, bcm: bool) -> list:
+        """The 8 outputs of the interval, the trace it used (``None`` without a pending update), the BCM threshold
+        (``None`` unless BCM), ``p`` and ``q``."""
+        return [*outputs[:8], outputs[8] if pending else None, outputs[9] if bcm else None, outputs[15], outputs[16]]
+
+    @staticmethod
+    def forward(ctx, spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, p_prev, q_prev, phi, eta, eta_phi, psi,
+                w_m, constants, ops):
+        outputs = _DeferredInterval.run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, p_prev, q_prev, phi,
+                                        eta, eta_phi, psi, w_m, constants, ops)
+        product_in, surrogate, p, pre, m = outputs[10:15]
+        ctx.save_for_backward(product_in, weight, alpha, trace, p_prev, q_prev, surrogate, p, pre, m, outputs[6],
+                              outputs[7], phi, eta, eta_phi, psi, w_m)
+        ctx.constants, ctx.ops = constants, ops
+        ctx.mark_non_differentiable(*_constant_outputs(ctx, outputs))
+        ctx.set_materialize_grads(False)
+        return tuple(_DeferredInterval.outputs(outputs, p_prev is not None, phi is not None))
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, d_spikes, _d_membrane, d_h1, d_h2, _d_ref_h1, _d_ref_h2, d_r_pre, d_r_post, d_trace, d_phi,
+                 d_p, d_q):
+        (product_in, weight, alpha, trace, p_prev, q_prev, surrogate, p, pre, m, r_pre, r_post, phi, eta, eta_phi,
+         psi, w_m) = ctx.saved_tensors
+        constants = ctx.constants
+        oja, modulation = constants.rule_flags
+        need_rows = any(ctx.needs_input_grad[:3])
+        grads = ctx.ops.srm_interval_deferred_backward(
+            d_spikes, d_h1, d_h2, d_r_pre, d_r_post, d_trace, d_phi, d_p, d_q, product_in, weight, alpha, trace,
+            p_prev, q_prev, surrogate, p, pre, m if modulation else None, r_pre, r_post, phi, eta, eta_phi, psi, w_m,
+            *constants.filters, constants.filter_first, need_rows, constants.e_max, oja, modulation)
+        d_x, d_h1, d_h2, d_w, d_alpha, d_trace, d_phi, d_eta_phi, d_psi, d_eta, d_w_m, d_p_prev, d_q_prev = grads
+        if not need_rows:
+            d_x = d_h1 = d_h2 = None
+        pending, bcm = p_prev is not None, phi is not None
+        return (d_x, d_h1, d_h2, None, None, d_w, d_alpha, d_trace, d_p_prev if pending else None,
+                d_q_prev if pending else None, d_phi if bcm else None, d_eta, d_eta_phi if bcm else None,
                 d_psi if bcm else None, d_w_m if w_m is not None else None, None, None)
 
 

@@ -254,8 +254,13 @@ class SpikingPlasticNetwork(nn.Module):
         return NetworkState(tuple(layer.initial_state(batch, dtype, device) for layer in self.layers),
                             initial_keys(batch, seed, device))
 
-    def forward(self, obs: Tensor, state: NetworkState, record: bool = False) -> tuple[NetworkOutput, NetworkState]:
-        """One environment step for a batch of observations; returns ``(output, new_state)``."""
+    def forward(self, obs: Tensor, state: NetworkState, record: bool = False,
+                defer_updates: bool = False) -> tuple[NetworkOutput, NetworkState]:
+        """One environment step for a batch of observations; returns ``(output, new_state)``.
+
+        With ``defer_updates`` the built-in rules' last trace updates stay pending in the returned state (the next
+        step applies them in its own pass over the traces; :meth:`settle` applies them), as
+        :meth:`forward_sequence` runs its steps."""
         spikes_in = self.encoder(obs, state.noise_key, self.steps)
         layer_states = list(state.layers)
         n_intervals = self.steps // self.interval
@@ -264,7 +269,7 @@ class SpikingPlasticNetwork(nn.Module):
         for j in range(n_intervals):
             x = spikes_in if n_intervals == 1 else spikes_in[:, j * self.interval:(j + 1) * self.interval]
             for i, layer in enumerate(self.layers):
-                out, layer_states[i] = layer(x, layer_states[i], monitor=record)
+                out, layer_states[i] = layer(x, layer_states[i], monitor=record, defer_update=defer_updates)
                 outputs[i].append(out)
                 if record and layer.plastic:
                     traces[i].append(layer_states[i].plastic.trace)
@@ -292,9 +297,16 @@ class SpikingPlasticNetwork(nn.Module):
                          sync_free: bool = False) -> tuple[list[NetworkOutput], NetworkState]:
         """Run a sequence ``obs`` of shape ``(L, batch, ...)`` from ``state``, resetting where ``episode_start``
         ``(L, batch)`` is 1 (truncated BPTT through the whole sequence, traces included); ``sync_free`` as in
-        :meth:`NetworkState.reset`."""
+        :meth:`NetworkState.reset`. The steps defer the trace updates to the next step (``defer_updates``): one
+        pass over each trace fewer, forward and backward; the returned state has them applied."""
         outputs = []
         for k in range(obs.shape[0]):
-            out, state = self(obs[k], state.reset(episode_start[k], sync_free))
+            out, state = self(obs[k], state.reset(episode_start[k], sync_free), defer_updates=True)
             outputs.append(out)
-        return outputs, state
+        return outputs, self.settle(state)
+
+    def settle(self, state: NetworkState) -> NetworkState:
+        """``state`` with every layer's pending trace update applied (see :meth:`forward`)."""
+        layers = tuple(s._replace(plastic=layer.rule.apply_pending(s.plastic)) if s.plastic.pending is not None else s
+                       for layer, s in zip(self.layers, state.layers))
+        return NetworkState(layers, state.noise_key)

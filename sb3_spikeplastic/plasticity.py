@@ -40,14 +40,20 @@ class HebbianTerms(NamedTuple):
 
 
 class PlasticState(NamedTuple):
-    """Per-environment plastic state of one layer.
+    r"""Per-environment plastic state of one layer.
 
     :param trace: the synaptic trace ``E``, shape ``(batch, n_out, n_in)`` (``(batch, 0)`` for rules without one).
     :param extra: rule-specific state tensors with a leading batch axis (BCM: ``(phi,)``), reset with ``E``.
+    :param pending: a trace update not applied yet, ``(p, q)`` with shapes ``(batch, n_out)`` and ``(batch, n_in)``
+        (:class:`HebbianTerms`' ``post`` and ``pre``, the prediction already subtracted): the trace is then
+        :math:`\mathrm{clip}((1-\eta) E + (\eta p) \otimes q)`. Only the
+        states inside :meth:`~sb3_spikeplastic.network.SpikingPlasticNetwork.forward_sequence` have one (the next
+        interval applies it in its own pass over ``E``); ``None`` everywhere else.
     """
 
     trace: Tensor
     extra: tuple[Tensor, ...] = ()
+    pending: Optional[tuple[Tensor, Tensor]] = None
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -257,6 +263,15 @@ class PlasticityRule(nn.Module):
             return PlasticState(hebbian_trace_step(state.trace, self.eta, terms, self.e_max), terms.extra)
         new = self.update(r_pre, r_post, state)
         return PlasticState(new.trace.clamp(-self.e_max, self.e_max), new.extra)
+
+    def apply_pending(self, state: PlasticState) -> PlasticState:
+        """The state with its pending update (:attr:`PlasticState.pending`) applied by :func:`hebbian_trace_step`:
+        the trace :meth:`step` would have given."""
+        if state.pending is None:
+            return state
+        p, q = state.pending
+        return PlasticState(hebbian_trace_step(state.trace, self.eta, HebbianTerms(p, q, False), self.e_max),
+                            state.extra)
 
     def extra_repr(self) -> str:
         return f"n_in={self.n_in}, n_out={self.n_out}, e_max={self.e_max}"

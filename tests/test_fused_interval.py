@@ -7,6 +7,7 @@ import torch
 
 from sb3_spikeplastic import _fast
 from sb3_spikeplastic.layers import PlasticSRMLayer, _FusedInterval
+from sb3_spikeplastic.network import tensor_leaves
 from sb3_spikeplastic.neurons import SRMParameters, slayer_surrogate
 from sb3_spikeplastic.plasticity import DPOjaRule, get_rule_class
 
@@ -35,8 +36,9 @@ def make_layer(rule: str, n_in: int, n_out: int, dtype=torch.float64) -> Plastic
 
 
 def run_intervals(layer, fused: bool, monkeypatch, dtype=torch.float64, batch=4, length=6, intervals=3,
-                  rates_only=False):
-    """Chain ``intervals`` intervals from the initial state; return every output, the final state and the
+                  rates_only=False, defer=False):
+    """Chain ``intervals`` intervals from the initial state (``defer``: with the trace updates deferred, the last one
+    applied at the end); return every output, the final state and the
     gradients of a loss that reads the spikes, the carried PSP state and the trace, or (``rates_only``) only the
     output rates, as the decoder reads the output layer's: then autograd passes no gradient for the spikes, the
     input rates and the final state."""
@@ -51,12 +53,14 @@ def run_intervals(layer, fused: bool, monkeypatch, dtype=torch.float64, batch=4,
         state = layer.initial_state(batch, dtype)
         outputs, loss = [], 0.0
         for k in range(intervals):
-            out, state = layer(spikes_in[k] * 1.0, state)
+            out, state = layer(spikes_in[k] * 1.0, state, defer_update=defer)
             outputs.append(out)
             if rates_only:
                 loss = loss + (out.rate * weights[k, :, 0]).sum()
             else:
                 loss = loss + (out.spikes * weights[k]).sum()
+        if layer.plastic:
+            state = state._replace(plastic=layer.rule.apply_pending(state.plastic))
         if not rates_only:
             loss = loss + (0.3 * state.psp.h1 + 0.7 * state.psp.h2).sum()
         if layer.plastic and not rates_only:
@@ -84,7 +88,7 @@ def test_fused_interval_equals_eager_layer(rule, n_in, n_out, monkeypatch):
         assert torch.equal(a.rate, b.rate) and torch.equal(a.input_rate, b.input_rate)
     for a, b in zip(fused_state.psp + fused_state.refractory, eager_state.psp + eager_state.refractory):
         assert torch.equal(a, b)
-    for a, b in zip(fused_state.plastic, eager_state.plastic):  # the trace, and the BCM threshold
+    for a, b in zip(fused_state.plastic[:2], eager_state.plastic[:2]):  # the trace, and the BCM threshold
         if isinstance(a, tuple):
             assert len(a) == len(b) and all(torch.equal(x, y) for x, y in zip(a, b))
         else:
@@ -180,3 +184,26 @@ def test_disabled_compilation_uses_the_eager_layer(monkeypatch):
     layer = make_layer("dp-oja", 30, 20)
     out, _ = layer((torch.rand(2, 5, 30) < 0.4).double().requires_grad_(), layer.initial_state(2, torch.float64))
     assert type(out.spikes.grad_fn).__name__ != "_FusedIntervalBackward"
+
+
+@pytest.mark.parametrize("rule", ["dp-linear", "dp-oja", "dp-bcm", "ndp-oja", "ndp-oja+tanh", "ndp-bcm+tanh"])
+@pytest.mark.parametrize("n_in, n_out", [(30, 20), (20, 30)], ids=["product-first", "filter-first"])
+@pytest.mark.parametrize("rates_only", [False, True], ids=["all-outputs", "rates-only"])
+def test_deferred_trace_update_equals_immediate(rule, n_in, n_out, rates_only, monkeypatch):
+    """Intervals that defer their trace update to the next interval's pass over ``E`` (the training sequences')
+    give the same spikes, states and final trace bit for bit as intervals that update at their end, and the same
+    gradients to float rounding, for every built-in rule and both product orders."""
+    layer = make_layer(rule, n_in, n_out)
+    deferred_out, deferred_state, deferred_grads = run_intervals(layer, True, monkeypatch, rates_only=rates_only,
+                                                                 defer=True)
+    out, state, grads = run_intervals(layer, True, monkeypatch, rates_only=rates_only)
+    assert type(deferred_out[1].spikes.grad_fn).__name__ == "_DeferredIntervalBackward"
+    assert deferred_state.plastic.pending is None
+    for a, b in zip(deferred_out, out):
+        assert torch.equal(a.spikes, b.spikes) and torch.equal(a.membrane, b.membrane) and torch.equal(a.rate, b.rate)
+    for a, b in zip(tensor_leaves(deferred_state), tensor_leaves(state)):
+        assert torch.equal(a, b)
+    for a, b in zip(deferred_grads, grads):
+        assert (a is None) == (b is None)
+        if a is not None:
+            torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)

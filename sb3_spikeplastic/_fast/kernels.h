@@ -4,6 +4,7 @@
 #include <ATen/core/Tensor.h>
 
 #include <tuple>
+#include <vector>
 
 namespace sb3_spikeplastic_fast {
 
@@ -25,6 +26,17 @@ at::Tensor plastic_linear_forward(const at::Tensor& X, const at::Tensor& W, cons
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> plastic_linear_backward(
     const at::Tensor& grad, const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E,
     bool need_x_grad, const at::Tensor& dE_init = at::Tensor());
+
+// The same product with the previous interval's trace update deferred into its pass over the trace:
+// E_t = clamp((1 - eta) E_prev + (eta p) (x) q_prev) (when p is given) -> (Y, E_t, r = E_t q), and its backward pass
+// -> (dX, dW, dalpha, dE_prev, dq, dq_prev, dp, dL/deta of the pending update).
+std::tuple<at::Tensor, at::Tensor, at::Tensor> plastic_linear_deferred_forward(
+    const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E_prev, const at::Tensor& p,
+    const at::Tensor& q_prev, const at::Tensor& q, double eta, double e_max);
+std::vector<at::Tensor> plastic_linear_deferred_backward(
+    const at::Tensor& grad, const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E_prev,
+    const at::Tensor& p, const at::Tensor& q_prev, const at::Tensor& q, const at::Tensor& dE_t, const at::Tensor& dr,
+    bool need_x_grad, double eta, double e_max);
 
 // trace_step.cpp: E' = clamp((1 - eta) E + (eta p) (x) pre), p = post - [E pre] -> (E', p), and its gradients
 // (dE, dpost, dpre, deta).

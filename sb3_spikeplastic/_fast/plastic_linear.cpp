@@ -17,9 +17,10 @@
 //                dX[b] = dY[b] (W + alpha * E[b])                         (only when X needs a gradient)
 //
 // Environments are independent, so they are split between threads (dW and dalpha are summed per thread, then
-// added; a thread's first row fills its sums, so they are not zero-filled first). The products stay dense: X's rows are binary spikes, but skipping the silent inputs (gathering the
-// efficacy's columns of the firing ones) needs the efficacy transposed per environment, which costs more than it
-// saves at these sizes (benchmarks/README.md, "Sparse products").
+// added; a thread's first row fills its sums, so they are not zero-filled first). The products stay dense: X's rows
+// are binary spikes, but skipping the silent inputs (gathering the efficacy's columns of the firing ones) needs the
+// efficacy transposed per environment, which costs more than it saves at these sizes (benchmarks/README.md,
+// "Sparse products").
 //
 // Equal to the eager ops to float rounding (sums run in another order).
 
@@ -37,6 +38,7 @@
 
 #include "denormal_mode.h"
 #include "kernels.h"
+#include "lanes.h"
 
 #include <algorithm>
 #include <tuple>
@@ -82,6 +84,104 @@ void gemm(char transa, char transb, int64_t m, int64_t n, int64_t k, const scala
   } else {
     dgemm_(&transa, &transb, &m_, &n_, &k_, &one, a, &lda_, b, &ldb_, &zero, c, &ldc_);
   }
+}
+
+// The three products of a block of n environments from b0 (one gemm for one environment, else at::bmm_out), with
+// buf the block's (n, O, I) efficacy or efficacy gradient:
+//     forward   Y[b] (R, O) = X[b] (R, I) eff^T
+//     gradient  buf (O, I) = dY[b]^T (O, R) X[b] (R, I)
+//     input     dX[b] (R, I) = dY[b] (R, O) eff (O, I)
+template <typename scalar_t>
+void block_forward(bool blas, const at::Tensor& X, at::Tensor& Y, const at::Tensor& buf, int64_t b0, int64_t n) {
+  const int64_t R = X.size(1), I = X.size(2), O = Y.size(2);
+  if (blas && n == 1) {
+    gemm<scalar_t>('T', 'N', O, R, I, buf.data_ptr<scalar_t>(), I, X.data_ptr<scalar_t>() + b0 * R * I, I,
+                   Y.data_ptr<scalar_t>() + b0 * R * O, O);
+  } else {
+    at::Tensor y = Y.narrow(0, b0, n);
+    at::bmm_out(y, X.narrow(0, b0, n), buf.narrow(0, 0, n).transpose(1, 2));
+  }
+}
+
+template <typename scalar_t>
+void block_gradient(bool blas, const at::Tensor& dY, const at::Tensor& X, at::Tensor& buf, int64_t b0, int64_t n) {
+  const int64_t R = X.size(1), I = X.size(2), O = dY.size(2);
+  if (blas && n == 1) {
+    gemm<scalar_t>('N', 'T', I, O, R, X.data_ptr<scalar_t>() + b0 * R * I, I, dY.data_ptr<scalar_t>() + b0 * R * O,
+                   O, buf.data_ptr<scalar_t>(), I);
+  } else {
+    at::Tensor G_n = buf.narrow(0, 0, n);
+    at::bmm_out(G_n, dY.narrow(0, b0, n).transpose(1, 2), X.narrow(0, b0, n));
+  }
+}
+
+template <typename scalar_t>
+void block_input_gradient(bool blas, const at::Tensor& dY, const at::Tensor& buf, at::Tensor& dX, int64_t b0,
+                          int64_t n) {
+  const int64_t R = dX.size(1), I = dX.size(2), O = dY.size(2);
+  if (blas && n == 1) {
+    gemm<scalar_t>('N', 'N', I, R, O, buf.data_ptr<scalar_t>(), I, dY.data_ptr<scalar_t>() + b0 * R * O, O,
+                   dX.data_ptr<scalar_t>() + b0 * R * I, I);
+  } else {
+    at::Tensor dx = dX.narrow(0, b0, n);
+    at::bmm_out(dx, dY.narrow(0, b0, n), buf.narrow(0, 0, n));
+  }
+}
+
+// The backward passes' loop over blocks, split between torch's threads: body(b0, n, G, dw, da, first) for each
+// block, with G a (nb, O, I) buffer of the thread's, dw and da its sums of dW and dalpha in acc (threads, 2, O, I),
+// which a thread's first row fills (first) and later ones add to; used marks the threads that wrote theirs.
+template <typename scalar_t, typename Body>
+void backward_blocks(int64_t B, int64_t nb, const at::Tensor& like, at::Tensor& acc, std::vector<char>& used,
+                     const Body& body) {
+  const int64_t O = acc.size(2), I = acc.size(3), N = O * I, blocks = (B + nb - 1) / nb;
+  scalar_t* acc_p = acc.data_ptr<scalar_t>();
+  const CallerDenormalMode mode;
+  at::parallel_for(0, blocks, 1, [&](int64_t begin, int64_t end) {
+    const DenormalModeScope denormals(mode);
+    at::NoGradGuard no_grad;  // grad mode is per thread: the pool's threads would record the products
+    const int64_t tid = at::get_thread_num();
+    scalar_t* dw = acc_p + tid * 2 * N;
+    bool first = used[tid] == 0;
+    used[tid] = 1;
+    at::Tensor G = at::empty({nb, O, I}, like.options());
+    for (int64_t block = begin; block < end; ++block) {
+      const int64_t b0 = block * nb;
+      body(b0, std::min(nb, B - b0), G, dw, dw + N, first);
+    }
+  });
+}
+
+// The deferred form's scalars and operands as its row kernels take them: eta, keep = 1 - eta and the clip bounds in
+// the trace's type (as trace_step.cpp rounds them), then W, alpha, E, p, q_prev and q (null where undefined).
+template <typename scalar_t>
+struct DeferredOperands {
+  scalar_t eta, keep, lo, hi;
+  const scalar_t *w, *a, *e, *p, *q0, *q;
+};
+
+template <typename scalar_t>
+DeferredOperands<scalar_t> deferred_operands(const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E,
+                                             const at::Tensor& p, const at::Tensor& q0, const at::Tensor& q,
+                                             double eta, double e_max) {
+  auto ptr = [](const at::Tensor& t) { return t.defined() ? t.data_ptr<scalar_t>() : nullptr; };
+  const scalar_t eta_s = static_cast<scalar_t>(eta), hi = static_cast<scalar_t>(e_max);
+  return {eta_s, scalar_t(1) - eta_s, -hi, hi, ptr(W), ptr(alpha), ptr(E), ptr(p), ptr(q0), ptr(q)};
+}
+
+// The per-thread sums (threads, 2, O, I) of dW and dalpha added up over the threads that wrote theirs ->
+// (2, O, I) (zeros when none did: an empty batch).
+at::Tensor thread_sums(const at::Tensor& acc, const std::vector<char>& used) {
+  at::Tensor sums;
+  for (int64_t t = 0; t < acc.size(0); ++t) {
+    if (!used[t]) continue;
+    if (!sums.defined()) {
+      sums = acc.select(0, t);
+    } else {
+      sums.add_(acc.select(0, t));
+    }
+  }
+  return sums.defined() ? sums : at::zeros({2, acc.size(2), acc.size(3)}, acc.options());
 }
 
 void check_operands(const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E) {
@@ -148,6 +248,150 @@ inline void efficacy_grad_row(scalar_t* __restrict g, const scalar_t* __restrict
   }
 }
 
+
+// Rows of the deferred form (plastic_linear_deferred_forward): the trace row the product uses, v = clamp(keep e0 +
+// ep q0, +-e_max) when the update is pending (else e0 itself), written to et (when pending) with the efficacy's row
+// w + a v to eff; returns the Oja term's row sum v . q (0 without q). v, the clamp and the sum are computed as
+// trace_step.cpp's forward_row and dot compute them, so the values are the same bit for bit.
+template <typename T, bool pending>
+inline T deferred_row(const T* __restrict e0, const T* __restrict q0, T ep, T keep, T lo, T hi,
+                      const T* __restrict w, const T* __restrict a, const T* __restrict q, T* __restrict et,
+                      T* __restrict eff, int64_t n) {
+  using sb3_spikeplastic_fast::load;
+  using sb3_spikeplastic_fast::splat;
+  using sb3_spikeplastic_fast::store;
+  using V = typename sb3_spikeplastic_fast::Lanes<T>::V;
+  constexpr int64_t L = sb3_spikeplastic_fast::Lanes<T>::n;
+  const V keep_v = splat(keep), ep_v = splat(ep), lo_v = splat(lo), hi_v = splat(hi);
+  V acc = splat<T>(0);
+  int64_t i = 0;
+  for (; i + L <= n; i += L) {
+    V v = load(e0 + i);
+    if constexpr (pending) {
+      const V x = v * keep_v + ep_v * load(q0 + i);
+      v = x < lo_v ? lo_v : (x > hi_v ? hi_v : x);
+      store(et + i, v);
+    }
+    store(eff + i, load(w + i) + load(a + i) * v);
+    if (q != nullptr) acc += v * load(q + i);
+  }
+  T sum = sb3_spikeplastic_fast::sum_lanes<T>(acc);
+  for (; i < n; ++i) {
+    T v = e0[i];
+    if constexpr (pending) {
+      const T x = v * keep + ep * q0[i];
+      v = x < lo ? lo : (x > hi ? hi : x);
+      et[i] = v;
+    }
+    eff[i] = w[i] + a[i] * v;
+    if (q != nullptr) sum += v * q[i];
+  }
+  return q != nullptr ? sum : T(0);
+}
+
+// Sums of one row of the deferred backward pass: the pending update's dL/dep (gx . q0) and dL/dkeep (gx . e0).
+template <typename T>
+struct PendingSums {
+  T ep = 0, keep = 0;
+};
+
+// One row of the deferred backward pass, with g the row of the efficacy's gradient dY^T X and v as in deferred_row:
+//
+//     total = d1 + a g + dr q         (d1: dL/dE_t from the next interval; dr: dL/d(v . q), the Oja row sum's)
+//     dW += g,  dalpha += g v,  dq += dr v,  g <- w + a v (the efficacy, for dX)
+//     pending:  gx = total where the clamp was inactive, else 0;  d0 = keep gx;  dq0 += ep gx;  sums gx . q0, gx . e0
+//     else:     d0 = total
+//
+// d1 and q may be null (read as zero); dq and dq0 are null with them.
+template <typename T, bool pending, bool first>
+inline PendingSums<T> deferred_grad_row(T* __restrict g, const T* __restrict e0, const T* __restrict q0, T ep, T keep,
+                                        T lo, T hi, const T* __restrict w, const T* __restrict a,
+                                        const T* __restrict d1, const T* __restrict q, T dr, T* __restrict d0,
+                                        T* __restrict dw, T* __restrict da, T* __restrict dq, T* __restrict dq0,
+                                        int64_t n) {
+  using sb3_spikeplastic_fast::load;
+  using sb3_spikeplastic_fast::splat;
+  using sb3_spikeplastic_fast::store;
+  using V = typename sb3_spikeplastic_fast::Lanes<T>::V;
+  using Mask = typename sb3_spikeplastic_fast::Lanes<T>::Mask;
+  constexpr int64_t L = sb3_spikeplastic_fast::Lanes<T>::n;
+  const V keep_v = splat(keep), ep_v = splat(ep), lo_v = splat(lo), hi_v = splat(hi), dr_v = splat(dr);
+  V s_ep = splat<T>(0), s_keep = splat<T>(0);
+  int64_t i = 0;
+  for (; i + L <= n; i += L) {
+    const V e = load(e0 + i), gv = load(g + i), av = load(a + i);
+    V v = e;
+    Mask clipped = {};
+    if constexpr (pending) {
+      const V x = e * keep_v + ep_v * load(q0 + i);
+      clipped = (x < lo_v) | (x > hi_v);
+      v = x < lo_v ? lo_v : (x > hi_v ? hi_v : x);
+    }
+    V total = av * gv;
+    if (d1 != nullptr) total = load(d1 + i) + total;
+    if (q != nullptr) {
+      const V qv = load(q + i);
+      total = total + dr_v * qv;
+      store(dq + i, load(dq + i) + dr_v * v);
+    }
+    if constexpr (first) {
+      store(dw + i, gv);
+      store(da + i, gv * v);
+    } else {
+      store(dw + i, load(dw + i) + gv);
+      store(da + i, load(da + i) + gv * v);
+    }
+    store(g + i, load(w + i) + av * v);
+    if constexpr (pending) {
+      const V gx = (V)((Mask)total & ~clipped);
+      store(d0 + i, keep_v * gx);
+      store(dq0 + i, load(dq0 + i) + ep_v * gx);
+      s_ep += gx * load(q0 + i);
+      s_keep += gx * e;
+    } else {
+      store(d0 + i, total);
+    }
+  }
+  PendingSums<T> sums;
+  if constexpr (pending) {
+    sums.ep = sb3_spikeplastic_fast::sum_lanes<T>(s_ep);
+    sums.keep = sb3_spikeplastic_fast::sum_lanes<T>(s_keep);
+  }
+  for (; i < n; ++i) {
+    const T e = e0[i], gi = g[i];
+    T v = e;
+    bool clip = false;
+    if constexpr (pending) {
+      const T x = e * keep + ep * q0[i];
+      clip = x < lo || x > hi;
+      v = x < lo ? lo : (x > hi ? hi : x);
+    }
+    T total = a[i] * gi;
+    if (d1 != nullptr) total = d1[i] + total;
+    if (q != nullptr) {
+      total = total + dr * q[i];
+      dq[i] += dr * v;
+    }
+    if constexpr (first) {
+      dw[i] = gi;
+      da[i] = gi * v;
+    } else {
+      dw[i] += gi;
+      da[i] += gi * v;
+    }
+    g[i] = w[i] + a[i] * v;
+    if constexpr (pending) {
+      const T gx = clip ? T(0) : total;
+      d0[i] = keep * gx;
+      dq0[i] += ep * gx;
+      sums.ep += gx * q0[i];
+      sums.keep += gx * e;
+    } else {
+      d0[i] = total;
+    }
+  }
+  return sums;
+}
 }  // namespace
 
 namespace sb3_spikeplastic_fast {
@@ -161,8 +405,6 @@ at::Tensor plastic_linear_forward(const at::Tensor& X_in, const at::Tensor& W_in
   const int64_t nb = block_size(B, N), blocks = (B + nb - 1) / nb;
   AT_DISPATCH_FLOATING_TYPES(E.scalar_type(), "plastic_linear_forward", [&] {
     const scalar_t *w_p = W.data_ptr<scalar_t>(), *a_p = alpha.data_ptr<scalar_t>(), *e_p = E.data_ptr<scalar_t>();
-    const scalar_t* x_p = X.data_ptr<scalar_t>();
-    scalar_t* y_p = Y.data_ptr<scalar_t>();
     const bool blas = has_blas<scalar_t>();
     const CallerDenormalMode mode;
     at::parallel_for(0, blocks, 1, [&](int64_t begin, int64_t end) {
@@ -173,12 +415,7 @@ at::Tensor plastic_linear_forward(const at::Tensor& X_in, const at::Tensor& W_in
       for (int64_t block = begin; block < end; ++block) {
         const int64_t b0 = block * nb, n = std::min(nb, B - b0);
         for (int64_t b = 0; b < n; ++b) efficacy_into<scalar_t>(w_p, a_p, e_p + (b0 + b) * N, buf_p + b * N, N);
-        if (blas && n == 1) {  // Y[b0] (R, O) = X[b0] (R, I) eff^T
-          gemm<scalar_t>('T', 'N', O, R, I, buf_p, I, x_p + b0 * R * I, I, y_p + b0 * R * O, O);
-        } else {
-          at::Tensor y = Y.narrow(0, b0, n);
-          at::bmm_out(y, X.narrow(0, b0, n), buf.narrow(0, 0, n).transpose(1, 2));
-        }
+        block_forward<scalar_t>(blas, X, Y, buf, b0, n);
       }
     });
   });
@@ -205,75 +442,190 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> plastic_linear_backwa
   at::Tensor acc = at::empty({threads, 2, O, I}, W.options());
   std::vector<char> used(threads, 0);
   at::Tensor dX = need_x_grad ? at::empty_like(X, at::MemoryFormat::Contiguous) : at::empty({0}, X.options());
-  const int64_t nb = block_size(B, N), blocks = (B + nb - 1) / nb;
+  const int64_t nb = block_size(B, N);
   AT_DISPATCH_FLOATING_TYPES(E.scalar_type(), "plastic_linear_backward", [&] {
     const scalar_t *w_p = W.data_ptr<scalar_t>(), *a_p = alpha.data_ptr<scalar_t>(), *e_p = E.data_ptr<scalar_t>();
-    scalar_t *de_p = dE.data_ptr<scalar_t>(), *acc_p = acc.data_ptr<scalar_t>();
-    const scalar_t *x_p = X.data_ptr<scalar_t>(), *g_p = g.data_ptr<scalar_t>();
-    scalar_t* dx_p = need_x_grad ? dX.data_ptr<scalar_t>() : nullptr;
+    scalar_t* de_p = dE.data_ptr<scalar_t>();
     const bool blas = has_blas<scalar_t>();
     const scalar_t* de0_p = dE_init.defined() ? dE_init.data_ptr<scalar_t>() : nullptr;
+    backward_blocks<scalar_t>(B, nb, W, acc, used, [&](int64_t b0, int64_t n, at::Tensor& G, scalar_t* dw_t,
+                                                        scalar_t* da_t, bool& first) {
+      block_gradient<scalar_t>(blas, g, X, G, b0, n);
+      // G is consumed row by row; with need_x_grad its buffer then holds the block's efficacy.
+      scalar_t* G_p = G.data_ptr<scalar_t>();
+      for (int64_t b = 0; b < n; ++b) {
+        const scalar_t* e_b = e_p + (b0 + b) * N;
+        scalar_t* de_b = de_p + (b0 + b) * N;
+        scalar_t* G_b = G_p + b * N;
+        const scalar_t* de0_b = de0_p != nullptr ? de0_p + (b0 + b) * N : nullptr;
+        for (int64_t o = 0; o < O; ++o) {
+          const int64_t off = o * I;
+          const scalar_t* de0_row = de0_b != nullptr ? de0_b + off : nullptr;
+          const scalar_t* w_row = need_x_grad ? w_p + off : nullptr;
+          if (first) {
+            efficacy_grad_row<scalar_t, true>(G_b + off, e_b + off, a_p + off, w_row, de0_row, de_b + off,
+                                              dw_t + off, da_t + off, I);
+          } else {
+            efficacy_grad_row<scalar_t, false>(G_b + off, e_b + off, a_p + off, w_row, de0_row, de_b + off,
+                                               dw_t + off, da_t + off, I);
+          }
+        }
+        first = false;
+      }
+      if (need_x_grad) block_input_gradient<scalar_t>(blas, g, G, dX, b0, n);
+    });
+  });
+  const at::Tensor sums = thread_sums(acc, used);
+  return std::make_tuple(dX, sums.select(0, 0), sums.select(0, 1), dE);
+}
+
+
+// The deferred trace update (srm_interval.cpp): the trace this interval's product uses is E_t = clamp(keep E_prev +
+// (eta p) (x) q_prev, +-e_max), the previous interval's update, built in the same pass over E_prev as the efficacy
+// (which also takes the Oja term's row sums r = E_t q when q is given), so that each interval reads its trace once:
+//
+//     forward:   E_t = clamp(keep E_prev[b] + (eta p[b]) (x) q_prev[b]),  eff = W + alpha * E_t,  r = E_t q[b]
+//                Y[b] = X[b] eff^T
+//
+// Without p there is no pending update: E_t is E_prev. keep = 1 - eta and eta p are computed as trace_step.cpp
+// computes them. Returns (Y, E_t (empty without p), r (empty without q)).
+std::tuple<at::Tensor, at::Tensor, at::Tensor> plastic_linear_deferred_forward(
+    const at::Tensor& X_in, const at::Tensor& W_in, const at::Tensor& alpha_in, const at::Tensor& E_in,
+    const at::Tensor& p_in, const at::Tensor& q0_in, const at::Tensor& q_in, double eta, double e_max) {
+  check_operands(X_in, W_in, alpha_in, E_in);
+  const bool pending = p_in.defined();
+  TORCH_CHECK(pending == q0_in.defined(), "plastic_linear_deferred: p and q_prev come together");
+  const at::Tensor X = X_in.contiguous(), W = W_in.contiguous(), alpha = alpha_in.contiguous(), E = E_in.contiguous();
+  const at::Tensor p = pending ? p_in.contiguous() : at::Tensor(), q0 = pending ? q0_in.contiguous() : at::Tensor();
+  const at::Tensor q = q_in.defined() ? q_in.contiguous() : at::Tensor();
+  const int64_t B = X.size(0), R = X.size(1), O = W.size(0), I = W.size(1), N = W.numel();
+  at::Tensor Y = at::empty({B, R, O}, X.options());
+  at::Tensor Et = pending ? at::empty_like(E, at::MemoryFormat::Contiguous) : at::empty({0}, E.options());
+  at::Tensor r = q.defined() ? at::empty({B, O}, E.options()) : at::empty({0}, E.options());
+  const int64_t nb = block_size(B, N), blocks = (B + nb - 1) / nb;
+  AT_DISPATCH_FLOATING_TYPES(E.scalar_type(), "plastic_linear_deferred_forward", [&] {
+    // plain copies, not structured bindings: the lambdas below capture them (C++17)
+    const DeferredOperands<scalar_t> v = deferred_operands<scalar_t>(W, alpha, E, p, q0, q, eta, e_max);
+    const scalar_t eta_s = v.eta, keep = v.keep, lo = v.lo, hi = v.hi;
+    const scalar_t *w_p = v.w, *a_p = v.a, *e_p = v.e, *p_p = v.p, *q0_p = v.q0, *q_p = v.q;
+    scalar_t* et_p = pending ? Et.data_ptr<scalar_t>() : nullptr;
+    scalar_t* r_p = q.defined() ? r.data_ptr<scalar_t>() : nullptr;
+    const bool blas = has_blas<scalar_t>();
     const CallerDenormalMode mode;
     at::parallel_for(0, blocks, 1, [&](int64_t begin, int64_t end) {
       const DenormalModeScope denormals(mode);
       at::NoGradGuard no_grad;
-      const int64_t tid = at::get_thread_num();
-      scalar_t* dw_t = acc_p + tid * 2 * N;
-      scalar_t* da_t = dw_t + N;
-      bool first = used[tid] == 0;
-      used[tid] = 1;
-      at::Tensor G = at::empty({nb, O, I}, W.options());
-      scalar_t* G_p = G.data_ptr<scalar_t>();
+      at::Tensor buf = at::empty({nb, O, I}, W.options());
+      scalar_t* buf_p = buf.data_ptr<scalar_t>();
       for (int64_t block = begin; block < end; ++block) {
         const int64_t b0 = block * nb, n = std::min(nb, B - b0);
-        if (blas && n == 1) {  // G (O, I) = dY[b0]^T (O, R) X[b0] (R, I)
-          gemm<scalar_t>('N', 'T', I, O, R, x_p + b0 * R * I, I, g_p + b0 * R * O, O, G_p, I);
-        } else {
-          at::Tensor G_n = G.narrow(0, 0, n);
-          at::bmm_out(G_n, g.narrow(0, b0, n).transpose(1, 2), X.narrow(0, b0, n));
-        }
-        // G is consumed row by row; with need_x_grad its buffer then holds the block's efficacy.
-        for (int64_t b = 0; b < n; ++b) {
-          const scalar_t* e_b = e_p + (b0 + b) * N;
-          scalar_t* de_b = de_p + (b0 + b) * N;
-          scalar_t* G_b = G_p + b * N;
-          const scalar_t* de0_b = de0_p != nullptr ? de0_p + (b0 + b) * N : nullptr;
+        for (int64_t b = b0; b < b0 + n; ++b) {
+          const scalar_t* q_b = q_p != nullptr ? q_p + b * I : nullptr;
           for (int64_t o = 0; o < O; ++o) {
-            const int64_t off = o * I;
-            const scalar_t* de0_row = de0_b != nullptr ? de0_b + off : nullptr;
-            const scalar_t* w_row = need_x_grad ? w_p + off : nullptr;
-            if (first) {
-              efficacy_grad_row<scalar_t, true>(G_b + off, e_b + off, a_p + off, w_row, de0_row, de_b + off,
-                                                dw_t + off, da_t + off, I);
-            } else {
-              efficacy_grad_row<scalar_t, false>(G_b + off, e_b + off, a_p + off, w_row, de0_row, de_b + off,
-                                                 dw_t + off, da_t + off, I);
-            }
-          }
-          first = false;
-        }
-        if (need_x_grad) {
-          if (blas && n == 1) {  // dX[b0] (R, I) = dY[b0] (R, O) eff (O, I)
-            gemm<scalar_t>('N', 'N', I, R, O, G_p, I, g_p + b0 * R * O, O, dx_p + b0 * R * I, I);
-          } else {
-            at::Tensor dx = dX.narrow(0, b0, n);
-            at::bmm_out(dx, g.narrow(0, b0, n), G.narrow(0, 0, n));
+            const int64_t off = b * N + o * I;
+            scalar_t* eff = buf_p + (b - b0) * N + o * I;
+            const scalar_t sum =
+                pending ? deferred_row<scalar_t, true>(e_p + off, q0_p + b * I, eta_s * p_p[b * O + o], keep, lo, hi,
+                                                       w_p + o * I, a_p + o * I, q_b, et_p + off, eff, I)
+                        : deferred_row<scalar_t, false>(e_p + off, nullptr, 0, keep, lo, hi, w_p + o * I,
+                                                        a_p + o * I, q_b, nullptr, eff, I);
+            if (r_p != nullptr) r_p[b * O + o] = sum;
           }
         }
+        block_forward<scalar_t>(blas, X, Y, buf, b0, n);
       }
     });
   });
-  at::Tensor sums;
-  for (int64_t t = 0; t < threads; ++t) {
-    if (!used[t]) continue;
-    if (!sums.defined()) {
-      sums = acc.select(0, t);
-    } else {
-      sums.add_(acc.select(0, t));
-    }
-  }
-  if (!sums.defined()) sums = at::zeros({2, O, I}, W.options());  // an empty batch
-  return std::make_tuple(dX, sums.select(0, 0), sums.select(0, 1), dE);
+  return std::make_tuple(Y, Et, r);
+}
+
+// The backward pass of plastic_linear_deferred_forward, one pass over E_prev per environment (deferred_grad_row):
+// dE1 is dL/dE_t from the next interval (may be undefined), dr dL/dr (undefined without q). Returns (dX (empty unless
+// need_x_grad), dW, dalpha, dE_prev, dq (empty without q), dq_prev, dp, dL/deta of the pending update (the last
+// three empty without p)).
+std::vector<at::Tensor> plastic_linear_deferred_backward(
+    const at::Tensor& grad_in, const at::Tensor& X_in, const at::Tensor& W_in, const at::Tensor& alpha_in,
+    const at::Tensor& E_in, const at::Tensor& p_in, const at::Tensor& q0_in, const at::Tensor& q_in,
+    const at::Tensor& dE1_in, const at::Tensor& dr_in, bool need_x_grad, double eta, double e_max) {
+  check_operands(X_in, W_in, alpha_in, E_in);
+  const bool pending = p_in.defined();
+  const at::Tensor g = grad_in.contiguous(), X = X_in.contiguous(), W = W_in.contiguous(),
+                   alpha = alpha_in.contiguous(), E = E_in.contiguous();
+  const at::Tensor p = pending ? p_in.contiguous() : at::Tensor(), q0 = pending ? q0_in.contiguous() : at::Tensor();
+  const at::Tensor q = q_in.defined() ? q_in.contiguous() : at::Tensor();
+  const at::Tensor dE1 = dE1_in.defined() ? dE1_in.contiguous() : at::Tensor();
+  const at::Tensor dr = q.defined() && dr_in.defined() ? dr_in.contiguous() : at::Tensor();
+  TORCH_CHECK(!dE1.defined() || dE1.sizes() == E.sizes(), "plastic_linear_deferred: dE_t does not match E");
+  const int64_t B = X.size(0), O = W.size(0), I = W.size(1), N = W.numel();
+  const at::Tensor none = at::empty({0}, E.options());
+  at::Tensor dE0 = at::empty_like(E, at::MemoryFormat::Contiguous);
+  const int64_t threads = at::get_num_threads();
+  at::Tensor acc = at::empty({threads, 2, O, I}, W.options());
+  std::vector<char> used(threads, 0);
+  at::Tensor dX = need_x_grad ? at::empty_like(X, at::MemoryFormat::Contiguous) : none;
+  at::Tensor dq = q.defined() ? at::zeros({B, I}, E.options()) : none;
+  at::Tensor dq0 = pending ? at::zeros({B, I}, E.options()) : none;
+  at::Tensor dp = pending ? at::empty({B, O}, E.options()) : none;
+  at::Tensor deta_rows = at::zeros({B}, E.options().dtype(at::kDouble));
+  const int64_t nb = block_size(B, N);
+  AT_DISPATCH_FLOATING_TYPES(E.scalar_type(), "plastic_linear_deferred_backward", [&] {
+    // plain copies, not structured bindings: the lambdas below capture them (C++17)
+    const DeferredOperands<scalar_t> v = deferred_operands<scalar_t>(W, alpha, E, p, q0, q, eta, e_max);
+    const scalar_t eta_s = v.eta, keep = v.keep, lo = v.lo, hi = v.hi;
+    const scalar_t *w_p = v.w, *a_p = v.a, *e_p = v.e, *p_p = v.p, *q0_p = v.q0, *q_p = v.q;
+    const scalar_t* d1_p = dE1.defined() ? dE1.data_ptr<scalar_t>() : nullptr;
+    const scalar_t* dr_p = dr.defined() ? dr.data_ptr<scalar_t>() : nullptr;
+    scalar_t* d0_p = dE0.data_ptr<scalar_t>();
+    scalar_t* dq_p = q.defined() ? dq.data_ptr<scalar_t>() : nullptr;
+    scalar_t* dq0_p = pending ? dq0.data_ptr<scalar_t>() : nullptr;
+    scalar_t* dp_p = pending ? dp.data_ptr<scalar_t>() : nullptr;
+    double* deta_p = deta_rows.data_ptr<double>();
+    const bool blas = has_blas<scalar_t>();
+    backward_blocks<scalar_t>(B, nb, W, acc, used, [&](int64_t b0, int64_t n, at::Tensor& G, scalar_t* dw_t,
+                                                        scalar_t* da_t, bool& first) {
+      block_gradient<scalar_t>(blas, g, X, G, b0, n);
+      scalar_t* G_p = G.data_ptr<scalar_t>();
+      for (int64_t b = b0; b < b0 + n; ++b) {
+        const scalar_t* q_b = q_p != nullptr ? q_p + b * I : nullptr;
+        scalar_t* dq_b = dq_p != nullptr ? dq_p + b * I : nullptr;
+        double deta = 0;
+        for (int64_t o = 0; o < O; ++o) {
+          const int64_t off = b * N + o * I;
+          scalar_t* G_row = G_p + (b - b0) * N + o * I;
+          const scalar_t* d1 = d1_p != nullptr ? d1_p + off : nullptr;
+          const scalar_t dr_o = dr_p != nullptr ? dr_p[b * O + o] : scalar_t(0);
+          scalar_t *dw = dw_t + o * I, *da = da_t + o * I;
+          if (pending) {
+            const scalar_t p_o = p_p[b * O + o], ep_o = eta_s * p_o;
+            const scalar_t* q0_b = q0_p + b * I;
+            const PendingSums<scalar_t> sums =
+                first ? deferred_grad_row<scalar_t, true, true>(G_row, e_p + off, q0_b, ep_o, keep, lo, hi,
+                                                                w_p + o * I, a_p + o * I, d1, q_b, dr_o, d0_p + off,
+                                                                dw, da, dq_b, dq0_p + b * I, I)
+                      : deferred_grad_row<scalar_t, true, false>(G_row, e_p + off, q0_b, ep_o, keep, lo, hi,
+                                                                 w_p + o * I, a_p + o * I, d1, q_b, dr_o, d0_p + off,
+                                                                 dw, da, dq_b, dq0_p + b * I, I);
+            // ep = eta p, keep = 1 - eta: dL/dp = eta (gx . q_prev), dL/deta = p (gx . q_prev) - gx . E_prev
+            dp_p[b * O + o] = eta_s * sums.ep;
+            deta += static_cast<double>(p_o * sums.ep - sums.keep);
+          } else if (first) {
+            deferred_grad_row<scalar_t, false, true>(G_row, e_p + off, nullptr, 0, keep, lo, hi, w_p + o * I,
+                                                     a_p + o * I, d1, q_b, dr_o, d0_p + off, dw, da, dq_b, nullptr, I);
+          } else {
+            deferred_grad_row<scalar_t, false, false>(G_row, e_p + off, nullptr, 0, keep, lo, hi, w_p + o * I,
+                                                      a_p + o * I, d1, q_b, dr_o, d0_p + off, dw, da, dq_b, nullptr,
+                                                      I);
+          }
+        }
+        first = false;
+        deta_p[b] = deta;
+      }
+      if (need_x_grad) block_input_gradient<scalar_t>(blas, g, G, dX, b0, n);  // G holds the efficacy
+    });
+  });
+  const at::Tensor sums = thread_sums(acc, used);
+  const at::Tensor d_eta = pending ? deta_rows.sum().to(E.scalar_type()) : none;
+  return {dX, sums.select(0, 0), sums.select(0, 1), dE0, dq, dq0, dp, d_eta};
 }
 
 }  // namespace sb3_spikeplastic_fast

@@ -36,6 +36,7 @@
 #include "denormal_mode.h"
 #include "kernels.h"
 
+#include <functional>
 #include <optional>
 #include <vector>
 
@@ -109,15 +110,15 @@ at::Tensor synaptic_gradient(const at::Tensor& d_spikes, const at::Tensor& d_r_p
 }
 
 // -> spikes, membrane, psp h1', psp h2', refractory h1', refractory h2', r_pre, r_post, product input, surrogate
+using Projection = std::function<at::Tensor(const at::Tensor&)>;  // the product P of the interval's rows
+
 std::vector<at::Tensor> interval_forward(const at::Tensor& x, const at::Tensor& h1, const at::Tensor& h2,
-                                         const at::Tensor& ref_h1, const at::Tensor& ref_h2, const at::Tensor& W,
-                                         const std::optional<at::Tensor>& alpha, const std::optional<at::Tensor>& E,
+                                         const at::Tensor& ref_h1, const at::Tensor& ref_h2, const Projection& project,
                                          const at::Tensor& op, const at::Tensor& psp_rows, const at::Tensor& end_rows,
                                          bool filter_first, double d, double kappa, double theta, double width,
-                                         double scale, bool need_surrogate) {
+                                         double scale, bool need_surrogate, const at::Tensor& r_pre = at::Tensor()) {
   TORCH_CHECK(x.dim() == 3 && op.dim() == 2 && op.size(0) == x.size(1) + 2,
               "srm_interval: spikes (B, L, n_in) and a (L + 2, L + 2) filter operator");
-  TORCH_CHECK(alpha.has_value() == E.has_value(), "srm_interval: alpha and E come together");
   const at::NoGradGuard no_grad;
   const int64_t L = x.size(1);
   const at::Tensor rows = at::cat({x, h1.unsqueeze(1), h2.unsqueeze(1)}, 1);
@@ -126,43 +127,45 @@ std::vector<at::Tensor> interval_forward(const at::Tensor& x, const at::Tensor& 
     const at::Tensor filtered = at::matmul(op, rows);
     product_in = filtered.narrow(1, 0, L);
     end = filtered.narrow(1, L, 2);
-    synaptic = product(product_in, W, alpha, E);
+    synaptic = project(product_in);
   } else {
     product_in = rows;
-    synaptic = at::matmul(psp_rows, product(rows, W, alpha, E));
+    synaptic = at::matmul(psp_rows, project(rows));
     end = at::matmul(end_rows, rows);
   }
   // the surrogate (neurons.slayer_surrogate) only for training: in rollouts it would be the layer's largest cost
   auto [spikes, membrane, rh1, rh2, surrogate, r_post] = sb3_spikeplastic_fast::srm_loop_interval_cpu(
       synaptic, ref_h1, ref_h2, d, kappa, theta, width, scale, need_surrogate);
-  return {spikes, membrane, end.select(1, 0), end.select(1, 1), rh1, rh2, x.mean(1), r_post, product_in,
-          surrogate};
+  return {spikes, membrane, end.select(1, 0), end.select(1, 1), rh1, rh2, r_pre.defined() ? r_pre : x.mean(1), r_post,
+          product_in, surrogate};
 }
 
 // -> dS, dh1, dh2 (empty unless need_rows), dW, dalpha, dE (empty for a static layer); dE_init: a gradient of E
 // from elsewhere, added to the product's. Undefined output gradients are zero.
+// The product's backward pass: (dL/dP, need_rows) -> (dX or undefined, dW, dalpha or undefined, dE or undefined)
+using ProjectionBackward =
+    std::function<std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor>(const at::Tensor&, bool)>;
+
 std::vector<at::Tensor> interval_backward(const at::Tensor& d_spikes, const at::Tensor& d_h1, const at::Tensor& d_h2,
                                           const at::Tensor& d_r_pre, const at::Tensor& d_r_post,
-                                          const at::Tensor& product_in, const at::Tensor& W,
-                                          const std::optional<at::Tensor>& alpha, const std::optional<at::Tensor>& E,
-                                          const at::Tensor& surrogate, const at::Tensor& op,
+                                          const at::Tensor& product_in, const ProjectionBackward& project_backward,
+                                          const at::Tensor& W, const at::Tensor& surrogate, const at::Tensor& op,
                                           const at::Tensor& psp_rows, const at::Tensor& end_rows, bool filter_first,
-                                          bool need_rows, const at::Tensor& dE_init = at::Tensor()) {
+                                          bool need_rows) {
   const at::NoGradGuard no_grad;
   const int64_t L = surrogate.size(1);
   const at::Tensor d_synaptic = synaptic_gradient(d_spikes, d_r_post, surrogate);
   at::Tensor d_rows;
   at::Tensor d_in, dW, d_alpha, dE;
   if (filter_first) {
-    std::tie(d_in, dW, d_alpha, dE) = product_backward(d_synaptic, product_in, W, alpha, E, need_rows, dE_init);
+    std::tie(d_in, dW, d_alpha, dE) = project_backward(d_synaptic, need_rows);
     if (need_rows) {
       const at::Tensor like = product_in.select(1, 0);  // (B, n_in), the PSP state's shape
       d_rows = at::matmul(op.t(),
                           at::cat({d_in, or_zeros(d_h1, like).unsqueeze(1), or_zeros(d_h2, like).unsqueeze(1)}, 1));
     }
   } else {
-    std::tie(d_in, dW, d_alpha, dE) =
-        product_backward(at::matmul(psp_rows.t(), d_synaptic), product_in, W, alpha, E, need_rows, dE_init);
+    std::tie(d_in, dW, d_alpha, dE) = project_backward(at::matmul(psp_rows.t(), d_synaptic), need_rows);
     if (need_rows) {
       const at::Tensor like = product_in.select(1, 0);
       d_rows = d_in + at::matmul(end_rows.t(), at::stack({or_zeros(d_h1, like), or_zeros(d_h2, like)}, 1));
@@ -182,6 +185,57 @@ std::vector<at::Tensor> interval_backward(const at::Tensor& d_spikes, const at::
 // Modulation forms of the rule terms (plasticity.MODULATION_FORMS, 0 for an unmodulated rule).
 constexpr int64_t kUnmodulated = 0, kTanh = 2;
 
+// The rule's presynaptic term (plasticity.bcm_presynaptic_term and bcm_threshold_update with phi, else r_pre) ->
+// (pre, phi' or undefined).
+std::pair<at::Tensor, at::Tensor> presynaptic_term(const at::Tensor& r_pre, const std::optional<at::Tensor>& phi,
+                                                   const std::optional<at::Tensor>& eta_phi,
+                                                   const std::optional<at::Tensor>& psi) {
+  if (!phi.has_value()) return {r_pre, at::empty({0}, r_pre.options())};
+  return {r_pre * (r_pre - (*phi + *psi)), at::rsub(*eta_phi, 1) * *phi + *eta_phi * r_pre};
+}
+
+// The rule's postsynaptic term (plasticity.modulatory_signal: M * r_post with M = W_m r_post or its tanh, else
+// r_post) -> (post, M or an empty tensor).
+std::pair<at::Tensor, at::Tensor> postsynaptic_term(const at::Tensor& r_post, const std::optional<at::Tensor>& w_m,
+                                                    int64_t modulation) {
+  if (modulation == kUnmodulated) return {r_post, at::empty({0}, r_post.options())};
+  at::Tensor m = at::matmul(r_post, w_m->t());
+  if (modulation == kTanh) m = at::tanh(m);
+  return {m * r_post, m};
+}
+
+// The postsynaptic term's backward pass: adds to d_rpost, sets d_wm (unchanged without modulation).
+void postsynaptic_backward(const at::Tensor& d_post, const at::Tensor& r_post, const std::optional<at::Tensor>& m,
+                           const std::optional<at::Tensor>& w_m, int64_t modulation, at::Tensor& d_rpost,
+                           at::Tensor& d_wm) {
+  if (modulation == kUnmodulated) {
+    d_rpost = plus(d_rpost, d_post);
+    return;
+  }
+  at::Tensor d_m = d_post * r_post;
+  d_rpost = plus(d_rpost, d_post * *m);
+  if (modulation == kTanh) d_m = d_m * (1 - *m * *m);
+  d_wm = at::mm(d_m.t(), r_post);
+  d_rpost = d_rpost + at::mm(d_m, *w_m);
+}
+
+// The presynaptic term's backward pass: adds to d_rpre, sets d_phi, d_psi, d_eta_phi (unchanged without phi).
+void presynaptic_backward(const at::Tensor& d_pre, const at::Tensor& r_pre, const std::optional<at::Tensor>& phi,
+                          const std::optional<at::Tensor>& eta_phi, const std::optional<at::Tensor>& psi,
+                          const at::Tensor& d_new_phi, at::Tensor& d_rpre, at::Tensor& d_phi, at::Tensor& d_psi,
+                          at::Tensor& d_eta_phi) {
+  if (!phi.has_value()) {
+    d_rpre = plus(d_rpre, d_pre);
+    return;
+  }
+  const at::Tensor d_new_phi_or_zero = or_zeros(d_new_phi, *phi);
+  const at::Tensor d_threshold = -(d_pre * r_pre);  // of phi + psi
+  d_rpre = plus(d_rpre, d_pre * (2 * r_pre - (*phi + *psi))) + d_new_phi_or_zero * *eta_phi;
+  d_phi = d_threshold + d_new_phi_or_zero * at::rsub(*eta_phi, 1);
+  d_psi = d_threshold.sum(0);
+  d_eta_phi = (d_new_phi_or_zero * (r_pre - *phi)).sum();
+}
+
 // The interval, then (when eta is given: a built-in rule's layer) the trace update. -> spikes, membrane, psp h1',
 // psp h2', refractory h1', refractory h2', r_pre, r_post, E', phi' (empty unless BCM), then for the backward pass
 // the product's input, the surrogate (empty unless need_surrogate), p (the trace step's post - [E pre]), pre and M
@@ -200,23 +254,16 @@ std::vector<at::Tensor> srm_interval_forward(
   TORCH_CHECK((modulation == kUnmodulated) != w_m.has_value() && modulation >= kUnmodulated && modulation <= kTanh,
               "srm_interval: W_m with a modulation form 1 (linear) or 2 (tanh), or neither");
   const at::NoGradGuard no_grad;
-  std::vector<at::Tensor> out = interval_forward(x, h1, h2, ref_h1, ref_h2, W, alpha, E, op, psp_rows, end_rows,
-                                                 filter_first, d, kappa, theta, width, scale, need_surrogate);
+  TORCH_CHECK(alpha.has_value() == E.has_value(), "srm_interval: alpha and E come together");
+  std::vector<at::Tensor> out = interval_forward(
+      x, h1, h2, ref_h1, ref_h2, [&](const at::Tensor& rows) { return product(rows, W, alpha, E); }, op, psp_rows,
+      end_rows, filter_first, d, kappa, theta, width, scale, need_surrogate);
   const at::Tensor none = at::empty({0}, W.options());
   at::Tensor new_E = none, new_phi = none, p = none, pre = none, m = none;
   if (eta.has_value()) {
-    const at::Tensor r_pre = out[6], r_post = out[7];
-    at::Tensor post = r_post;
-    pre = r_pre;
-    if (modulation != kUnmodulated) {  // plasticity.modulatory_signal
-      m = at::matmul(r_post, w_m->t());
-      if (modulation == kTanh) m = at::tanh(m);
-      post = m * r_post;
-    }
-    if (phi.has_value()) {  // plasticity.bcm_presynaptic_term and bcm_threshold_update
-      pre = r_pre * (r_pre - (*phi + *psi));
-      new_phi = at::rsub(*eta_phi, 1) * *phi + *eta_phi * r_pre;
-    }
+    at::Tensor post;
+    std::tie(pre, new_phi) = presynaptic_term(out[6], phi, eta_phi, psi);
+    std::tie(post, m) = postsynaptic_term(out[7], w_m, modulation);
     std::tie(new_E, p) = sb3_spikeplastic_fast::trace_step_forward(*E, post, pre, eta->item<double>(), e_max, oja);
   }
   out.insert(out.begin() + 8, {new_E, new_phi});
@@ -247,31 +294,115 @@ std::vector<at::Tensor> srm_interval_backward(
     std::tie(dE_trace, d_post, d_pre, d_eta) =
         sb3_spikeplastic_fast::trace_step_backward(or_zeros(given(d_new_E), *E), *E, p, pre, eta->item<double>(),
                                                    e_max, oja);
-    if (modulation != kUnmodulated) {
-      at::Tensor d_m = d_post * r_post;
-      d_rpost = plus(d_rpost, d_post * *m);
-      if (modulation == kTanh) d_m = d_m * (1 - *m * *m);
-      d_wm = at::mm(d_m.t(), r_post);
-      d_rpost = d_rpost + at::mm(d_m, *w_m);
-    } else {
-      d_rpost = plus(d_rpost, d_post);
-    }
-    if (phi.has_value()) {
-      const at::Tensor d_new_phi_or_zero = or_zeros(given(d_new_phi), *phi);
-      const at::Tensor d_threshold = -(d_pre * r_pre);  // of phi + psi
-      d_rpre = plus(d_rpre, d_pre * (2 * r_pre - (*phi + *psi))) + d_new_phi_or_zero * *eta_phi;
-      d_phi = d_threshold + d_new_phi_or_zero * at::rsub(*eta_phi, 1);
-      d_psi = d_threshold.sum(0);
-      d_eta_phi = (d_new_phi_or_zero * (r_pre - *phi)).sum();
-    } else {
-      d_rpre = plus(d_rpre, d_pre);
-    }
+    postsynaptic_backward(d_post, r_post, m, w_m, modulation, d_rpost, d_wm);
+    presynaptic_backward(d_pre, r_pre, phi, eta_phi, psi, given(d_new_phi), d_rpre, d_phi, d_psi, d_eta_phi);
   }
-  std::vector<at::Tensor> grads = interval_backward(given(d_spikes), given(d_h1), given(d_h2), d_rpre, d_rpost,
-                                                    product_in, W, alpha, E,
-                                                    surrogate, op, psp_rows, end_rows, filter_first, need_rows,
-                                                    dE_trace);
+  std::vector<at::Tensor> grads = interval_backward(
+      given(d_spikes), given(d_h1), given(d_h2), d_rpre, d_rpost, product_in,
+      [&](const at::Tensor& grad, bool need_x) {
+        return product_backward(grad, product_in, W, alpha, E, need_x, dE_trace);
+      },
+      W, surrogate, op, psp_rows, end_rows, filter_first, need_rows);
   grads.insert(grads.end(), {d_phi, d_eta_phi, d_psi, d_eta, d_wm});
+  return grads;
+}
+
+
+// The deferred form (a built-in rule's layer inside a training sequence, layers.PlasticSRMLayer with
+// defer_update): the previous interval's trace update, clamp((1 - eta) E + (eta p_prev) (x) q_prev), runs in this
+// interval's pass over E (plastic_linear_deferred_forward), and this interval's update is returned as (p, q = pre)
+// for the next. Each interval then reads its trace once forward and once backward, where the update in its own pass
+// reads it again. Without p_prev (a sequence's first interval) E is the trace itself. The values are those of
+// srm_interval_forward bit for bit. -> as srm_interval_forward, with E_t (the trace this interval used; empty
+// without p_prev) in the place of E', then p and q as outputs of their own (B, n_out), (B, n_in) at the end.
+std::vector<at::Tensor> srm_interval_deferred_forward(
+    const at::Tensor& x, const at::Tensor& h1, const at::Tensor& h2, const at::Tensor& ref_h1, const at::Tensor& ref_h2,
+    const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E, const std::optional<at::Tensor>& p_prev,
+    const std::optional<at::Tensor>& q_prev, const std::optional<at::Tensor>& phi, const at::Tensor& eta,
+    const std::optional<at::Tensor>& eta_phi, const std::optional<at::Tensor>& psi,
+    const std::optional<at::Tensor>& w_m, const at::Tensor& op, const at::Tensor& psp_rows,
+    const at::Tensor& end_rows, bool filter_first, double d, double kappa, double theta, double width, double scale,
+    double e_max, bool oja, int64_t modulation, bool need_surrogate) {
+  TORCH_CHECK(p_prev.has_value() == q_prev.has_value(), "srm_interval_deferred: p_prev and q_prev come together");
+  TORCH_CHECK(phi.has_value() == eta_phi.has_value() && phi.has_value() == psi.has_value(),
+              "srm_interval: phi, eta_phi and psi come together (BCM rules)");
+  TORCH_CHECK((modulation == kUnmodulated) != w_m.has_value() && modulation >= kUnmodulated && modulation <= kTanh,
+              "srm_interval: W_m with a modulation form 1 (linear) or 2 (tanh), or neither");
+  const at::NoGradGuard no_grad;
+  const double eta_value = eta.item<double>();
+  const at::Tensor r_pre = x.mean(1);
+  at::Tensor pre, new_phi, post, m;  // not structured bindings: the lambda below captures pre (C++17)
+  std::tie(pre, new_phi) = presynaptic_term(r_pre, phi, eta_phi, psi);
+  at::Tensor E_t, r;
+  std::vector<at::Tensor> out = interval_forward(
+      x, h1, h2, ref_h1, ref_h2,
+      [&](const at::Tensor& rows) {
+        at::Tensor Y;
+        std::tie(Y, E_t, r) = sb3_spikeplastic_fast::plastic_linear_deferred_forward(
+            rows, W, alpha, E, given(p_prev), given(q_prev), oja ? pre : at::Tensor(), eta_value, e_max);
+        return Y;
+      },
+      op, psp_rows, end_rows, filter_first, d, kappa, theta, width, scale, need_surrogate, r_pre);
+  std::tie(post, m) = postsynaptic_term(out[7], w_m, modulation);
+  const at::Tensor p = oja ? post - r : post;
+  out.insert(out.begin() + 8, {E_t, new_phi});
+  // p and q as outputs of their own: without Oja's term or BCM's they are r_post and r_pre themselves
+  const at::Tensor p_next = p.is_same(out[7]) ? p.clone() : p, q_next = pre.is_same(out[6]) ? pre.clone() : pre;
+  out.insert(out.end(), {p, pre, m, p_next, q_next});
+  return out;
+}
+
+// The backward pass of srm_interval_deferred_forward. d_E_t is dL/dE_t from the next interval, d_p and d_q the
+// gradients of the returned update (p, q). -> as srm_interval_backward (dE is dL/dE, the input trace), then dL/dp_prev
+// and dL/dq_prev of the pending update (empty without one).
+std::vector<at::Tensor> srm_interval_deferred_backward(
+    const std::optional<at::Tensor>& d_spikes, const std::optional<at::Tensor>& d_h1,
+    const std::optional<at::Tensor>& d_h2, const std::optional<at::Tensor>& d_r_pre,
+    const std::optional<at::Tensor>& d_r_post, const std::optional<at::Tensor>& d_E_t,
+    const std::optional<at::Tensor>& d_new_phi, const std::optional<at::Tensor>& d_p_next,
+    const std::optional<at::Tensor>& d_q, const at::Tensor& product_in, const at::Tensor& W, const at::Tensor& alpha,
+    const at::Tensor& E, const std::optional<at::Tensor>& p_prev, const std::optional<at::Tensor>& q_prev,
+    const at::Tensor& surrogate, const at::Tensor& p, const at::Tensor& pre, const std::optional<at::Tensor>& m,
+    const at::Tensor& r_pre, const at::Tensor& r_post, const std::optional<at::Tensor>& phi, const at::Tensor& eta,
+    const std::optional<at::Tensor>& eta_phi, const std::optional<at::Tensor>& psi,
+    const std::optional<at::Tensor>& w_m, const at::Tensor& op, const at::Tensor& psp_rows,
+    const at::Tensor& end_rows, bool filter_first, bool need_rows, double e_max, bool oja, int64_t modulation) {
+  const at::NoGradGuard no_grad;
+  const at::Tensor none = at::empty({0}, W.options());
+  const double eta_value = eta.item<double>();
+  // p = post - r (Oja) or post
+  const at::Tensor d_p = d_p_next.has_value() ? *d_p_next : at::zeros_like(p);
+  at::Tensor d_eta = at::zeros({}, W.options());
+  at::Tensor d_rpost = given(d_r_post), d_rpre = given(d_r_pre), d_wm = none, d_phi = none, d_eta_phi = none,
+             d_psi = none;
+  postsynaptic_backward(d_p, r_post, m, w_m, modulation, d_rpost, d_wm);
+  at::Tensor d_q_rows, d_q_prev, d_p_prev, d_eta_pending;
+  std::vector<at::Tensor> grads = interval_backward(
+      given(d_spikes), given(d_h1), given(d_h2), at::Tensor(), d_rpost, product_in,
+      [&](const at::Tensor& grad, bool need_x) {
+        std::vector<at::Tensor> g = sb3_spikeplastic_fast::plastic_linear_deferred_backward(
+            grad, product_in, W, alpha, E, given(p_prev), given(q_prev), oja ? pre : at::Tensor(), given(d_E_t),
+            oja ? -d_p : at::Tensor(), need_x, eta_value, e_max);
+        d_q_rows = g[4];
+        d_q_prev = g[5];
+        d_p_prev = g[6];
+        d_eta_pending = g[7];
+        return std::make_tuple(g[0], g[1], g[2], g[3]);
+      },
+      W, surrogate, op, psp_rows, end_rows, filter_first, need_rows);
+  // dL/dpre: from the next interval's update and from the Oja term's row sums; then the rates (only now: the row
+  // sums' gradient comes out of the product's pass)
+  at::Tensor d_pre = given(d_q);
+  if (oja) d_pre = plus(d_pre, d_q_rows);
+  if (!d_pre.defined()) d_pre = at::zeros_like(pre);
+  presynaptic_backward(d_pre, r_pre, phi, eta_phi, psi, given(d_new_phi), d_rpre, d_phi, d_psi, d_eta_phi);
+  if (need_rows && d_rpre.defined()) {
+    const int64_t L = surrogate.size(1);
+    grads[0] = grads[0] + (d_rpre / L).unsqueeze(1);
+  }
+  if (p_prev.has_value()) d_eta = d_eta_pending;
+  grads.insert(grads.end(), {d_phi, d_eta_phi, d_psi, d_eta, d_wm, p_prev.has_value() ? d_p_prev : none,
+                             p_prev.has_value() ? d_q_prev : none});
   return grads;
 }
 
@@ -284,6 +415,19 @@ TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
       "Tensor end_rows, bool filter_first, float d, float kappa, float theta, float width, float scale, "
       "float e_max, bool oja, int modulation, bool need_surrogate) -> Tensor[]");
   m.def(
+      "srm_interval_deferred_forward(Tensor x, Tensor h1, Tensor h2, Tensor ref_h1, Tensor ref_h2, Tensor W, "
+      "Tensor alpha, Tensor E, Tensor? p_prev, Tensor? q_prev, Tensor? phi, Tensor eta, Tensor? eta_phi, Tensor? psi, "
+      "Tensor? w_m, Tensor op, Tensor psp_rows, Tensor end_rows, bool filter_first, float d, float kappa, "
+      "float theta, float width, float scale, float e_max, bool oja, int modulation, bool need_surrogate) "
+      "-> Tensor[]");
+  m.def(
+      "srm_interval_deferred_backward(Tensor? d_spikes, Tensor? d_h1, Tensor? d_h2, Tensor? d_r_pre, "
+      "Tensor? d_r_post, Tensor? d_E_t, Tensor? d_new_phi, Tensor? d_p, Tensor? d_q, Tensor product_in, Tensor W, "
+      "Tensor alpha, Tensor E, Tensor? p_prev, Tensor? q_prev, Tensor surrogate, Tensor p, Tensor pre, Tensor? m, "
+      "Tensor r_pre, Tensor r_post, Tensor? phi, Tensor eta, Tensor? eta_phi, Tensor? psi, Tensor? w_m, Tensor op, "
+      "Tensor psp_rows, Tensor end_rows, bool filter_first, bool need_rows, float e_max, bool oja, int modulation) "
+      "-> Tensor[]");
+  m.def(
       "srm_interval_backward(Tensor? d_spikes, Tensor? d_h1, Tensor? d_h2, Tensor? d_r_pre, Tensor? d_r_post, "
       "Tensor? d_new_E, Tensor? d_new_phi, Tensor product_in, Tensor W, Tensor? alpha, Tensor? E, Tensor surrogate, "
       "Tensor p, Tensor pre, Tensor? m, Tensor r_pre, Tensor r_post, Tensor? phi, Tensor? eta, Tensor? eta_phi, "
@@ -294,4 +438,6 @@ TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
 TORCH_LIBRARY_IMPL(sb3_spikeplastic_fast, CPU, m) {
   m.impl("srm_interval_forward", &srm_interval_forward);
   m.impl("srm_interval_backward", &srm_interval_backward);
+  m.impl("srm_interval_deferred_forward", &srm_interval_deferred_forward);
+  m.impl("srm_interval_deferred_backward", &srm_interval_deferred_backward);
 }

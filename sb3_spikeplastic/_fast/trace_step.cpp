@@ -32,6 +32,7 @@
 
 #include "denormal_mode.h"
 #include "kernels.h"
+#include "lanes.h"
 
 #include <algorithm>
 #include <tuple>
@@ -50,64 +51,14 @@ void check_inputs(const at::Tensor& E, const at::Tensor& post, const at::Tensor&
   TORCH_CHECK(E.device().is_cpu() && post.device().is_cpu() && pre.device().is_cpu(), "trace_step: CPU tensors only");
 }
 
-// Row kernels are plain functions (a #pragma cannot stand inside AT_DISPATCH's macro argument).
-//
-// Their row sums run on a vector of partial sums held in a register (GCC's and Clang's vector extensions),
-// added up pairwise at the end of the row. GCC compiles an `omp simd reduction` into partial sums kept in
-// memory, loaded and stored on every iteration, whose store-to-load latency made most of these kernels' time.
-// The order of the additions is fixed, so a row's result does not depend on the thread or the batch.
-template <typename T>
-struct Lanes;
-template <>
-struct Lanes<float> {
-  typedef float V __attribute__((vector_size(32)));
-  typedef int32_t Mask __attribute__((vector_size(32)));
-  static constexpr int64_t n = 8;
-};
-template <>
-struct Lanes<double> {
-  typedef double V __attribute__((vector_size(32)));
-  typedef int64_t Mask __attribute__((vector_size(32)));
-  static constexpr int64_t n = 4;
-};
-
-template <typename T>
-inline typename Lanes<T>::V load(const T* p) {
-  typename Lanes<T>::V v;
-  __builtin_memcpy(&v, p, sizeof v);
-  return v;
-}
-
-template <typename T>
-inline void store(T* p, typename Lanes<T>::V v) {
-  __builtin_memcpy(p, &v, sizeof v);
-}
-
-template <typename T>
-inline typename Lanes<T>::V splat(T x) {
-  typename Lanes<T>::V v;
-  for (int64_t k = 0; k < Lanes<T>::n; ++k) v[k] = x;
-  return v;
-}
-
-template <typename T>
-inline T sum_lanes(typename Lanes<T>::V v) {  // pairwise
-  for (int64_t half = Lanes<T>::n / 2; half >= 1; half /= 2) {
-    for (int64_t k = 0; k < half; ++k) v[k] += v[k + half];
-  }
-  return v[0];
-}
-
-template <typename scalar_t>
-inline scalar_t dot(const scalar_t* __restrict a, const scalar_t* __restrict b, int64_t n) {
-  constexpr int64_t W = Lanes<scalar_t>::n;
-  typename Lanes<scalar_t>::V acc = splat<scalar_t>(0);
-  int64_t i = 0;
-  for (; i + W <= n; i += W) acc += load(a + i) * load(b + i);
-  scalar_t s = sum_lanes<scalar_t>(acc);
-  for (; i < n; ++i) s += a[i] * b[i];
-  return s;
-}
+// Row kernels are plain functions (a #pragma cannot stand inside AT_DISPATCH's macro argument); their row sums
+// use lanes.h's register of partial sums.
+using sb3_spikeplastic_fast::dot;
+using sb3_spikeplastic_fast::Lanes;
+using sb3_spikeplastic_fast::load;
+using sb3_spikeplastic_fast::splat;
+using sb3_spikeplastic_fast::store;
+using sb3_spikeplastic_fast::sum_lanes;
 
 // One trace row (b, o) forward: y = clamp(e * keep + (eta p) q); returns p.
 template <typename scalar_t>
