@@ -28,6 +28,9 @@
 //     modulated:  dM = dpost * r_post (* (1 - M^2) for tanh),  dW_m = dM^T r_post,  dr_post += dpost * M + dM W_m
 //     BCM:        dr_pre += dpre * (2 r_pre - (phi + psi)) + dphi' eta_phi,  dphi = -dpre r_pre + dphi' (1 - eta_phi),
 //                 dpsi = sum_b -dpre r_pre,  deta_phi = sum dphi' (r_pre - phi)
+//
+// srm_interval_deferred_forward/backward (below) are the same interval with the trace update deferred to the next
+// interval's pass over E, as the training sequences run it.
 
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>
