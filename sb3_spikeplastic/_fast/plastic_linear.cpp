@@ -207,48 +207,6 @@ int64_t block_size(int64_t batch, int64_t n) {
   return std::max<int64_t>(1, (batch + blocks - 1) / std::max<int64_t>(1, blocks));
 }
 
-template <typename scalar_t>
-inline void efficacy_into(const scalar_t* __restrict w, const scalar_t* __restrict a, const scalar_t* __restrict e,
-                          scalar_t* __restrict out, int64_t n) {
-#pragma omp simd
-  for (int64_t k = 0; k < n; ++k) out[k] = w[k] + a[k] * e[k];
-}
-
-// One row of the efficacy's gradient g: dE = g * alpha (+ de0, another gradient of E, when given), and the batch
-// sums dW += g, dalpha += g * E (or, for a thread's first row, dW = g, dalpha = g * E: its sums start unfilled).
-// With w given, g's row is then overwritten with the efficacy's row w + alpha * E, which the input's gradient
-// needs next: E's row is read once for both.
-template <typename scalar_t, bool first>
-inline void efficacy_grad_row(scalar_t* __restrict g, const scalar_t* __restrict e, const scalar_t* __restrict a,
-                              const scalar_t* __restrict w, const scalar_t* __restrict de0, scalar_t* __restrict de,
-                              scalar_t* __restrict dw, scalar_t* __restrict da, int64_t n) {
-  if (de0 != nullptr) {
-#pragma omp simd
-    for (int64_t i = 0; i < n; ++i) de[i] = de0[i] + g[i] * a[i];
-  } else {
-#pragma omp simd
-    for (int64_t i = 0; i < n; ++i) de[i] = g[i] * a[i];
-  }
-  if constexpr (first) {
-#pragma omp simd
-    for (int64_t i = 0; i < n; ++i) {
-      dw[i] = g[i];
-      da[i] = g[i] * e[i];
-    }
-  } else {
-#pragma omp simd
-    for (int64_t i = 0; i < n; ++i) {
-      dw[i] += g[i];
-      da[i] += g[i] * e[i];
-    }
-  }
-  if (w != nullptr) {
-#pragma omp simd
-    for (int64_t i = 0; i < n; ++i) g[i] = w[i] + a[i] * e[i];
-  }
-}
-
-
 // Rows of the deferred form (plastic_linear_deferred_forward): the trace row the product uses, v = clamp(keep e0 +
 // ep q0, +-e_max) when the update is pending (else e0 itself), written to et (when pending) with the efficacy's row
 // w + a v to eff; returns the Oja term's row sum v . q (0 without q). v, the clamp and the sum are computed as
@@ -298,11 +256,11 @@ struct PendingSums {
 // One row of the deferred backward pass, with g the row of the efficacy's gradient dY^T X and v as in deferred_row:
 //
 //     total = d1 + a g + dr q         (d1: dL/dE_t from the next interval; dr: dL/d(v . q), the Oja row sum's)
-//     dW += g,  dalpha += g v,  dq += dr v,  g <- w + a v (the efficacy, for dX)
+//     dW += g,  dalpha += g v,  dq += dr v,  g <- w + a v (the efficacy, for dX; only when w is given)
 //     pending:  gx = total where the clamp was inactive, else 0;  d0 = keep gx;  dq0 += ep gx;  sums gx . q0, gx . e0
 //     else:     d0 = total
 //
-// d1 and q may be null (read as zero); dq and dq0 are null with them.
+// d1 and q may be null (read as zero); dq and dq0 are null with them; w is null when dX is not needed.
 template <typename T, bool pending, bool first>
 inline PendingSums<T> deferred_grad_row(T* __restrict g, const T* __restrict e0, const T* __restrict q0, T ep, T keep,
                                         T lo, T hi, const T* __restrict w, const T* __restrict a,
@@ -341,7 +299,7 @@ inline PendingSums<T> deferred_grad_row(T* __restrict g, const T* __restrict e0,
       store(dw + i, load(dw + i) + gv);
       store(da + i, load(da + i) + gv * v);
     }
-    store(g + i, load(w + i) + av * v);
+    if (w != nullptr) store(g + i, load(w + i) + av * v);
     if constexpr (pending) {
       const V gx = (V)((Mask)total & ~clipped);
       store(d0 + i, keep_v * gx);
@@ -379,7 +337,7 @@ inline PendingSums<T> deferred_grad_row(T* __restrict g, const T* __restrict e0,
       dw[i] += gi;
       da[i] += gi * v;
     }
-    g[i] = w[i] + a[i] * v;
+    if (w != nullptr) g[i] = w[i] + a[i] * v;
     if constexpr (pending) {
       const T gx = clip ? T(0) : total;
       d0[i] = keep * gx;
@@ -396,89 +354,20 @@ inline PendingSums<T> deferred_grad_row(T* __restrict g, const T* __restrict e0,
 
 namespace sb3_spikeplastic_fast {
 
-at::Tensor plastic_linear_forward(const at::Tensor& X_in, const at::Tensor& W_in, const at::Tensor& alpha_in,
-                                  const at::Tensor& E_in) {
-  check_operands(X_in, W_in, alpha_in, E_in);
-  const at::Tensor X = X_in.contiguous(), W = W_in.contiguous(), alpha = alpha_in.contiguous(), E = E_in.contiguous();
-  const int64_t B = X.size(0), R = X.size(1), O = W.size(0), I = W.size(1), N = W.numel();
-  at::Tensor Y = at::empty({B, R, O}, X.options());
-  const int64_t nb = block_size(B, N), blocks = (B + nb - 1) / nb;
-  AT_DISPATCH_FLOATING_TYPES(E.scalar_type(), "plastic_linear_forward", [&] {
-    const scalar_t *w_p = W.data_ptr<scalar_t>(), *a_p = alpha.data_ptr<scalar_t>(), *e_p = E.data_ptr<scalar_t>();
-    const bool blas = has_blas<scalar_t>();
-    const CallerDenormalMode mode;
-    at::parallel_for(0, blocks, 1, [&](int64_t begin, int64_t end) {
-      const DenormalModeScope denormals(mode);
-      at::NoGradGuard no_grad;  // grad mode is per thread: the pool's threads would record the products below
-      at::Tensor buf = at::empty({nb, O, I}, W.options());
-      scalar_t* buf_p = buf.data_ptr<scalar_t>();
-      for (int64_t block = begin; block < end; ++block) {
-        const int64_t b0 = block * nb, n = std::min(nb, B - b0);
-        for (int64_t b = 0; b < n; ++b) efficacy_into<scalar_t>(w_p, a_p, e_p + (b0 + b) * N, buf_p + b * N, N);
-        block_forward<scalar_t>(blas, X, Y, buf, b0, n);
-      }
-    });
-  });
-  return Y;
+// The product without a trace update: the deferred form with none pending and no Oja row sums.
+at::Tensor plastic_linear_forward(const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha,
+                                  const at::Tensor& E) {
+  return std::get<0>(plastic_linear_deferred_forward(X, W, alpha, E, at::Tensor(), at::Tensor(), at::Tensor(), 0, 1));
 }
 
-// Returns (dX, dW, dalpha, dE); dX is empty unless need_x_grad.
+// Returns (dX, dW, dalpha, dE); dX is empty unless need_x_grad; dE starts from dE_init when it is given.
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> plastic_linear_backward(
-    const at::Tensor& grad_in, const at::Tensor& X_in, const at::Tensor& W_in, const at::Tensor& alpha_in,
-    const at::Tensor& E_in, bool need_x_grad, const at::Tensor& dE_init_in) {
-  check_operands(X_in, W_in, alpha_in, E_in);
-  const at::Tensor dE_init = dE_init_in.defined() ? dE_init_in.contiguous() : at::Tensor();
-  TORCH_CHECK(!dE_init.defined() || (dE_init.sizes() == E_in.sizes() && dE_init.scalar_type() == E_in.scalar_type()),
-              "plastic_linear: dE_init does not match E");
-  const at::Tensor g = grad_in.contiguous(), X = X_in.contiguous(), W = W_in.contiguous(),
-                   alpha = alpha_in.contiguous(), E = E_in.contiguous();
-  const int64_t B = X.size(0), R = X.size(1), O = W.size(0), I = W.size(1), N = W.numel();
-  TORCH_CHECK(g.dim() == 3 && g.size(0) == B && g.size(1) == R && g.size(2) == O &&
-                  g.scalar_type() == E.scalar_type(),
-              "plastic_linear: the gradient does not match Y (B, L, o)");
-  at::Tensor dE = at::empty_like(E, at::MemoryFormat::Contiguous);
-  // Per-thread sums of dW and dalpha, added up at the end; a thread's first row fills its sums (no zero-fill).
-  const int64_t threads = at::get_num_threads();
-  at::Tensor acc = at::empty({threads, 2, O, I}, W.options());
-  std::vector<char> used(threads, 0);
-  at::Tensor dX = need_x_grad ? at::empty_like(X, at::MemoryFormat::Contiguous) : at::empty({0}, X.options());
-  const int64_t nb = block_size(B, N);
-  AT_DISPATCH_FLOATING_TYPES(E.scalar_type(), "plastic_linear_backward", [&] {
-    const scalar_t *w_p = W.data_ptr<scalar_t>(), *a_p = alpha.data_ptr<scalar_t>(), *e_p = E.data_ptr<scalar_t>();
-    scalar_t* de_p = dE.data_ptr<scalar_t>();
-    const bool blas = has_blas<scalar_t>();
-    const scalar_t* de0_p = dE_init.defined() ? dE_init.data_ptr<scalar_t>() : nullptr;
-    backward_blocks<scalar_t>(B, nb, W, acc, used, [&](int64_t b0, int64_t n, at::Tensor& G, scalar_t* dw_t,
-                                                        scalar_t* da_t, bool& first) {
-      block_gradient<scalar_t>(blas, g, X, G, b0, n);
-      // G is consumed row by row; with need_x_grad its buffer then holds the block's efficacy.
-      scalar_t* G_p = G.data_ptr<scalar_t>();
-      for (int64_t b = 0; b < n; ++b) {
-        const scalar_t* e_b = e_p + (b0 + b) * N;
-        scalar_t* de_b = de_p + (b0 + b) * N;
-        scalar_t* G_b = G_p + b * N;
-        const scalar_t* de0_b = de0_p != nullptr ? de0_p + (b0 + b) * N : nullptr;
-        for (int64_t o = 0; o < O; ++o) {
-          const int64_t off = o * I;
-          const scalar_t* de0_row = de0_b != nullptr ? de0_b + off : nullptr;
-          const scalar_t* w_row = need_x_grad ? w_p + off : nullptr;
-          if (first) {
-            efficacy_grad_row<scalar_t, true>(G_b + off, e_b + off, a_p + off, w_row, de0_row, de_b + off,
-                                              dw_t + off, da_t + off, I);
-          } else {
-            efficacy_grad_row<scalar_t, false>(G_b + off, e_b + off, a_p + off, w_row, de0_row, de_b + off,
-                                               dw_t + off, da_t + off, I);
-          }
-        }
-        first = false;
-      }
-      if (need_x_grad) block_input_gradient<scalar_t>(blas, g, G, dX, b0, n);
-    });
-  });
-  const at::Tensor sums = thread_sums(acc, used);
-  return std::make_tuple(dX, sums.select(0, 0), sums.select(0, 1), dE);
+    const at::Tensor& grad, const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E,
+    bool need_x_grad, const at::Tensor& dE_init) {
+  const std::vector<at::Tensor> g = plastic_linear_deferred_backward(
+      grad, X, W, alpha, E, at::Tensor(), at::Tensor(), at::Tensor(), dE_init, at::Tensor(), need_x_grad, 0, 1);
+  return std::make_tuple(g[0], g[1], g[2], g[3]);
 }
-
 
 // The deferred trace update (srm_interval.cpp): the trace this interval's product uses is E_t = clamp(keep E_prev +
 // (eta p) (x) q_prev, +-e_max), the previous interval's update, built in the same pass over E_prev as the efficacy
@@ -555,8 +444,12 @@ std::vector<at::Tensor> plastic_linear_deferred_backward(
   const at::Tensor q = q_in.defined() ? q_in.contiguous() : at::Tensor();
   const at::Tensor dE1 = dE1_in.defined() ? dE1_in.contiguous() : at::Tensor();
   const at::Tensor dr = q.defined() && dr_in.defined() ? dr_in.contiguous() : at::Tensor();
-  TORCH_CHECK(!dE1.defined() || dE1.sizes() == E.sizes(), "plastic_linear_deferred: dE_t does not match E");
+  TORCH_CHECK(!dE1.defined() || (dE1.sizes() == E.sizes() && dE1.scalar_type() == E.scalar_type()),
+              "plastic_linear: the gradient of E does not match E");
   const int64_t B = X.size(0), O = W.size(0), I = W.size(1), N = W.numel();
+  TORCH_CHECK(g.dim() == 3 && g.size(0) == B && g.size(1) == X.size(1) && g.size(2) == O &&
+                  g.scalar_type() == E.scalar_type(),
+              "plastic_linear: the gradient does not match Y (B, L, o)");
   const at::Tensor none = at::empty({0}, E.options());
   at::Tensor dE0 = at::empty_like(E, at::MemoryFormat::Contiguous);
   const int64_t threads = at::get_num_threads();
@@ -595,24 +488,25 @@ std::vector<at::Tensor> plastic_linear_deferred_backward(
           const scalar_t* d1 = d1_p != nullptr ? d1_p + off : nullptr;
           const scalar_t dr_o = dr_p != nullptr ? dr_p[b * O + o] : scalar_t(0);
           scalar_t *dw = dw_t + o * I, *da = da_t + o * I;
+          const scalar_t* w_row = need_x_grad ? w_p + o * I : nullptr;
           if (pending) {
             const scalar_t p_o = p_p[b * O + o], ep_o = eta_s * p_o;
             const scalar_t* q0_b = q0_p + b * I;
             const PendingSums<scalar_t> sums =
                 first ? deferred_grad_row<scalar_t, true, true>(G_row, e_p + off, q0_b, ep_o, keep, lo, hi,
-                                                                w_p + o * I, a_p + o * I, d1, q_b, dr_o, d0_p + off,
+                                                                w_row, a_p + o * I, d1, q_b, dr_o, d0_p + off,
                                                                 dw, da, dq_b, dq0_p + b * I, I)
                       : deferred_grad_row<scalar_t, true, false>(G_row, e_p + off, q0_b, ep_o, keep, lo, hi,
-                                                                 w_p + o * I, a_p + o * I, d1, q_b, dr_o, d0_p + off,
+                                                                 w_row, a_p + o * I, d1, q_b, dr_o, d0_p + off,
                                                                  dw, da, dq_b, dq0_p + b * I, I);
             // ep = eta p, keep = 1 - eta: dL/dp = eta (gx . q_prev), dL/deta = p (gx . q_prev) - gx . E_prev
             dp_p[b * O + o] = eta_s * sums.ep;
             deta += static_cast<double>(p_o * sums.ep - sums.keep);
           } else if (first) {
-            deferred_grad_row<scalar_t, false, true>(G_row, e_p + off, nullptr, 0, keep, lo, hi, w_p + o * I,
+            deferred_grad_row<scalar_t, false, true>(G_row, e_p + off, nullptr, 0, keep, lo, hi, w_row,
                                                      a_p + o * I, d1, q_b, dr_o, d0_p + off, dw, da, dq_b, nullptr, I);
           } else {
-            deferred_grad_row<scalar_t, false, false>(G_row, e_p + off, nullptr, 0, keep, lo, hi, w_p + o * I,
+            deferred_grad_row<scalar_t, false, false>(G_row, e_p + off, nullptr, 0, keep, lo, hi, w_row,
                                                       a_p + o * I, d1, q_b, dr_o, d0_p + off, dw, da, dq_b, nullptr,
                                                       I);
           }
