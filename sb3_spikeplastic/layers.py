@@ -166,7 +166,8 @@ class PlasticSRMLayer(nn.Module):
         With ``defer_update`` (a built-in rule on the CPU, without ``monitor``) the update is returned as the state's
         :attr:`~sb3_spikeplastic.plasticity.PlasticState.pending` instead, and the next interval applies it in its
         own pass over ``E`` (:class:`_DeferredInterval`): the same values, one pass over the trace fewer each way.
-        A pending update in ``state`` is always applied first.
+        Every other such interval leaves the update before it pending too and passes its input trace on unchanged,
+        so that a sequence stores half of its traces. Pending updates in ``state`` are always applied first.
         """
         ops = _fast.interval_ops()
         form = None
@@ -176,12 +177,14 @@ class PlasticSRMLayer(nn.Module):
             form = constants.form
         pending = state.plastic.pending if self.plastic else None
         if form is not None and (defer_update or pending is not None) and not monitor:
-            *outputs, trace, phi, p, q = _DeferredInterval.run_layer(self, constants, spikes_in, state, ops)
-            plastic = PlasticState(state.plastic.trace if trace is None else trace, (phi,) if form.bcm else ())
-            if defer_update:
-                plastic = plastic._replace(pending=(p, q))
-            else:
-                plastic = self.rule.apply_pending(plastic._replace(pending=(p, q)))
+            # Every other trace is stored: an interval with one update pending leaves it pending with its own and
+            # passes its input trace on; the next one applies both and writes the trace out.
+            write = pending is not None and (len(pending) == 2 or not defer_update)
+            *outputs, trace, phi, p, q = _DeferredInterval.run_layer(self, constants, spikes_in, state, ops, write)
+            kept = () if write or pending is None else pending
+            plastic = PlasticState(trace, (phi,) if form.bcm else (), (*kept, (p, q)))
+            if not defer_update:
+                plastic = self.rule.apply_pending(plastic)
             return self._output(outputs, state, plastic, monitor)
         if pending is not None:
             state = state._replace(plastic=self.rule.apply_pending(state.plastic))
@@ -336,76 +339,83 @@ class _FusedInterval(torch.autograd.Function):
 
 class _DeferredInterval(torch.autograd.Function):
     """:class:`_FusedInterval` with the trace update deferred (``srm_interval_deferred_*`` in
-    ``_fast/srm_interval.cpp``): the op first applies the state's pending update ``clip((1 - eta) E + (eta p) (x)
-    q)`` in the pass over ``E`` that builds the efficacy, and returns its own update as ``(p, q)`` for the next
-    interval, where :class:`_FusedInterval` passes over ``E`` once more for it. Outputs as
-    :meth:`_FusedInterval.run_layer`'s, the trace being the one this interval used (``None`` when it had no pending
-    update: the input trace), then ``p`` and ``q``; the same values bit for bit, gradients equal to float rounding
-    (tested).
+    ``_fast/srm_interval.cpp``): the op first applies the state's pending updates ``clip((1 - eta) E + (eta p) (x)
+    q)``, oldest first, in the pass over ``E`` that builds the efficacy, and returns its own update as ``(p, q)`` for
+    the next interval, where :class:`_FusedInterval` passes over ``E`` once more for it. The trace it used is written
+    out only with ``write``; otherwise the input trace is passed on (one of the updates stays pending), and the
+    interval that writes recomputes the one between in registers, forward and backward: a sequence stores every other
+    trace. Outputs as :meth:`_FusedInterval.run_layer`'s, the trace being the one written or the input passed on,
+    then ``p`` and ``q``; the same values bit for bit, gradients equal to float rounding (tested).
     """
 
     @staticmethod
     def run_layer(layer: "PlasticSRMLayer", constants: _IntervalConstants, spikes_in: Tensor,
-                  state: LayerState, ops) -> list:
+                  state: LayerState, ops, write: bool) -> list:
         rule, form = layer.rule, constants.form
         bcm = form.bcm
-        p, q = state.plastic.pending if state.plastic.pending is not None else (None, None)
+        pending = [x for pair in state.plastic.pending or () for x in pair]
+        p0, q0, p1, q1 = pending + [None] * (4 - len(pending))
         inputs = (spikes_in, state.psp.h1, state.psp.h2, state.refractory.h1, state.refractory.h2, layer.weight,
-                  layer.alpha, state.plastic.trace, p, q, state.plastic.extra[0] if bcm else None, rule.eta,
+                  layer.alpha, state.plastic.trace, p0, q0, p1, q1, state.plastic.extra[0] if bcm else None, rule.eta,
                   rule.eta_phi if bcm else None, rule.psi if bcm else None, rule.w_m if form.modulation else None,
-                  constants, ops)
+                  constants, ops, write)
         if torch.is_grad_enabled():
             return list(_DeferredInterval.apply(*inputs))
-        return _DeferredInterval.outputs(_DeferredInterval.run(*inputs, need_surrogate=False), p is not None, bcm)
+        return _DeferredInterval.outputs(_DeferredInterval.run(*inputs, need_surrogate=False), state.plastic.trace,
+                                         bcm)
 
     @staticmethod
-    def run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, p_prev, q_prev, phi, eta, eta_phi, psi, w_m,
-            constants: _IntervalConstants, ops, need_surrogate=True) -> list[Tensor]:
+    def run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, p0, q0, p1, q1, phi, eta, eta_phi, psi, w_m,
+            constants: _IntervalConstants, ops, write: bool, need_surrogate=True) -> list[Tensor]:
         oja, modulation = constants.rule_flags
         return ops.srm_interval_deferred_forward(
-            spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, p_prev, q_prev, phi, eta, eta_phi, psi, w_m,
+            spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, p0, q0, p1, q1, phi, eta, eta_phi, psi, w_m,
             *constants.filters, constants.filter_first, *constants.spike, constants.e_max, oja, modulation,
-            need_surrogate)
+            need_surrogate, write)
 
     @staticmethod
-    def outputs(outputs: list, pending: bool, bcm: bool) -> list:
-        """The 8 outputs of the interval, the trace it used (``None`` without a pending update), the BCM threshold
-        (``None`` unless BCM), ``p`` and ``q``."""
-        return [*outputs[:8], outputs[8] if pending else None, outputs[9] if bcm else None, outputs[15], outputs[16]]
+    def outputs(outputs: list, trace: Tensor, bcm: bool) -> list:
+        """The 8 outputs of the interval, the trace passed on (the one written, else the input ``trace``), the BCM
+        threshold (``None`` unless BCM), ``p`` and ``q``."""
+        written = outputs[8].numel() > 0
+        return [*outputs[:8], outputs[8] if written else trace, outputs[9] if bcm else None, outputs[15], outputs[16]]
 
     @staticmethod
-    def forward(ctx, spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, p_prev, q_prev, phi, eta, eta_phi, psi,
-                w_m, constants, ops):
-        outputs = _DeferredInterval.run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, p_prev, q_prev, phi,
-                                        eta, eta_phi, psi, w_m, constants, ops)
+    def forward(ctx, spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, p0, q0, p1, q1, phi, eta, eta_phi, psi,
+                w_m, constants, ops, write):
+        outputs = _DeferredInterval.run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, p0, q0, p1, q1, phi,
+                                        eta, eta_phi, psi, w_m, constants, ops, write)
         product_in, surrogate, p, pre, m = outputs[10:15]
-        ctx.save_for_backward(product_in, weight, alpha, trace, p_prev, q_prev, surrogate, p, pre, m, outputs[6],
+        ctx.save_for_backward(product_in, weight, alpha, trace, p0, q0, p1, q1, surrogate, p, pre, m, outputs[6],
                               outputs[7], phi, eta, eta_phi, psi, w_m)
-        ctx.constants, ctx.ops = constants, ops
+        ctx.constants, ctx.ops, ctx.write = constants, ops, write
         ctx.mark_non_differentiable(*_constant_outputs(ctx, outputs))
         ctx.set_materialize_grads(False)
-        return tuple(_DeferredInterval.outputs(outputs, p_prev is not None, phi is not None))
+        # A trace passed on unwritten is the input itself: autograd returns it as a view with this node's history,
+        # so that its gradient comes back here and is added in the row pass, not in a pass of its own.
+        return tuple(_DeferredInterval.outputs(outputs, trace, phi is not None))
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, d_spikes, _d_membrane, d_h1, d_h2, _d_ref_h1, _d_ref_h2, d_r_pre, d_r_post, d_trace, d_phi,
                  d_p, d_q):
-        (product_in, weight, alpha, trace, p_prev, q_prev, surrogate, p, pre, m, r_pre, r_post, phi, eta, eta_phi,
+        (product_in, weight, alpha, trace, p0, q0, p1, q1, surrogate, p, pre, m, r_pre, r_post, phi, eta, eta_phi,
          psi, w_m) = ctx.saved_tensors
         constants = ctx.constants
         oja, modulation = constants.rule_flags
         need_rows = any(ctx.needs_input_grad[:3])
         grads = ctx.ops.srm_interval_deferred_backward(
             d_spikes, d_h1, d_h2, d_r_pre, d_r_post, d_trace, d_phi, d_p, d_q, product_in, weight, alpha, trace,
-            p_prev, q_prev, surrogate, p, pre, m if modulation else None, r_pre, r_post, phi, eta, eta_phi, psi, w_m,
-            *constants.filters, constants.filter_first, need_rows, constants.e_max, oja, modulation)
-        d_x, d_h1, d_h2, d_w, d_alpha, d_trace, d_phi, d_eta_phi, d_psi, d_eta, d_w_m, d_p_prev, d_q_prev = grads
+            p0, q0, p1, q1, surrogate, p, pre, m if modulation else None, r_pre, r_post, phi, eta, eta_phi, psi,
+            w_m, *constants.filters, constants.filter_first, need_rows, constants.e_max, oja, modulation, ctx.write)
+        d_x, d_h1, d_h2, d_w, d_alpha, d_trace, d_phi, d_eta_phi, d_psi, d_eta, d_w_m, d_p0, d_q0, d_p1, d_q1 = grads
         if not need_rows:
             d_x = d_h1 = d_h2 = None
-        pending, bcm = p_prev is not None, phi is not None
-        return (d_x, d_h1, d_h2, None, None, d_w, d_alpha, d_trace, d_p_prev if pending else None,
-                d_q_prev if pending else None, d_phi if bcm else None, d_eta, d_eta_phi if bcm else None,
-                d_psi if bcm else None, d_w_m if w_m is not None else None, None, None)
+        first, second, bcm = p0 is not None, p1 is not None, phi is not None
+        return (d_x, d_h1, d_h2, None, None, d_w, d_alpha, d_trace, d_p0 if first else None, d_q0 if first else None,
+                d_p1 if second else None, d_q1 if second else None, d_phi if bcm else None, d_eta,
+                d_eta_phi if bcm else None, d_psi if bcm else None, d_w_m if w_m is not None else None, None, None,
+                None)
 
 
 def _constant_outputs(ctx, outputs: list[Tensor]) -> list[Tensor]:

@@ -12,10 +12,11 @@ from typing import Callable, NamedTuple, Optional, Sequence, Union
 import torch
 from torch import Tensor, nn
 
+from . import _fast
 from .coding import advance_keys, initial_keys
 from .layers import LayerOutput, LayerState, PlasticSRMLayer, fan_in_std
 from .neurons import SRMParameters
-from .plasticity import get_rule_class
+from .plasticity import compiled_form, get_rule_class
 
 
 class NetworkState(NamedTuple):
@@ -238,15 +239,18 @@ class SpikingPlasticNetwork(nn.Module):
 
     def backward_bytes_per_step(self, dtype: torch.dtype = torch.float32) -> int:
         """Memory that backpropagation keeps per environment step of one sequence, estimated from the sizes: per
-        layer and interval, the trace ``E`` (plastic layers), the ``L + 2`` rows its product reads (the spikes and
-        the carried PSP state, filtered or not), its surrogate gradient ``(L, n_out)`` and both rates. The rule
-        terms' vectors are left out (a few percent)."""
-        per_interval = 0
+        layer and interval, the trace ``E`` (plastic layers; every other one where the compiled ops defer the
+        built-in rules' updates, see :meth:`forward_sequence`), the ``L + 2`` rows its product reads (the spikes and
+        the carried PSP state, filtered or not), its surrogate gradient ``(L, n_out)``, both rates and the rule's
+        terms (``n_in + 2 n_out`` values)."""
+        deferred = _fast.interval_ops() is not None
+        per_interval = 0.0
         for layer in self.layers:
             per_interval += (self.interval + 3) * layer.n_in + (self.interval + 1) * layer.n_out
             if layer.plastic:
-                per_interval += layer.n_out * layer.n_in
-        return per_interval * (self.steps // self.interval) * torch.empty(0, dtype=dtype).element_size()
+                half = deferred and compiled_form(layer.rule) is not None
+                per_interval += layer.n_out * layer.n_in / (2 if half else 1) + layer.n_in + 2 * layer.n_out
+        return int(per_interval * (self.steps // self.interval) * torch.empty(0, dtype=dtype).element_size())
 
     def initial_state(self, batch: int, seed: int = 0, device=None, dtype: torch.dtype = torch.float32) -> NetworkState:
         """Initial state of ``batch`` environments; ``seed`` picks the input-noise streams."""

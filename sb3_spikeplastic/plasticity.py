@@ -44,16 +44,17 @@ class PlasticState(NamedTuple):
 
     :param trace: the synaptic trace ``E``, shape ``(batch, n_out, n_in)`` (``(batch, 0)`` for rules without one).
     :param extra: rule-specific state tensors with a leading batch axis (BCM: ``(phi,)``), reset with ``E``.
-    :param pending: a trace update not applied yet, ``(p, q)`` with shapes ``(batch, n_out)`` and ``(batch, n_in)``
-        (:class:`HebbianTerms`' ``post`` and ``pre``, the prediction already subtracted): the trace is then
-        :math:`\mathrm{clip}((1-\eta) E + (\eta p) \otimes q)`. Only the
-        states inside :meth:`~sb3_spikeplastic.network.SpikingPlasticNetwork.forward_sequence` have one (the next
-        interval applies it in its own pass over ``E``); ``None`` everywhere else.
+    :param pending: trace updates not applied yet, oldest first, each ``(p, q)`` with shapes ``(batch, n_out)`` and
+        ``(batch, n_in)`` (:class:`HebbianTerms`' ``post`` and ``pre``, the prediction already subtracted): each
+        makes the trace :math:`\mathrm{clip}((1-\eta) E + (\eta p) \otimes q)`. Only the states inside
+        :meth:`~sb3_spikeplastic.network.SpikingPlasticNetwork.forward_sequence` have them (the next interval
+        applies them in its own pass over ``E``; one or two, so that only every other trace is stored); ``None``
+        everywhere else.
     """
 
     trace: Tensor
     extra: tuple[Tensor, ...] = ()
-    pending: Optional[tuple[Tensor, Tensor]] = None
+    pending: Optional[tuple[tuple[Tensor, Tensor], ...]] = None
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -265,13 +266,14 @@ class PlasticityRule(nn.Module):
         return PlasticState(new.trace.clamp(-self.e_max, self.e_max), new.extra)
 
     def apply_pending(self, state: PlasticState) -> PlasticState:
-        """The state with its pending update (:attr:`PlasticState.pending`) applied by :func:`hebbian_trace_step`:
-        the trace :meth:`step` would have given."""
+        """The state with its pending updates (:attr:`PlasticState.pending`) applied by :func:`hebbian_trace_step`,
+        oldest first: the trace :meth:`step` would have given."""
         if state.pending is None:
             return state
-        p, q = state.pending
-        return PlasticState(hebbian_trace_step(state.trace, self.eta, HebbianTerms(p, q, False), self.e_max),
-                            state.extra)
+        trace = state.trace
+        for p, q in state.pending:
+            trace = hebbian_trace_step(trace, self.eta, HebbianTerms(p, q, False), self.e_max)
+        return PlasticState(trace, state.extra)
 
     def extra_repr(self) -> str:
         return f"n_in={self.n_in}, n_out={self.n_out}, e_max={self.e_max}"

@@ -42,7 +42,7 @@ GRAD_CLIP_MODES = ("global", "per-parameter")
 
 #: ``chunks_per_pass="auto"`` on the CPU: the most chunks per pass whose backpropagation graph (estimated by
 #: ``SpikingPlasticNetwork.backward_bytes_per_step``) stays within this many bytes.
-AUTO_PASS_GRAPH_BYTES = 768 * 2**20
+AUTO_PASS_GRAPH_BYTES = 2**30
 
 
 class PPO(SB3PPO):
@@ -74,9 +74,9 @@ class PPO(SB3PPO):
         backpropagation graph (which holds every step's traces) bounded by ``chunks_per_pass`` instead of the
         minibatch. Must divide ``batch_size // bptt_steps``. ``None``: the whole minibatch in one pass.
         ``"auto"``: on the CPU, the most chunks per pass (a divisor) whose graph stays within
-        :data:`AUTO_PASS_GRAPH_BYTES` (768 MiB; the paper's HalfCheetah network with a plastic rule runs its
-        64-chunk minibatches in two passes, peaking at ~1.1 GB instead of ~1.8 GB for 3-16 % less speed; the smaller
-        networks in one); on a GPU, one pass. ``train/chunks_per_pass`` logs the choice.
+        :data:`AUTO_PASS_GRAPH_BYTES` (1 GiB: the paper's HalfCheetah network with a plastic rule runs its 64-chunk
+        minibatches in one pass, peaking at ~1.5 GB; two passes would peak ~0.5 GB lower for ~5-8 % less speed);
+        on a GPU, one pass. ``train/chunks_per_pass`` logs the choice.
     :param flush_denormal: for recurrent policies, set torch's flush-denormal mode
         (``torch.set_flush_denormal(True)``, process-wide) when the model is set up. The PSP filters of silent
         neurons, the traces and their gradients decay through the subnormal floats (below ~1e-38 in float32),

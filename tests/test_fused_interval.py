@@ -189,14 +189,16 @@ def test_disabled_compilation_uses_the_eager_layer(monkeypatch):
 @pytest.mark.parametrize("rule", ["dp-linear", "dp-oja", "dp-bcm", "ndp-oja", "ndp-oja+tanh", "ndp-bcm+tanh"])
 @pytest.mark.parametrize("n_in, n_out", [(30, 20), (20, 30)], ids=["product-first", "filter-first"])
 @pytest.mark.parametrize("rates_only", [False, True], ids=["all-outputs", "rates-only"])
-def test_deferred_trace_update_equals_immediate(rule, n_in, n_out, rates_only, monkeypatch):
+@pytest.mark.parametrize("intervals", [3, 4])
+def test_deferred_trace_update_equals_immediate(rule, n_in, n_out, rates_only, intervals, monkeypatch):
     """Intervals that defer their trace update to the next interval's pass over ``E`` (the training sequences')
     give the same spikes, states and final trace bit for bit as intervals that update at their end, and the same
-    gradients to float rounding, for every built-in rule and both product orders."""
+    gradients to float rounding, for every built-in rule and both product orders. Four intervals end with two
+    updates pending (the second passed its input trace on unwritten), three with one."""
     layer = make_layer(rule, n_in, n_out)
     deferred_out, deferred_state, deferred_grads = run_intervals(layer, True, monkeypatch, rates_only=rates_only,
-                                                                 defer=True)
-    out, state, grads = run_intervals(layer, True, monkeypatch, rates_only=rates_only)
+                                                                 defer=True, intervals=intervals)
+    out, state, grads = run_intervals(layer, True, monkeypatch, rates_only=rates_only, intervals=intervals)
     assert type(deferred_out[1].spikes.grad_fn).__name__ == "_DeferredIntervalBackward"
     assert deferred_state.plastic.pending is None
     for a, b in zip(deferred_out, out):
@@ -207,3 +209,20 @@ def test_deferred_trace_update_equals_immediate(rule, n_in, n_out, rates_only, m
         assert (a is None) == (b is None)
         if a is not None:
             torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+
+
+def test_deferred_sequence_stores_every_other_trace():
+    """In a training sequence every other interval passes its input trace on unwritten (its update and the one before
+    stay pending), so that the graph keeps half of the traces; the next interval writes the trace with both
+    applied."""
+    layer = make_layer("ndp-oja", 30, 20)
+    spikes_in = (torch.rand(5, 4, 6, 30, generator=torch.Generator().manual_seed(3)) < 0.4).double()
+    state = layer.initial_state(4, torch.float64)
+    storages, pending = [], []
+    for k in range(5):
+        _, state = layer(spikes_in[k], state, defer_update=True)
+        storages.append(state.plastic.trace.untyped_storage().data_ptr())
+        pending.append(len(state.plastic.pending))
+    assert pending == [1, 2, 1, 2, 1]
+    assert storages[1] == storages[0] and storages[3] == storages[2]
+    assert len(set(storages)) == 3

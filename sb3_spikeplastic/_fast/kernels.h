@@ -27,16 +27,18 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> plastic_linear_backwa
     const at::Tensor& grad, const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E,
     bool need_x_grad, const at::Tensor& dE_init = at::Tensor());
 
-// The same product with the previous interval's trace update deferred into its pass over the trace:
-// E_t = clamp((1 - eta) E_prev + (eta p) (x) q_prev) (when p is given) -> (Y, E_t, r = E_t q), and its backward pass
-// -> (dX, dW, dalpha, dE_prev, dq, dq_prev, dp, dL/deta of the pending update).
+// The same product with the previous intervals' trace updates deferred into its pass over the trace: E_t = E with
+// clamp((1 - eta) E + (eta p0) (x) q0) applied, then likewise (p1, q1) (each pair when given), written out when write
+// -> (Y, E_t, r = E_t q), and its backward pass -> (dX, dW, dalpha, dE, dq, dq0, dp0, dq1, dp1, dL/deta of the pending
+// updates).
 std::tuple<at::Tensor, at::Tensor, at::Tensor> plastic_linear_deferred_forward(
-    const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E_prev, const at::Tensor& p,
-    const at::Tensor& q_prev, const at::Tensor& q, double eta, double e_max);
+    const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E, const at::Tensor& p0,
+    const at::Tensor& q0, const at::Tensor& p1, const at::Tensor& q1, const at::Tensor& q, double eta, double e_max,
+    bool write);
 std::vector<at::Tensor> plastic_linear_deferred_backward(
-    const at::Tensor& grad, const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E_prev,
-    const at::Tensor& p, const at::Tensor& q_prev, const at::Tensor& q, const at::Tensor& dE_t, const at::Tensor& dr,
-    bool need_x_grad, double eta, double e_max);
+    const at::Tensor& grad, const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E,
+    const at::Tensor& p0, const at::Tensor& q0, const at::Tensor& p1, const at::Tensor& q1, const at::Tensor& q,
+    const at::Tensor& dE_t, const at::Tensor& dr, bool need_x_grad, double eta, double e_max, bool write);
 
 // trace_step.cpp: E' = clamp((1 - eta) E + (eta p) (x) pre), p = post - [E pre] -> (E', p), and its gradients
 // (dE, dpost, dpre, deta).

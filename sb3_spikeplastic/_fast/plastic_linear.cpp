@@ -153,20 +153,21 @@ void backward_blocks(int64_t B, int64_t nb, const at::Tensor& like, at::Tensor& 
 }
 
 // The deferred form's scalars and operands as its row kernels take them: eta, keep = 1 - eta and the clip bounds in
-// the trace's type (as trace_step.cpp rounds them), then W, alpha, E, p, q_prev and q (null where undefined).
+// the trace's type (as trace_step.cpp rounds them), then W, alpha, E, the pending updates' p and q (first, then
+// second) and the Oja term's q (null where undefined).
 template <typename scalar_t>
 struct DeferredOperands {
   scalar_t eta, keep, lo, hi;
-  const scalar_t *w, *a, *e, *p, *q0, *q;
+  const scalar_t *w, *a, *e, *p0, *q0, *p1, *q1, *q;
 };
 
 template <typename scalar_t>
 DeferredOperands<scalar_t> deferred_operands(const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E,
-                                             const at::Tensor& p, const at::Tensor& q0, const at::Tensor& q,
-                                             double eta, double e_max) {
+                                             const at::Tensor& p0, const at::Tensor& q0, const at::Tensor& p1,
+                                             const at::Tensor& q1, const at::Tensor& q, double eta, double e_max) {
   auto ptr = [](const at::Tensor& t) { return t.defined() ? t.data_ptr<scalar_t>() : nullptr; };
   const scalar_t eta_s = static_cast<scalar_t>(eta), hi = static_cast<scalar_t>(e_max);
-  return {eta_s, scalar_t(1) - eta_s, -hi, hi, ptr(W), ptr(alpha), ptr(E), ptr(p), ptr(q0), ptr(q)};
+  return {eta_s, scalar_t(1) - eta_s, -hi, hi, ptr(W), ptr(alpha), ptr(E), ptr(p0), ptr(q0), ptr(p1), ptr(q1), ptr(q)};
 }
 
 // The per-thread sums (threads, 2, O, I) of dW and dalpha added up over the threads that wrote theirs ->
@@ -207,65 +208,95 @@ int64_t block_size(int64_t batch, int64_t n) {
   return std::max<int64_t>(1, (batch + blocks - 1) / std::max<int64_t>(1, blocks));
 }
 
-// Rows of the deferred form (plastic_linear_deferred_forward): the trace row the product uses, v = clamp(keep e0 +
-// ep q0, +-e_max) when the update is pending (else e0 itself), written to et (when pending) with the efficacy's row
-// w + a v to eff; returns the Oja term's row sum v . q (0 without q). v, the clamp and the sum are computed as
-// trace_step.cpp's forward_row and dot compute them, so the values are the same bit for bit.
-template <typename T, bool pending>
-inline T deferred_row(const T* __restrict e0, const T* __restrict q0, T ep, T keep, T lo, T hi,
-                      const T* __restrict w, const T* __restrict a, const T* __restrict q, T* __restrict et,
-                      T* __restrict eff, int64_t n) {
+// A row's pending trace updates, oldest first: after the first the trace row is v = clamp(keep e + ep0 q0, +-e_max),
+// after the second v = clamp(keep v + ep1 q1, +-e_max), each computed as trace_step.cpp's forward_row computes it,
+// so the values are those of one trace step after the other, bit for bit. Unused entries are null.
+template <typename T>
+struct PendingRow {
+  const T* q0;
+  T ep0;
+  const T* q1;
+  T ep1;
+};
+
+template <typename V>
+inline V clamp_lanes(V x, V lo, V hi) {
+  return x < lo ? lo : (x > hi ? hi : x);
+}
+
+// The pending-update count (0, 1 or 2) and whether the trace is written, as template arguments of f.
+template <typename F>
+void with_pending(int64_t pending, bool write, const F& f) {
+  using none = std::integral_constant<int, 0>;
+  using one = std::integral_constant<int, 1>;
+  using two = std::integral_constant<int, 2>;
+  if (pending == 0) {
+    f(none{}, std::false_type{});
+  } else if (pending == 1) {
+    write ? f(one{}, std::true_type{}) : f(one{}, std::false_type{});
+  } else {
+    write ? f(two{}, std::true_type{}) : f(two{}, std::false_type{});
+  }
+}
+
+// One row of the deferred forward pass (plastic_linear_deferred_forward): the trace row v the product uses (e0 with
+// the pending updates applied), written to et when write, and the efficacy's row w + a v to eff; returns the Oja
+// term's row sum v . q (0 without q).
+template <typename T, int pending, bool write>
+inline T deferred_row(const T* __restrict e0, const PendingRow<T>& u, T keep, T lo, T hi, const T* __restrict w,
+                      const T* __restrict a, const T* __restrict q, T* __restrict et, T* __restrict eff, int64_t n) {
   using sb3_spikeplastic_fast::load;
   using sb3_spikeplastic_fast::splat;
   using sb3_spikeplastic_fast::store;
   using V = typename sb3_spikeplastic_fast::Lanes<T>::V;
   constexpr int64_t L = sb3_spikeplastic_fast::Lanes<T>::n;
-  const V keep_v = splat(keep), ep_v = splat(ep), lo_v = splat(lo), hi_v = splat(hi);
+  const V keep_v = splat(keep), ep0_v = splat(u.ep0), ep1_v = splat(u.ep1), lo_v = splat(lo), hi_v = splat(hi);
   V acc = splat<T>(0);
   int64_t i = 0;
   for (; i + L <= n; i += L) {
     V v = load(e0 + i);
-    if constexpr (pending) {
-      const V x = v * keep_v + ep_v * load(q0 + i);
-      v = x < lo_v ? lo_v : (x > hi_v ? hi_v : x);
-      store(et + i, v);
-    }
+    if constexpr (pending >= 1) v = clamp_lanes(v * keep_v + ep0_v * load(u.q0 + i), lo_v, hi_v);
+    if constexpr (pending == 2) v = clamp_lanes(v * keep_v + ep1_v * load(u.q1 + i), lo_v, hi_v);
+    if constexpr (write) store(et + i, v);
     store(eff + i, load(w + i) + load(a + i) * v);
     if (q != nullptr) acc += v * load(q + i);
   }
   T sum = sb3_spikeplastic_fast::sum_lanes<T>(acc);
   for (; i < n; ++i) {
     T v = e0[i];
-    if constexpr (pending) {
-      const T x = v * keep + ep * q0[i];
-      v = x < lo ? lo : (x > hi ? hi : x);
-      et[i] = v;
-    }
+    if constexpr (pending >= 1) v = std::min(hi, std::max(lo, v * keep + u.ep0 * u.q0[i]));
+    if constexpr (pending == 2) v = std::min(hi, std::max(lo, v * keep + u.ep1 * u.q1[i]));
+    if constexpr (write) et[i] = v;
     eff[i] = w[i] + a[i] * v;
     if (q != nullptr) sum += v * q[i];
   }
   return q != nullptr ? sum : T(0);
 }
 
-// Sums of one row of the deferred backward pass: the pending update's dL/dep (gx . q0) and dL/dkeep (gx . e0).
+// Sums of one row of the deferred backward pass, per pending update k: dL/dep_k (gx_k . q_k) and dL/dkeep_k
+// (gx_k . the trace row it was applied to).
 template <typename T>
 struct PendingSums {
-  T ep = 0, keep = 0;
+  T ep0 = 0, keep0 = 0, ep1 = 0, keep1 = 0;
 };
 
-// One row of the deferred backward pass, with g the row of the efficacy's gradient dY^T X and v as in deferred_row:
+// One row of the deferred backward pass, with g the row of the efficacy's gradient dY^T X and v1, v as in
+// deferred_row (v1: the trace row after the first pending update, v: after all of them):
 //
-//     total = d1 + a g + dr q         (d1: dL/dE_t from the next interval; dr: dL/d(v . q), the Oja row sum's)
+//     total = a g + dr q (+ d1 when the trace was written or none is pending: d1 is then dL/dv)
 //     dW += g,  dalpha += g v,  dq += dr v,  g <- w + a v (the efficacy, for dX; only when w is given)
-//     pending:  gx = total where the clamp was inactive, else 0;  d0 = keep gx;  dq0 += ep gx;  sums gx . q0, gx . e0
-//     else:     d0 = total
+//     second update:  gx2 = total where its clamp was inactive;  dq1 += ep1 gx2;  sums gx2 . q1, gx2 . v1;
+//                     gx1 = keep gx2                                              (else gx1 = total)
+//     first update:   gx1 <- gx1 where its clamp was inactive;  dq0 += ep0 gx1;  sums gx1 . q0, gx1 . e0;
+//                     d0 = keep gx1 (+ d1 when the trace was not written: d1 is then dL/de0, the input passed on)
+//     none pending:   d0 = total
 //
-// d1 and q may be null (read as zero); dq and dq0 are null with them; w is null when dX is not needed.
-template <typename T, bool pending, bool first>
-inline PendingSums<T> deferred_grad_row(T* __restrict g, const T* __restrict e0, const T* __restrict q0, T ep, T keep,
-                                        T lo, T hi, const T* __restrict w, const T* __restrict a,
-                                        const T* __restrict d1, const T* __restrict q, T dr, T* __restrict d0,
-                                        T* __restrict dw, T* __restrict da, T* __restrict dq, T* __restrict dq0,
+// d1 and q may be null (read as zero); dq is null with q; w is null when dX is not needed.
+template <typename T, int pending, bool write, bool first>
+inline PendingSums<T> deferred_grad_row(T* __restrict g, const T* __restrict e0, const PendingRow<T>& u, T keep, T lo,
+                                        T hi, const T* __restrict w, const T* __restrict a, const T* __restrict d1,
+                                        const T* __restrict q, T dr, T* __restrict d0, T* __restrict dw,
+                                        T* __restrict da, T* __restrict dq, T* __restrict dq0, T* __restrict dq1,
                                         int64_t n) {
   using sb3_spikeplastic_fast::load;
   using sb3_spikeplastic_fast::splat;
@@ -273,23 +304,29 @@ inline PendingSums<T> deferred_grad_row(T* __restrict g, const T* __restrict e0,
   using V = typename sb3_spikeplastic_fast::Lanes<T>::V;
   using Mask = typename sb3_spikeplastic_fast::Lanes<T>::Mask;
   constexpr int64_t L = sb3_spikeplastic_fast::Lanes<T>::n;
-  const V keep_v = splat(keep), ep_v = splat(ep), lo_v = splat(lo), hi_v = splat(hi), dr_v = splat(dr);
-  V s_ep = splat<T>(0), s_keep = splat<T>(0);
+  constexpr bool d1_of_v = write || pending == 0;
+  const V keep_v = splat(keep), ep0_v = splat(u.ep0), ep1_v = splat(u.ep1), lo_v = splat(lo), hi_v = splat(hi),
+          dr_v = splat(dr);
+  V s_ep0 = splat<T>(0), s_keep0 = splat<T>(0), s_ep1 = splat<T>(0), s_keep1 = splat<T>(0);
   int64_t i = 0;
   for (; i + L <= n; i += L) {
     const V e = load(e0 + i), gv = load(g + i), av = load(a + i);
-    V v = e;
-    Mask clipped = {};
-    if constexpr (pending) {
-      const V x = e * keep_v + ep_v * load(q0 + i);
-      clipped = (x < lo_v) | (x > hi_v);
-      v = x < lo_v ? lo_v : (x > hi_v ? hi_v : x);
+    V v1 = e, v = e;
+    Mask clip1 = {}, clip2 = {};
+    if constexpr (pending >= 1) {
+      const V x = e * keep_v + ep0_v * load(u.q0 + i);
+      clip1 = (x < lo_v) | (x > hi_v);
+      v = v1 = clamp_lanes(x, lo_v, hi_v);
+    }
+    if constexpr (pending == 2) {
+      const V x = v1 * keep_v + ep1_v * load(u.q1 + i);
+      clip2 = (x < lo_v) | (x > hi_v);
+      v = clamp_lanes(x, lo_v, hi_v);
     }
     V total = av * gv;
-    if (d1 != nullptr) total = load(d1 + i) + total;
+    if (d1_of_v && d1 != nullptr) total = load(d1 + i) + total;
     if (q != nullptr) {
-      const V qv = load(q + i);
-      total = total + dr_v * qv;
+      total = total + dr_v * load(q + i);
       store(dq + i, load(dq + i) + dr_v * v);
     }
     if constexpr (first) {
@@ -300,32 +337,47 @@ inline PendingSums<T> deferred_grad_row(T* __restrict g, const T* __restrict e0,
       store(da + i, load(da + i) + gv * v);
     }
     if (w != nullptr) store(g + i, load(w + i) + av * v);
-    if constexpr (pending) {
-      const V gx = (V)((Mask)total & ~clipped);
-      store(d0 + i, keep_v * gx);
-      store(dq0 + i, load(dq0 + i) + ep_v * gx);
-      s_ep += gx * load(q0 + i);
-      s_keep += gx * e;
-    } else {
+    if constexpr (pending == 0) {
       store(d0 + i, total);
+    } else {
+      V gx1 = total;
+      if constexpr (pending == 2) {
+        const V gx2 = (V)((Mask)total & ~clip2);
+        store(dq1 + i, load(dq1 + i) + ep1_v * gx2);
+        s_ep1 += gx2 * load(u.q1 + i);
+        s_keep1 += gx2 * v1;
+        gx1 = keep_v * gx2;
+      }
+      gx1 = (V)((Mask)gx1 & ~clip1);
+      store(dq0 + i, load(dq0 + i) + ep0_v * gx1);
+      s_ep0 += gx1 * load(u.q0 + i);
+      s_keep0 += gx1 * e;
+      V out = keep_v * gx1;
+      if (!d1_of_v && d1 != nullptr) out = load(d1 + i) + out;
+      store(d0 + i, out);
     }
   }
   PendingSums<T> sums;
-  if constexpr (pending) {
-    sums.ep = sb3_spikeplastic_fast::sum_lanes<T>(s_ep);
-    sums.keep = sb3_spikeplastic_fast::sum_lanes<T>(s_keep);
-  }
+  sums.ep0 = sb3_spikeplastic_fast::sum_lanes<T>(s_ep0);
+  sums.keep0 = sb3_spikeplastic_fast::sum_lanes<T>(s_keep0);
+  sums.ep1 = sb3_spikeplastic_fast::sum_lanes<T>(s_ep1);
+  sums.keep1 = sb3_spikeplastic_fast::sum_lanes<T>(s_keep1);
   for (; i < n; ++i) {
     const T e = e0[i], gi = g[i];
-    T v = e;
-    bool clip = false;
-    if constexpr (pending) {
-      const T x = e * keep + ep * q0[i];
-      clip = x < lo || x > hi;
-      v = x < lo ? lo : (x > hi ? hi : x);
+    T v1 = e, v = e;
+    bool clip1 = false, clip2 = false;
+    if constexpr (pending >= 1) {
+      const T x = e * keep + u.ep0 * u.q0[i];
+      clip1 = x < lo || x > hi;
+      v = v1 = std::min(hi, std::max(lo, x));
+    }
+    if constexpr (pending == 2) {
+      const T x = v1 * keep + u.ep1 * u.q1[i];
+      clip2 = x < lo || x > hi;
+      v = std::min(hi, std::max(lo, x));
     }
     T total = a[i] * gi;
-    if (d1 != nullptr) total = d1[i] + total;
+    if (d1_of_v && d1 != nullptr) total = d1[i] + total;
     if (q != nullptr) {
       total = total + dr * q[i];
       dq[i] += dr * v;
@@ -338,14 +390,24 @@ inline PendingSums<T> deferred_grad_row(T* __restrict g, const T* __restrict e0,
       da[i] += gi * v;
     }
     if (w != nullptr) g[i] = w[i] + a[i] * v;
-    if constexpr (pending) {
-      const T gx = clip ? T(0) : total;
-      d0[i] = keep * gx;
-      dq0[i] += ep * gx;
-      sums.ep += gx * q0[i];
-      sums.keep += gx * e;
-    } else {
+    if constexpr (pending == 0) {
       d0[i] = total;
+    } else {
+      T gx1 = total;
+      if constexpr (pending == 2) {
+        const T gx2 = clip2 ? T(0) : total;
+        dq1[i] += u.ep1 * gx2;
+        sums.ep1 += gx2 * u.q1[i];
+        sums.keep1 += gx2 * v1;
+        gx1 = keep * gx2;
+      }
+      gx1 = clip1 ? T(0) : gx1;
+      dq0[i] += u.ep0 * gx1;
+      sums.ep0 += gx1 * u.q0[i];
+      sums.keep0 += gx1 * e;
+      T out = keep * gx1;
+      if (!d1_of_v && d1 != nullptr) out = d1[i] + out;
+      d0[i] = out;
     }
   }
   return sums;
@@ -357,47 +419,75 @@ namespace sb3_spikeplastic_fast {
 // The product without a trace update: the deferred form with none pending and no Oja row sums.
 at::Tensor plastic_linear_forward(const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha,
                                   const at::Tensor& E) {
-  return std::get<0>(plastic_linear_deferred_forward(X, W, alpha, E, at::Tensor(), at::Tensor(), at::Tensor(), 0, 1));
+  const at::Tensor none;
+  return std::get<0>(plastic_linear_deferred_forward(X, W, alpha, E, none, none, none, none, none, 0, 1, false));
 }
 
 // Returns (dX, dW, dalpha, dE); dX is empty unless need_x_grad; dE starts from dE_init when it is given.
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> plastic_linear_backward(
     const at::Tensor& grad, const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E,
     bool need_x_grad, const at::Tensor& dE_init) {
-  const std::vector<at::Tensor> g = plastic_linear_deferred_backward(
-      grad, X, W, alpha, E, at::Tensor(), at::Tensor(), at::Tensor(), dE_init, at::Tensor(), need_x_grad, 0, 1);
+  const at::Tensor none;
+  const std::vector<at::Tensor> g = plastic_linear_deferred_backward(grad, X, W, alpha, E, none, none, none, none,
+                                                                     none, dE_init, none, need_x_grad, 0, 1, false);
   return std::make_tuple(g[0], g[1], g[2], g[3]);
 }
 
-// The deferred trace update (srm_interval.cpp): the trace this interval's product uses is E_t = clamp(keep E_prev +
-// (eta p) (x) q_prev, +-e_max), the previous interval's update, built in the same pass over E_prev as the efficacy
-// (which also takes the Oja term's row sums r = E_t q when q is given), so that each interval reads its trace once:
+namespace {
+
+// The pending updates given: none, (p0, q0), or (p0, q0) then (p1, q1); contiguous copies.
+struct Pending {
+  at::Tensor p0, q0, p1, q1;
+  int64_t count;
+};
+
+Pending pending_updates(const at::Tensor& p0, const at::Tensor& q0, const at::Tensor& p1, const at::Tensor& q1) {
+  TORCH_CHECK(p0.defined() == q0.defined() && p1.defined() == q1.defined() && (p0.defined() || !p1.defined()),
+              "plastic_linear_deferred: each pending update is a pair (p, q), and a second needs a first");
+  auto contiguous = [](const at::Tensor& t) { return t.defined() ? t.contiguous() : at::Tensor(); };
+  return {contiguous(p0), contiguous(q0), contiguous(p1), contiguous(q1),
+          static_cast<int64_t>(p0.defined()) + static_cast<int64_t>(p1.defined())};
+}
+
+template <typename scalar_t>
+PendingRow<scalar_t> pending_row(const DeferredOperands<scalar_t>& v, int64_t b, int64_t o, int64_t O, int64_t I) {
+  PendingRow<scalar_t> u{nullptr, 0, nullptr, 0};
+  if (v.p0 != nullptr) u = {v.q0 + b * I, v.eta * v.p0[b * O + o], nullptr, 0};
+  if (v.p1 != nullptr) u.q1 = v.q1 + b * I, u.ep1 = v.eta * v.p1[b * O + o];
+  return u;
+}
+
+}  // namespace
+
+// The deferred trace update (srm_interval.cpp): the trace this interval's product uses is E_t, the input trace E with
+// the pending updates of the previous intervals applied, clamp(keep E + (eta p0) (x) q0, +-e_max) and then likewise
+// (p1, q1), built in the same pass over E as the efficacy (which also takes the Oja term's row sums r = E_t q when q
+// is given), so that each interval reads its trace once:
 //
-//     forward:   E_t = clamp(keep E_prev[b] + (eta p[b]) (x) q_prev[b]),  eff = W + alpha * E_t,  r = E_t q[b]
-//                Y[b] = X[b] eff^T
+//     forward:   E_t = the pending updates applied to E[b],  eff = W + alpha * E_t,  r = E_t q[b],  Y[b] = X[b] eff^T
 //
-// Without p there is no pending update: E_t is E_prev. keep = 1 - eta and eta p are computed as trace_step.cpp
-// computes them. Returns (Y, E_t (empty without p), r (empty without q)).
+// E_t is written out only when write (a sequence keeps every other trace: an interval that leaves its two
+// predecessors' updates pending recomputes the trace in registers, forward and backward, instead of storing it).
+// keep = 1 - eta and eta p are computed as trace_step.cpp computes them. Returns (Y, E_t (empty unless written), r
+// (empty without q)).
 std::tuple<at::Tensor, at::Tensor, at::Tensor> plastic_linear_deferred_forward(
     const at::Tensor& X_in, const at::Tensor& W_in, const at::Tensor& alpha_in, const at::Tensor& E_in,
-    const at::Tensor& p_in, const at::Tensor& q0_in, const at::Tensor& q_in, double eta, double e_max) {
+    const at::Tensor& p0_in, const at::Tensor& q0_in, const at::Tensor& p1_in, const at::Tensor& q1_in,
+    const at::Tensor& q_in, double eta, double e_max, bool write) {
   check_operands(X_in, W_in, alpha_in, E_in);
-  const bool pending = p_in.defined();
-  TORCH_CHECK(pending == q0_in.defined(), "plastic_linear_deferred: p and q_prev come together");
+  const Pending u = pending_updates(p0_in, q0_in, p1_in, q1_in);
+  write = write && u.count > 0;
   const at::Tensor X = X_in.contiguous(), W = W_in.contiguous(), alpha = alpha_in.contiguous(), E = E_in.contiguous();
-  const at::Tensor p = pending ? p_in.contiguous() : at::Tensor(), q0 = pending ? q0_in.contiguous() : at::Tensor();
   const at::Tensor q = q_in.defined() ? q_in.contiguous() : at::Tensor();
-  const int64_t B = X.size(0), R = X.size(1), O = W.size(0), I = W.size(1), N = W.numel();
-  at::Tensor Y = at::empty({B, R, O}, X.options());
-  at::Tensor Et = pending ? at::empty_like(E, at::MemoryFormat::Contiguous) : at::empty({0}, E.options());
+  const int64_t B = X.size(0), O = W.size(0), I = W.size(1), N = W.numel();
+  at::Tensor Y = at::empty({B, X.size(1), O}, X.options());
+  at::Tensor Et = write ? at::empty_like(E, at::MemoryFormat::Contiguous) : at::empty({0}, E.options());
   at::Tensor r = q.defined() ? at::empty({B, O}, E.options()) : at::empty({0}, E.options());
   const int64_t nb = block_size(B, N), blocks = (B + nb - 1) / nb;
   AT_DISPATCH_FLOATING_TYPES(E.scalar_type(), "plastic_linear_deferred_forward", [&] {
-    // plain copies, not structured bindings: the lambdas below capture them (C++17)
-    const DeferredOperands<scalar_t> v = deferred_operands<scalar_t>(W, alpha, E, p, q0, q, eta, e_max);
-    const scalar_t eta_s = v.eta, keep = v.keep, lo = v.lo, hi = v.hi;
-    const scalar_t *w_p = v.w, *a_p = v.a, *e_p = v.e, *p_p = v.p, *q0_p = v.q0, *q_p = v.q;
-    scalar_t* et_p = pending ? Et.data_ptr<scalar_t>() : nullptr;
+    const DeferredOperands<scalar_t> v = deferred_operands<scalar_t>(W, alpha, E, u.p0, u.q0, u.p1, u.q1, q, eta,
+                                                                     e_max);
+    scalar_t* et_p = write ? Et.data_ptr<scalar_t>() : nullptr;
     scalar_t* r_p = q.defined() ? r.data_ptr<scalar_t>() : nullptr;
     const bool blas = has_blas<scalar_t>();
     const CallerDenormalMode mode;
@@ -409,17 +499,16 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> plastic_linear_deferred_forward(
       for (int64_t block = begin; block < end; ++block) {
         const int64_t b0 = block * nb, n = std::min(nb, B - b0);
         for (int64_t b = b0; b < b0 + n; ++b) {
-          const scalar_t* q_b = q_p != nullptr ? q_p + b * I : nullptr;
-          for (int64_t o = 0; o < O; ++o) {
-            const int64_t off = b * N + o * I;
-            scalar_t* eff = buf_p + (b - b0) * N + o * I;
-            const scalar_t sum =
-                pending ? deferred_row<scalar_t, true>(e_p + off, q0_p + b * I, eta_s * p_p[b * O + o], keep, lo, hi,
-                                                       w_p + o * I, a_p + o * I, q_b, et_p + off, eff, I)
-                        : deferred_row<scalar_t, false>(e_p + off, nullptr, 0, keep, lo, hi, w_p + o * I,
-                                                        a_p + o * I, q_b, nullptr, eff, I);
-            if (r_p != nullptr) r_p[b * O + o] = sum;
-          }
+          const scalar_t* q_b = v.q != nullptr ? v.q + b * I : nullptr;
+          with_pending(u.count, write, [&](auto count, auto written) {
+            for (int64_t o = 0; o < O; ++o) {
+              const int64_t off = b * N + o * I;
+              const scalar_t sum = deferred_row<scalar_t, decltype(count)::value, decltype(written)::value>(
+                  v.e + off, pending_row(v, b, o, O, I), v.keep, v.lo, v.hi, v.w + o * I, v.a + o * I, q_b,
+                  et_p != nullptr ? et_p + off : nullptr, buf_p + (b - b0) * N + o * I, I);
+              if (r_p != nullptr) r_p[b * O + o] = sum;
+            }
+          });
         }
         block_forward<scalar_t>(blas, X, Y, buf, b0, n);
       }
@@ -428,19 +517,20 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> plastic_linear_deferred_forward(
   return std::make_tuple(Y, Et, r);
 }
 
-// The backward pass of plastic_linear_deferred_forward, one pass over E_prev per environment (deferred_grad_row):
-// dE1 is dL/dE_t from the next interval (may be undefined), dr dL/dr (undefined without q). Returns (dX (empty unless
-// need_x_grad), dW, dalpha, dE_prev, dq (empty without q), dq_prev, dp, dL/deta of the pending update (the last
-// three empty without p)).
+// The backward pass of plastic_linear_deferred_forward, one pass over E per environment (deferred_grad_row): dE1 is
+// the gradient of the trace the interval passes on (may be undefined): of E_t when it was written, else of E itself;
+// dr is dL/dr (undefined without q). Returns (dX (empty unless need_x_grad), dW, dalpha, dE, dq (empty without q),
+// then per pending update dq_k and dp_k (empty where none), then dL/deta of the pending updates (empty without one)).
 std::vector<at::Tensor> plastic_linear_deferred_backward(
     const at::Tensor& grad_in, const at::Tensor& X_in, const at::Tensor& W_in, const at::Tensor& alpha_in,
-    const at::Tensor& E_in, const at::Tensor& p_in, const at::Tensor& q0_in, const at::Tensor& q_in,
-    const at::Tensor& dE1_in, const at::Tensor& dr_in, bool need_x_grad, double eta, double e_max) {
+    const at::Tensor& E_in, const at::Tensor& p0_in, const at::Tensor& q0_in, const at::Tensor& p1_in,
+    const at::Tensor& q1_in, const at::Tensor& q_in, const at::Tensor& dE1_in, const at::Tensor& dr_in,
+    bool need_x_grad, double eta, double e_max, bool write) {
   check_operands(X_in, W_in, alpha_in, E_in);
-  const bool pending = p_in.defined();
+  const Pending u = pending_updates(p0_in, q0_in, p1_in, q1_in);
+  write = write && u.count > 0;
   const at::Tensor g = grad_in.contiguous(), X = X_in.contiguous(), W = W_in.contiguous(),
                    alpha = alpha_in.contiguous(), E = E_in.contiguous();
-  const at::Tensor p = pending ? p_in.contiguous() : at::Tensor(), q0 = pending ? q0_in.contiguous() : at::Tensor();
   const at::Tensor q = q_in.defined() ? q_in.contiguous() : at::Tensor();
   const at::Tensor dE1 = dE1_in.defined() ? dE1_in.contiguous() : at::Tensor();
   const at::Tensor dr = q.defined() && dr_in.defined() ? dr_in.contiguous() : at::Tensor();
@@ -457,21 +547,20 @@ std::vector<at::Tensor> plastic_linear_deferred_backward(
   std::vector<char> used(threads, 0);
   at::Tensor dX = need_x_grad ? at::empty_like(X, at::MemoryFormat::Contiguous) : none;
   at::Tensor dq = q.defined() ? at::zeros({B, I}, E.options()) : none;
-  at::Tensor dq0 = pending ? at::zeros({B, I}, E.options()) : none;
-  at::Tensor dp = pending ? at::empty({B, O}, E.options()) : none;
+  at::Tensor dq0 = u.count >= 1 ? at::zeros({B, I}, E.options()) : none;
+  at::Tensor dp0 = u.count >= 1 ? at::empty({B, O}, E.options()) : none;
+  at::Tensor dq1 = u.count == 2 ? at::zeros({B, I}, E.options()) : none;
+  at::Tensor dp1 = u.count == 2 ? at::empty({B, O}, E.options()) : none;
   at::Tensor deta_rows = at::zeros({B}, E.options().dtype(at::kDouble));
   const int64_t nb = block_size(B, N);
   AT_DISPATCH_FLOATING_TYPES(E.scalar_type(), "plastic_linear_deferred_backward", [&] {
-    // plain copies, not structured bindings: the lambdas below capture them (C++17)
-    const DeferredOperands<scalar_t> v = deferred_operands<scalar_t>(W, alpha, E, p, q0, q, eta, e_max);
-    const scalar_t eta_s = v.eta, keep = v.keep, lo = v.lo, hi = v.hi;
-    const scalar_t *w_p = v.w, *a_p = v.a, *e_p = v.e, *p_p = v.p, *q0_p = v.q0, *q_p = v.q;
+    const DeferredOperands<scalar_t> v = deferred_operands<scalar_t>(W, alpha, E, u.p0, u.q0, u.p1, u.q1, q, eta,
+                                                                     e_max);
+    auto ptr = [](at::Tensor& t) { return t.numel() > 0 ? t.data_ptr<scalar_t>() : nullptr; };
     const scalar_t* d1_p = dE1.defined() ? dE1.data_ptr<scalar_t>() : nullptr;
     const scalar_t* dr_p = dr.defined() ? dr.data_ptr<scalar_t>() : nullptr;
-    scalar_t* d0_p = dE0.data_ptr<scalar_t>();
-    scalar_t* dq_p = q.defined() ? dq.data_ptr<scalar_t>() : nullptr;
-    scalar_t* dq0_p = pending ? dq0.data_ptr<scalar_t>() : nullptr;
-    scalar_t* dp_p = pending ? dp.data_ptr<scalar_t>() : nullptr;
+    scalar_t *d0_p = dE0.data_ptr<scalar_t>(), *dq_p = ptr(dq), *dq0_p = ptr(dq0), *dp0_p = ptr(dp0),
+             *dq1_p = ptr(dq1), *dp1_p = ptr(dp1);
     double* deta_p = deta_rows.data_ptr<double>();
     const bool blas = has_blas<scalar_t>();
     backward_blocks<scalar_t>(B, nb, W, acc, used, [&](int64_t b0, int64_t n, at::Tensor& G, scalar_t* dw_t,
@@ -479,47 +568,48 @@ std::vector<at::Tensor> plastic_linear_deferred_backward(
       block_gradient<scalar_t>(blas, g, X, G, b0, n);
       scalar_t* G_p = G.data_ptr<scalar_t>();
       for (int64_t b = b0; b < b0 + n; ++b) {
-        const scalar_t* q_b = q_p != nullptr ? q_p + b * I : nullptr;
+        const scalar_t* q_b = v.q != nullptr ? v.q + b * I : nullptr;
         scalar_t* dq_b = dq_p != nullptr ? dq_p + b * I : nullptr;
+        scalar_t* dq0_b = dq0_p != nullptr ? dq0_p + b * I : nullptr;
+        scalar_t* dq1_b = dq1_p != nullptr ? dq1_p + b * I : nullptr;
         double deta = 0;
-        for (int64_t o = 0; o < O; ++o) {
-          const int64_t off = b * N + o * I;
-          scalar_t* G_row = G_p + (b - b0) * N + o * I;
-          const scalar_t* d1 = d1_p != nullptr ? d1_p + off : nullptr;
-          const scalar_t dr_o = dr_p != nullptr ? dr_p[b * O + o] : scalar_t(0);
-          scalar_t *dw = dw_t + o * I, *da = da_t + o * I;
-          const scalar_t* w_row = need_x_grad ? w_p + o * I : nullptr;
-          if (pending) {
-            const scalar_t p_o = p_p[b * O + o], ep_o = eta_s * p_o;
-            const scalar_t* q0_b = q0_p + b * I;
+        with_pending(u.count, write, [&](auto count, auto written) {
+          constexpr int pending = decltype(count)::value;
+          constexpr bool wrote = decltype(written)::value;
+          for (int64_t o = 0; o < O; ++o) {
+            const int64_t off = b * N + o * I;
+            const PendingRow<scalar_t> row = pending_row(v, b, o, O, I);
+            scalar_t* G_row = G_p + (b - b0) * N + o * I;
+            const scalar_t* d1 = d1_p != nullptr ? d1_p + off : nullptr;
+            const scalar_t dr_o = dr_p != nullptr ? dr_p[b * O + o] : scalar_t(0);
+            const scalar_t* w_row = need_x_grad ? v.w + o * I : nullptr;
             const PendingSums<scalar_t> sums =
-                first ? deferred_grad_row<scalar_t, true, true>(G_row, e_p + off, q0_b, ep_o, keep, lo, hi,
-                                                                w_row, a_p + o * I, d1, q_b, dr_o, d0_p + off,
-                                                                dw, da, dq_b, dq0_p + b * I, I)
-                      : deferred_grad_row<scalar_t, true, false>(G_row, e_p + off, q0_b, ep_o, keep, lo, hi,
-                                                                 w_row, a_p + o * I, d1, q_b, dr_o, d0_p + off,
-                                                                 dw, da, dq_b, dq0_p + b * I, I);
-            // ep = eta p, keep = 1 - eta: dL/dp = eta (gx . q_prev), dL/deta = p (gx . q_prev) - gx . E_prev
-            dp_p[b * O + o] = eta_s * sums.ep;
-            deta += static_cast<double>(p_o * sums.ep - sums.keep);
-          } else if (first) {
-            deferred_grad_row<scalar_t, false, true>(G_row, e_p + off, nullptr, 0, keep, lo, hi, w_row,
-                                                     a_p + o * I, d1, q_b, dr_o, d0_p + off, dw, da, dq_b, nullptr, I);
-          } else {
-            deferred_grad_row<scalar_t, false, false>(G_row, e_p + off, nullptr, 0, keep, lo, hi, w_row,
-                                                      a_p + o * I, d1, q_b, dr_o, d0_p + off, dw, da, dq_b, nullptr,
-                                                      I);
+                first ? deferred_grad_row<scalar_t, pending, wrote, true>(
+                            G_row, v.e + off, row, v.keep, v.lo, v.hi, w_row, v.a + o * I, d1, q_b, dr_o, d0_p + off,
+                            dw_t + o * I, da_t + o * I, dq_b, dq0_b, dq1_b, I)
+                      : deferred_grad_row<scalar_t, pending, wrote, false>(
+                            G_row, v.e + off, row, v.keep, v.lo, v.hi, w_row, v.a + o * I, d1, q_b, dr_o, d0_p + off,
+                            dw_t + o * I, da_t + o * I, dq_b, dq0_b, dq1_b, I);
+            // ep_k = eta p_k, keep = 1 - eta: dL/dp_k = eta (gx_k . q_k), dL/deta = sum_k p_k (gx_k . q_k) - gx_k . v_k
+            if constexpr (pending >= 1) {
+              dp0_p[b * O + o] = v.eta * sums.ep0;
+              deta += static_cast<double>(v.p0[b * O + o] * sums.ep0 - sums.keep0);
+            }
+            if constexpr (pending == 2) {
+              dp1_p[b * O + o] = v.eta * sums.ep1;
+              deta += static_cast<double>(v.p1[b * O + o] * sums.ep1 - sums.keep1);
+            }
           }
-        }
-        first = false;
+        });
+        first = false;  // the rows of a thread's first environment fill its sums
         deta_p[b] = deta;
       }
       if (need_x_grad) block_input_gradient<scalar_t>(blas, g, G, dX, b0, n);  // G holds the efficacy
     });
   });
   const at::Tensor sums = thread_sums(acc, used);
-  const at::Tensor d_eta = pending ? deta_rows.sum().to(E.scalar_type()) : none;
-  return {dX, sums.select(0, 0), sums.select(0, 1), dE0, dq, dq0, dp, d_eta};
+  const at::Tensor d_eta = u.count > 0 ? deta_rows.sum().to(E.scalar_type()) : none;
+  return {dX, sums.select(0, 0), sums.select(0, 1), dE0, dq, dq0, dp0, dq1, dp1, d_eta};
 }
 
 }  // namespace sb3_spikeplastic_fast

@@ -312,21 +312,23 @@ std::vector<at::Tensor> srm_interval_backward(
 
 
 // The deferred form (a built-in rule's layer inside a training sequence, layers.PlasticSRMLayer with
-// defer_update): the previous interval's trace update, clamp((1 - eta) E + (eta p_prev) (x) q_prev), runs in this
-// interval's pass over E (plastic_linear_deferred_forward), and this interval's update is returned as (p, q = pre)
-// for the next. Each interval then reads its trace once forward and once backward, where the update in its own pass
-// reads it again. Without p_prev (a sequence's first interval) E is the trace itself. The values are those of
-// srm_interval_forward bit for bit. -> as srm_interval_forward, with E_t (the trace this interval used; empty
-// without p_prev) in the place of E', then p and q as outputs of their own (B, n_out), (B, n_in) at the end.
+// defer_update): the previous intervals' trace updates, clamp((1 - eta) E + (eta p) (x) q) for each pending (p, q),
+// oldest first, run in this interval's pass over E (plastic_linear_deferred_forward), and this interval's update is
+// returned as (p, q = pre) for the next. Each interval then reads its trace once forward and once backward, where the
+// update in its own pass reads it again. Without a pending update E is the trace itself. The trace the interval used
+// is written out only when write_trace: a sequence keeps every other trace and recomputes the others from the one
+// before and the two updates since. The values are those of srm_interval_forward bit for bit. -> as
+// srm_interval_forward, with E_t (the trace this interval used; empty unless written) in the place of E', then p and
+// q as outputs of their own (B, n_out), (B, n_in) at the end.
 std::vector<at::Tensor> srm_interval_deferred_forward(
     const at::Tensor& x, const at::Tensor& h1, const at::Tensor& h2, const at::Tensor& ref_h1, const at::Tensor& ref_h2,
-    const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E, const std::optional<at::Tensor>& p_prev,
-    const std::optional<at::Tensor>& q_prev, const std::optional<at::Tensor>& phi, const at::Tensor& eta,
+    const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E, const std::optional<at::Tensor>& p_first,
+    const std::optional<at::Tensor>& q_first, const std::optional<at::Tensor>& p_second,
+    const std::optional<at::Tensor>& q_second, const std::optional<at::Tensor>& phi, const at::Tensor& eta,
     const std::optional<at::Tensor>& eta_phi, const std::optional<at::Tensor>& psi,
     const std::optional<at::Tensor>& w_m, const at::Tensor& op, const at::Tensor& psp_rows,
     const at::Tensor& end_rows, bool filter_first, double d, double kappa, double theta, double width, double scale,
-    double e_max, bool oja, int64_t modulation, bool need_surrogate) {
-  TORCH_CHECK(p_prev.has_value() == q_prev.has_value(), "srm_interval_deferred: p_prev and q_prev come together");
+    double e_max, bool oja, int64_t modulation, bool need_surrogate, bool write_trace) {
   TORCH_CHECK(phi.has_value() == eta_phi.has_value() && phi.has_value() == psi.has_value(),
               "srm_interval: phi, eta_phi and psi come together (BCM rules)");
   TORCH_CHECK((modulation == kUnmodulated) != w_m.has_value() && modulation >= kUnmodulated && modulation <= kTanh,
@@ -342,7 +344,8 @@ std::vector<at::Tensor> srm_interval_deferred_forward(
       [&](const at::Tensor& rows) {
         at::Tensor Y;
         std::tie(Y, E_t, r) = sb3_spikeplastic_fast::plastic_linear_deferred_forward(
-            rows, W, alpha, E, given(p_prev), given(q_prev), oja ? pre : at::Tensor(), eta_value, e_max);
+            rows, W, alpha, E, given(p_first), given(q_first), given(p_second), given(q_second),
+            oja ? pre : at::Tensor(), eta_value, e_max, write_trace);
         return Y;
       },
       op, psp_rows, end_rows, filter_first, d, kappa, theta, width, scale, need_surrogate, r_pre);
@@ -355,21 +358,23 @@ std::vector<at::Tensor> srm_interval_deferred_forward(
   return out;
 }
 
-// The backward pass of srm_interval_deferred_forward. d_E_t is dL/dE_t from the next interval, d_p and d_q the
-// gradients of the returned update (p, q). -> as srm_interval_backward (dE is dL/dE, the input trace), then dL/dp_prev
-// and dL/dq_prev of the pending update (empty without one).
+// The backward pass of srm_interval_deferred_forward. d_E_t is the gradient of the trace the interval passed on (E_t
+// when written, else E itself), d_p and d_q the gradients of the returned update (p, q). -> as srm_interval_backward
+// (dE is dL/dE, the input trace), then dL/dp and dL/dq of each pending update (empty where none).
 std::vector<at::Tensor> srm_interval_deferred_backward(
     const std::optional<at::Tensor>& d_spikes, const std::optional<at::Tensor>& d_h1,
     const std::optional<at::Tensor>& d_h2, const std::optional<at::Tensor>& d_r_pre,
     const std::optional<at::Tensor>& d_r_post, const std::optional<at::Tensor>& d_E_t,
     const std::optional<at::Tensor>& d_new_phi, const std::optional<at::Tensor>& d_p_next,
     const std::optional<at::Tensor>& d_q, const at::Tensor& product_in, const at::Tensor& W, const at::Tensor& alpha,
-    const at::Tensor& E, const std::optional<at::Tensor>& p_prev, const std::optional<at::Tensor>& q_prev,
+    const at::Tensor& E, const std::optional<at::Tensor>& p_first, const std::optional<at::Tensor>& q_first,
+    const std::optional<at::Tensor>& p_second, const std::optional<at::Tensor>& q_second,
     const at::Tensor& surrogate, const at::Tensor& p, const at::Tensor& pre, const std::optional<at::Tensor>& m,
     const at::Tensor& r_pre, const at::Tensor& r_post, const std::optional<at::Tensor>& phi, const at::Tensor& eta,
     const std::optional<at::Tensor>& eta_phi, const std::optional<at::Tensor>& psi,
     const std::optional<at::Tensor>& w_m, const at::Tensor& op, const at::Tensor& psp_rows,
-    const at::Tensor& end_rows, bool filter_first, bool need_rows, double e_max, bool oja, int64_t modulation) {
+    const at::Tensor& end_rows, bool filter_first, bool need_rows, double e_max, bool oja, int64_t modulation,
+    bool write_trace) {
   const at::NoGradGuard no_grad;
   const at::Tensor none = at::empty({0}, W.options());
   const double eta_value = eta.item<double>();
@@ -379,33 +384,32 @@ std::vector<at::Tensor> srm_interval_deferred_backward(
   at::Tensor d_rpost = given(d_r_post), d_rpre = given(d_r_pre), d_wm = none, d_phi = none, d_eta_phi = none,
              d_psi = none;
   postsynaptic_backward(d_p, r_post, m, w_m, modulation, d_rpost, d_wm);
-  at::Tensor d_q_rows, d_q_prev, d_p_prev, d_eta_pending;
+  std::vector<at::Tensor> product_grads;
   std::vector<at::Tensor> grads = interval_backward(
       given(d_spikes), given(d_h1), given(d_h2), at::Tensor(), d_rpost, product_in,
       [&](const at::Tensor& grad, bool need_x) {
-        std::vector<at::Tensor> g = sb3_spikeplastic_fast::plastic_linear_deferred_backward(
-            grad, product_in, W, alpha, E, given(p_prev), given(q_prev), oja ? pre : at::Tensor(), given(d_E_t),
-            oja ? -d_p : at::Tensor(), need_x, eta_value, e_max);
-        d_q_rows = g[4];
-        d_q_prev = g[5];
-        d_p_prev = g[6];
-        d_eta_pending = g[7];
+        product_grads = sb3_spikeplastic_fast::plastic_linear_deferred_backward(
+            grad, product_in, W, alpha, E, given(p_first), given(q_first), given(p_second), given(q_second),
+            oja ? pre : at::Tensor(), given(d_E_t), oja ? -d_p : at::Tensor(), need_x, eta_value, e_max,
+            write_trace);
+        const std::vector<at::Tensor>& g = product_grads;
         return std::make_tuple(g[0], g[1], g[2], g[3]);
       },
       W, surrogate, op, psp_rows, end_rows, filter_first, need_rows);
+  // product_grads: dX, dW, dalpha, dE, dq (the Oja row sums'), dq0, dp0, dq1, dp1, deta of the pending updates.
   // dL/dpre: from the next interval's update and from the Oja term's row sums; then the rates (only now: the row
   // sums' gradient comes out of the product's pass)
   at::Tensor d_pre = given(d_q);
-  if (oja) d_pre = plus(d_pre, d_q_rows);
+  if (oja) d_pre = plus(d_pre, product_grads[4]);
   if (!d_pre.defined()) d_pre = at::zeros_like(pre);
   presynaptic_backward(d_pre, r_pre, phi, eta_phi, psi, given(d_new_phi), d_rpre, d_phi, d_psi, d_eta_phi);
   if (need_rows && d_rpre.defined()) {
     const int64_t L = surrogate.size(1);
     grads[0] = grads[0] + (d_rpre / L).unsqueeze(1);
   }
-  if (p_prev.has_value()) d_eta = d_eta_pending;
-  grads.insert(grads.end(), {d_phi, d_eta_phi, d_psi, d_eta, d_wm, p_prev.has_value() ? d_p_prev : none,
-                             p_prev.has_value() ? d_q_prev : none});
+  if (p_first.has_value()) d_eta = product_grads[9];
+  grads.insert(grads.end(), {d_phi, d_eta_phi, d_psi, d_eta, d_wm});
+  grads.insert(grads.end(), {product_grads[6], product_grads[5], product_grads[8], product_grads[7]});
   return grads;
 }
 
@@ -419,17 +423,17 @@ TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
       "float e_max, bool oja, int modulation, bool need_surrogate) -> Tensor[]");
   m.def(
       "srm_interval_deferred_forward(Tensor x, Tensor h1, Tensor h2, Tensor ref_h1, Tensor ref_h2, Tensor W, "
-      "Tensor alpha, Tensor E, Tensor? p_prev, Tensor? q_prev, Tensor? phi, Tensor eta, Tensor? eta_phi, Tensor? psi, "
-      "Tensor? w_m, Tensor op, Tensor psp_rows, Tensor end_rows, bool filter_first, float d, float kappa, "
-      "float theta, float width, float scale, float e_max, bool oja, int modulation, bool need_surrogate) "
-      "-> Tensor[]");
+      "Tensor alpha, Tensor E, Tensor? p_first, Tensor? q_first, Tensor? p_second, Tensor? q_second, Tensor? phi, "
+      "Tensor eta, Tensor? eta_phi, Tensor? psi, Tensor? w_m, Tensor op, Tensor psp_rows, Tensor end_rows, "
+      "bool filter_first, float d, float kappa, float theta, float width, float scale, float e_max, bool oja, "
+      "int modulation, bool need_surrogate, bool write_trace) -> Tensor[]");
   m.def(
       "srm_interval_deferred_backward(Tensor? d_spikes, Tensor? d_h1, Tensor? d_h2, Tensor? d_r_pre, "
       "Tensor? d_r_post, Tensor? d_E_t, Tensor? d_new_phi, Tensor? d_p, Tensor? d_q, Tensor product_in, Tensor W, "
-      "Tensor alpha, Tensor E, Tensor? p_prev, Tensor? q_prev, Tensor surrogate, Tensor p, Tensor pre, Tensor? m, "
-      "Tensor r_pre, Tensor r_post, Tensor? phi, Tensor eta, Tensor? eta_phi, Tensor? psi, Tensor? w_m, Tensor op, "
-      "Tensor psp_rows, Tensor end_rows, bool filter_first, bool need_rows, float e_max, bool oja, int modulation) "
-      "-> Tensor[]");
+      "Tensor alpha, Tensor E, Tensor? p_first, Tensor? q_first, Tensor? p_second, Tensor? q_second, "
+      "Tensor surrogate, Tensor p, Tensor pre, Tensor? m, Tensor r_pre, Tensor r_post, Tensor? phi, Tensor eta, "
+      "Tensor? eta_phi, Tensor? psi, Tensor? w_m, Tensor op, Tensor psp_rows, Tensor end_rows, bool filter_first, "
+      "bool need_rows, float e_max, bool oja, int modulation, bool write_trace) -> Tensor[]");
   m.def(
       "srm_interval_backward(Tensor? d_spikes, Tensor? d_h1, Tensor? d_h2, Tensor? d_r_pre, Tensor? d_r_post, "
       "Tensor? d_new_E, Tensor? d_new_phi, Tensor product_in, Tensor W, Tensor? alpha, Tensor? E, Tensor surrogate, "
