@@ -4,9 +4,9 @@ Two groups of rows, each algorithm at one and at every other requested torch thr
 
 * the paper network (``paper.yml``: 12 x 50 inputs, 64-64 hidden, 6 x 100 outputs, T = 50; ``static`` and
   ``ndp-oja``) against ``mlp`` and ``recurrent``, all with the same PPO settings (8 envs, ``n_steps`` 256, 10
-  epochs, batch 2048 transitions = 64 chunks of 32), ``chunks_per_pass`` at its default (``"auto"``: ndp-oja
-  runs each minibatch in two passes of 32 chunks, static in one); ``ndp-oja-one-pass`` runs each minibatch in
-  one pass (``chunks_per_pass=None``: faster, more memory);
+  epochs, batch 2048 transitions = 64 chunks of 32), ``chunks_per_pass`` at its default (``"auto"``: each
+  minibatch in one pass); ``ndp-oja-two-passes`` runs ndp-oja's minibatches in two passes of 32 chunks
+  (``chunks_per_pass=32``: less memory, slower);
 * the shipped CPU entry (``entry``: ``ppo.yml``'s HalfCheetah-v5, 17 x 10 inputs, T = 10, its own settings)
   against ``entry-recurrent`` (``ppo_lstm.yml``: RecurrentPPO with the same PPO settings as the entry);
 * ``tmaze``: the T-maze entry (``ppo.yml``'s TMazeCue-v0), the small network that ``train --torch-threads auto``
@@ -57,7 +57,7 @@ LABELS = {
     "static": "SpikePlastic static, paper network",
     "ndp-oja": "SpikePlastic ndp-oja, paper network",
     "ndp-oja-eager": "SpikePlastic ndp-oja, paper network, no CUDA graphs",
-    "ndp-oja-one-pass": "SpikePlastic ndp-oja, paper network, one pass",
+    "ndp-oja-two-passes": "SpikePlastic ndp-oja, paper network, two passes",
     "entry": "SpikePlastic CPU entry (ppo.yml, dp-oja)",
     "entry-recurrent": "RecurrentPPO, the entry's settings (ppo_lstm.yml)",
     "tmaze": "SpikePlastic T-maze entry (ppo.yml, TMazeCue-v0)",
@@ -137,7 +137,7 @@ def make_model(key: str, device: str):
         paper.pop(name, None)
     rule = "static" if key == "static" else "ndp-oja"
     return PPO("SpikePlasticPolicy", env, bptt_steps=32, cuda_graphs=key != "ndp-oja-eager",
-               chunks_per_pass=None if key == "ndp-oja-one-pass" else "auto", policy_kwargs=dict(paper, rule=rule),
+               chunks_per_pass=32 if key == "ndp-oja-two-passes" else "auto", policy_kwargs=dict(paper, rule=rule),
                **common)
 
 
