@@ -117,6 +117,10 @@ class RolloutActivity:
     :param policy: the policy (optional; for ``snn/action_std``).
     """
 
+    #: rollout steps whose rates are kept before their statistics are added up, all in one batch of tensor ops: a
+    #: dozen small ops on every step took ~10 % of a HalfCheetah rollout's time (paper network, 8 environments)
+    BATCH_STEPS = 64
+
     def __init__(self, network: SpikingPlasticNetwork, policy: Optional[torch.nn.Module] = None):
         self.network = network
         self.policy = policy
@@ -124,27 +128,42 @@ class RolloutActivity:
 
     def reset(self) -> None:
         self.steps = 0
-        # (n_layers, 4) sums on the network's device: rate, silent fraction, modulation, modulation squared. Kept
-        # there until `record`, so that a rollout step never waits for the device (which would stall a GPU).
+        # (n_layers, 4) sums over steps on the network's device: rate, silent fraction, modulation, modulation
+        # squared (each a mean over the step's environments and neurons), and the spike counts. Kept there until
+        # `record`, so that a rollout step never waits for the device (which would stall a GPU).
         self._sums: Optional[torch.Tensor] = None
         self._spikes: Optional[torch.Tensor] = None
+        self._unsummed: list[tuple[Optional[Tensor], ...]] = []  # (input_rate, *rates) of the latest steps
 
     @torch.no_grad()
     def add(self, out: NetworkOutput) -> None:
         """Accumulate one rollout step's rates (all environments)."""
         self.steps += 1
-        if out.input_rate is not None:
-            spikes = spike_counts(out, self.network.steps)
+        self._unsummed.append((out.input_rate, *out.rates))
+        if len(self._unsummed) >= self.BATCH_STEPS:
+            self._sum_up()
+
+    def _sum_up(self) -> None:
+        """Add the kept steps' statistics to the sums, each population's steps stacked ``(k, batch, n)``."""
+        if not self._unsummed:
+            return
+        k = len(self._unsummed)
+        input_rates, *layer_rates = [list(column) for column in zip(*self._unsummed)]
+        self._unsummed = []
+        rates = [torch.stack(column) for column in layer_rates]
+        if input_rates[0] is not None:  # spike_counts of every step, summed
+            spikes = torch.stack([r.sum(-1).mean(-1).sum() for r in (torch.stack(input_rates), *rates)])
+            spikes = spikes * self.network.steps
             self._spikes = spikes if self._spikes is None else self._spikes + spikes
         rows = []
-        for layer, r in zip(self.network.layers, out.rates):
+        for layer, r in zip(self.network.layers, rates):
             if layer.plastic and layer.rule.modulated:
                 m = layer.rule.modulation(r)
                 modulation = (m.mean(), m.pow(2).mean())
             else:
                 modulation = (r.new_zeros(()), r.new_zeros(()))
             rows.append(torch.stack([r.mean(), (r == 0).float().mean(), *modulation]))
-        stats = torch.stack(rows)
+        stats = torch.stack(rows) * k  # every step's mean has the same weight
         self._sums = stats if self._sums is None else self._sums + stats
 
     @torch.no_grad()
@@ -152,6 +171,7 @@ class RolloutActivity:
         """Write the statistics of the rollout and of the final traces to ``logger``."""
         if self.steps == 0:
             return
+        self._sum_up()
         means = (self._sums.double() / self.steps).tolist()
         if self._spikes is not None:
             spikes = self._spikes.double() / self.steps

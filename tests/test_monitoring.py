@@ -21,8 +21,10 @@ from sb3_spikeplastic.monitoring import (
     RolloutActivity,
     hyperparameter_markdown,
     record_episode,
+    spike_counts,
     write_hyperparameters,
 )
+from sb3_spikeplastic.network import NetworkOutput
 
 SMALL = dict(hidden_sizes=(16,), steps=10, encoder_pop_size=8, action_pop_size=4)
 
@@ -82,6 +84,43 @@ def test_rollout_scalars_action_std_for_continuous_actions():
     capture = Capture()
     activity.record(capture, model.policy.initial_state(1))
     assert capture.values["snn/action_std"] == pytest.approx(np.exp(-0.5), rel=1e-6)
+
+
+def test_rollout_statistics_are_the_means_of_every_steps():
+    """The rollout's statistics, added up in batches of steps, are the means over the steps of each step's rate,
+    silent fraction, modulation and spike counts, over more steps than one batch holds."""
+    model = tmaze_model("ndp-oja", env_kwargs={"neurons_per_population": 10})
+    snn = model.policy.snn
+    generator = torch.Generator().manual_seed(0)
+
+    def rates(n):  # about a third silent
+        r = torch.rand(3, n, generator=generator, dtype=torch.float64).float()
+        return torch.where(r < 0.3, torch.zeros_like(r), r)
+
+    n_steps = RolloutActivity.BATCH_STEPS + 37
+    outputs = [NetworkOutput(None, tuple(rates(n) for n in snn.sizes[1:]), None, rates(snn.sizes[0]))
+               for _ in range(n_steps)]
+    activity = RolloutActivity(snn, model.policy)
+    for out in outputs:
+        activity.add(out)
+    capture = Capture()
+    activity.record(capture, snn.initial_state(3))
+    for i, layer in enumerate(snn.layers):
+        layer_rates = [out.rates[i] for out in outputs]
+        expected = {"snn/layer{}/spike_rate": np.mean([float(r.mean()) for r in layer_rates]),
+                    "snn/layer{}/silent_fraction": np.mean([float((r == 0).float().mean()) for r in layer_rates]),
+                    "snn/layer{}/spikes_per_step": np.mean([float(spike_counts(out, snn.steps)[i + 1])
+                                                            for out in outputs])}
+        if layer.plastic and layer.rule.modulated:
+            m = [layer.rule.modulation(r).detach() for r in layer_rates]
+            mean, square = np.mean([float(x.mean()) for x in m]), np.mean([float(x.pow(2).mean()) for x in m])
+            expected["plasticity/layer{}/modulation_mean"] = mean
+            expected["plasticity/layer{}/modulation_std"] = (square - mean**2) ** 0.5
+        for key, value in expected.items():
+            assert capture.values[key.format(i)] == pytest.approx(value, rel=1e-5), key.format(i)
+    assert "plasticity/layer0/modulation_mean" in capture.values
+    inputs = np.mean([float(spike_counts(out, snn.steps)[0]) for out in outputs])
+    assert capture.values["snn/input/spikes_per_step"] == pytest.approx(inputs, rel=1e-5)
 
 
 def test_record_episode_tmaze_is_complete_and_leaves_global_rng_alone():
