@@ -217,16 +217,23 @@ class PlasticSRMLayer(nn.Module):
         """
         length = spikes_in.shape[1]
         operator, psp_rows, end_rows = self._psp_filter(length, spikes_in.dtype, spikes_in.device)
-        # The interval's spikes and the carried PSP state (h1, h2) as L + 2 rows: one product filters them all.
-        rows = torch.cat([spikes_in, psp.h1.unsqueeze(1), psp.h2.unsqueeze(1)], 1)
         if self.filter_first:
+            # The interval's spikes and the carried PSP state (h1, h2) as L + 2 rows: one product filters them all.
+            rows = torch.cat([spikes_in, psp.h1.unsqueeze(1), psp.h2.unsqueeze(1)], 1)
             filtered = operator @ rows  # (B, L + 2, n_in): the PSP of each step, then the end state
             return self.project(filtered[:, :length], trace), AlphaFilterState(filtered[:, length],
                                                                                filtered[:, length + 1])
+        carried = torch.stack([psp.h1, psp.h2], 1)
+        end = end_rows[:, :length] @ spikes_in + end_rows[:, length:] @ carried
         # The carried state rides along in the product: projecting h1 and h2 on their own would cost two
-        # trace-sized outer products (and their sum) in the backward pass.
-        end = end_rows @ rows
-        return psp_rows @ self.project(rows, trace, efficacy_left=True), AlphaFilterState(end[:, 0], end[:, 1])
+        # trace-sized outer products (and their sum) in the backward pass. The compiled op takes it beside the
+        # spikes (as the fused interval does), without copying them into one block of rows.
+        projected = None
+        if self.alpha is not None:
+            projected = _fast.plastic_linear(spikes_in, self.weight, self.alpha, trace, carried)
+        if projected is None:
+            projected = self.project(torch.cat([spikes_in, carried], 1), trace, efficacy_left=True)
+        return psp_rows @ projected, AlphaFilterState(end[:, 0], end[:, 1])
 
     def _interval_constants(self, length: int, dtype, device) -> _IntervalConstants:
         """The fused op's fixed arguments for intervals of ``length`` steps (cached)."""
@@ -305,10 +312,10 @@ class _FusedInterval(torch.autograd.Function):
     @staticmethod
     def forward(ctx, spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m,
                 constants, ops):
-        *outputs, product_in, surrogate, p, pre, m = _FusedInterval.run(
+        *outputs, product_in, surrogate, p, pre, m, carried = _FusedInterval.run(
             spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m, constants, ops)
-        ctx.save_for_backward(product_in, weight, alpha, trace, surrogate, p, pre, m, outputs[6], outputs[7], phi,
-                              eta, eta_phi, psi, w_m)
+        ctx.save_for_backward(product_in, carried, weight, alpha, trace, surrogate, p, pre, m, outputs[6], outputs[7],
+                              phi, eta, eta_phi, psi, w_m)
         ctx.constants, ctx.ops = constants, ops
         ctx.mark_non_differentiable(*_constant_outputs(ctx, outputs))
         # Outputs the loss does not reach (the membrane, the output layer's spikes, unused rates, the final trace)
@@ -319,15 +326,15 @@ class _FusedInterval(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, d_spikes, _d_membrane, d_h1, d_h2, _d_ref_h1, _d_ref_h2, d_r_pre, d_r_post, d_trace, d_phi):
-        product_in, weight, alpha, trace, surrogate, p, pre, m, r_pre, r_post, phi, eta, eta_phi, psi, w_m = \
-            ctx.saved_tensors
+        (product_in, carried, weight, alpha, trace, surrogate, p, pre, m, r_pre, r_post, phi, eta, eta_phi, psi,
+         w_m) = ctx.saved_tensors
         constants = ctx.constants
         oja, modulation = constants.rule_flags
         need_rows = any(ctx.needs_input_grad[:3])
         grads = ctx.ops.srm_interval_backward(
-            d_spikes, d_h1, d_h2, d_r_pre, d_r_post, d_trace, d_phi, product_in, weight, alpha, trace, surrogate, p,
-            pre, m if modulation else None, r_pre, r_post, phi, eta, eta_phi, psi, w_m, *constants.filters,
-            constants.filter_first, need_rows, constants.e_max, oja, modulation)
+            d_spikes, d_h1, d_h2, d_r_pre, d_r_post, d_trace, d_phi, product_in, carried, weight, alpha, trace,
+            surrogate, p, pre, m if modulation else None, r_pre, r_post, phi, eta, eta_phi, psi, w_m,
+            *constants.filters, constants.filter_first, need_rows, constants.e_max, oja, modulation)
         d_x, d_h1, d_h2, d_w, d_alpha, d_trace, d_phi, d_eta_phi, d_psi, d_eta, d_w_m = grads
         if not need_rows:
             d_x = d_h1 = d_h2 = None
@@ -386,8 +393,8 @@ class _DeferredInterval(torch.autograd.Function):
         outputs = _DeferredInterval.run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, p0, q0, p1, q1, phi,
                                         eta, eta_phi, psi, w_m, constants, ops, write)
         product_in, surrogate, p, pre, m = outputs[10:15]
-        ctx.save_for_backward(product_in, weight, alpha, trace, p0, q0, p1, q1, surrogate, p, pre, m, outputs[6],
-                              outputs[7], phi, eta, eta_phi, psi, w_m)
+        ctx.save_for_backward(product_in, outputs[17], weight, alpha, trace, p0, q0, p1, q1, surrogate, p, pre, m,
+                              outputs[6], outputs[7], phi, eta, eta_phi, psi, w_m)
         ctx.constants, ctx.ops, ctx.write = constants, ops, write
         ctx.mark_non_differentiable(*_constant_outputs(ctx, outputs))
         ctx.set_materialize_grads(False)
@@ -399,14 +406,14 @@ class _DeferredInterval(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, d_spikes, _d_membrane, d_h1, d_h2, _d_ref_h1, _d_ref_h2, d_r_pre, d_r_post, d_trace, d_phi,
                  d_p, d_q):
-        (product_in, weight, alpha, trace, p0, q0, p1, q1, surrogate, p, pre, m, r_pre, r_post, phi, eta, eta_phi,
-         psi, w_m) = ctx.saved_tensors
+        (product_in, carried, weight, alpha, trace, p0, q0, p1, q1, surrogate, p, pre, m, r_pre, r_post, phi, eta,
+         eta_phi, psi, w_m) = ctx.saved_tensors
         constants = ctx.constants
         oja, modulation = constants.rule_flags
         need_rows = any(ctx.needs_input_grad[:3])
         grads = ctx.ops.srm_interval_deferred_backward(
-            d_spikes, d_h1, d_h2, d_r_pre, d_r_post, d_trace, d_phi, d_p, d_q, product_in, weight, alpha, trace,
-            p0, q0, p1, q1, surrogate, p, pre, m if modulation else None, r_pre, r_post, phi, eta, eta_phi, psi,
+            d_spikes, d_h1, d_h2, d_r_pre, d_r_post, d_trace, d_phi, d_p, d_q, product_in, carried, weight, alpha,
+            trace, p0, q0, p1, q1, surrogate, p, pre, m if modulation else None, r_pre, r_post, phi, eta, eta_phi, psi,
             w_m, *constants.filters, constants.filter_first, need_rows, constants.e_max, oja, modulation, ctx.write)
         d_x, d_h1, d_h2, d_w, d_alpha, d_trace, d_phi, d_eta_phi, d_psi, d_eta, d_w_m, d_p0, d_q0, d_p1, d_q1 = grads
         if not need_rows:

@@ -172,6 +172,43 @@ def test_fused_plastic_linear_one_environment_per_block(fused, dtype):
             torch.testing.assert_close(a, b, **TOL[dtype])
 
 
+@pytest.mark.parametrize("n_in, n_out", [(9, 5), (600, 64)], ids=["blocks", "one-environment-per-block"])
+@pytest.mark.parametrize("rows_grad", [True, False], ids=["rows-grad", "no-rows-grad"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["f32", "f64"])
+def test_fused_plastic_linear_with_carried_rows(fused, dtype, rows_grad, n_in, n_out):
+    """Rows carried beside ``x`` (a layer's PSP state), multiplied in the pass that builds the efficacy: the product
+    of ``[x; carried]`` and its five gradients against the eager ops on the concatenated rows, with and without
+    gradients for the rows; the carried rows' part of the weight gradients is not lost when their products get no
+    gradient."""
+    g = torch.Generator().manual_seed(5)
+    x = (torch.rand(3, 7, n_in, generator=g) < 0.3).to(dtype).requires_grad_(rows_grad)
+    carried = torch.randn(3, 2, n_in, generator=g, dtype=dtype).requires_grad_(rows_grad)
+    W, alpha = (0.3 * torch.randn(n_out, n_in, generator=g, dtype=dtype) for _ in range(2))
+    W, alpha = W.requires_grad_(), alpha.requires_grad_()
+    E = torch.randn(3, n_out, n_in, generator=g, dtype=dtype).requires_grad_()
+    upstream = torch.randn(3, 9, n_out, generator=g, dtype=dtype)
+    out = _fast.plastic_linear(x, W, alpha, E, carried)
+    ref = torch.cat([x, carried], 1) @ torch.addcmul(W, alpha, E).transpose(1, 2)
+
+    def assert_close(a, b):  # sums of up to 600 terms in float32: tolerances scaled by the largest value
+        tol = TOL[dtype]
+        torch.testing.assert_close(a, b, rtol=tol["rtol"], atol=tol["atol"] * max(1.0, float(b.abs().max())))
+
+    assert_close(out, ref)
+    inputs = (x, carried, W, alpha, E) if rows_grad else (W, alpha, E)
+    for a, b in zip(torch.autograd.grad((out * upstream).sum(), inputs),
+                    torch.autograd.grad((ref * upstream).sum(), inputs)):
+        assert_close(a, b)
+    out = _fast.plastic_linear(x, W, alpha, E, carried)
+    ref = torch.cat([x, carried], 1) @ torch.addcmul(W, alpha, E).transpose(1, 2)
+    spikes_only = (out[:, :7] * upstream[:, :7]).sum()  # the carried rows' products get no gradient
+    for a, b in zip(torch.autograd.grad(spikes_only, inputs),
+                    torch.autograd.grad((ref[:, :7] * upstream[:, :7]).sum(), inputs)):
+        assert_close(a, b)
+    if dtype is torch.float64 and rows_grad and n_in < 100:
+        assert torch.autograd.gradcheck(lambda *t: _fast.plastic_linear(*t), (x, W, alpha, E, carried))
+
+
 @pytest.mark.parametrize("threads", [1, 2])
 def test_fused_plastic_linear_splits_environments_between_threads(fused, threads):
     """Environments big enough to be split between threads (each thread sums its own dW and dalpha): values and

@@ -333,39 +333,53 @@ def trace_step(E: Tensor, post: Tensor, pre: Tensor, eta: Tensor, e_max: float, 
 
 
 class _PlasticLinear(torch.autograd.Function):
-    """``X[b] (W + alpha * E[b])^T`` per environment, the efficacy of a few environments at a time, blocks split
-    between torch's threads (see ``plastic_linear.cpp``); the gradient of ``X`` is computed only when it is
-    needed."""
+    """``X[b] (W + alpha * E[b])^T`` per environment, and the same product of the rows ``C[b]`` carried beside ``X``
+    (when given: a layer's PSP state), the efficacy of a few environments at a time, blocks split between torch's
+    threads (see ``plastic_linear.cpp``); the gradients of ``X`` and ``C`` are computed only when needed."""
 
     @staticmethod
-    def forward(ctx, x: Tensor, weight: Tensor, alpha: Tensor, E: Tensor) -> Tensor:
-        ctx.save_for_backward(x, weight, alpha, E)
-        return _ops.plastic_linear_forward(x, weight, alpha, E)
+    def forward(ctx, x: Tensor, weight: Tensor, alpha: Tensor, E: Tensor, carried: Optional[Tensor]):
+        ctx.save_for_backward(x, weight, alpha, E, carried)
+        ctx.set_materialize_grads(False)  # an unused output's gradient is read as zero, not filled with it
+        y, y_carried = _ops.plastic_linear_forward(x, weight, alpha, E, carried)
+        if carried is None:
+            ctx.mark_non_differentiable(y_carried)
+        return y, y_carried
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx, grad: Tensor):
-        x, weight, alpha, E = ctx.saved_tensors
-        d_x, d_w, d_alpha, d_e = _ops.plastic_linear_backward(grad, x, weight, alpha, E, ctx.needs_input_grad[0])
-        return d_x if ctx.needs_input_grad[0] else None, d_w, d_alpha, d_e
+    def backward(ctx, grad: Optional[Tensor], grad_carried: Optional[Tensor]):
+        x, weight, alpha, E, carried = ctx.saved_tensors
+        if grad is None:
+            grad = x.new_zeros(x.shape[0], x.shape[1], weight.shape[0])
+        need_rows = ctx.needs_input_grad[0] or ctx.needs_input_grad[4]
+        d_x, d_w, d_alpha, d_e, d_c = _ops.plastic_linear_backward(grad, grad_carried, x, weight, alpha, E, carried,
+                                                                   need_rows)
+        return (d_x if ctx.needs_input_grad[0] else None, d_w, d_alpha, d_e,
+                d_c if ctx.needs_input_grad[4] else None)
 
 
-def plastic_linear(x: Tensor, weight: Tensor, alpha: Tensor, E: Tensor) -> Optional[Tensor]:
+def plastic_linear(x: Tensor, weight: Tensor, alpha: Tensor, E: Tensor,
+                   carried: Optional[Tensor] = None) -> Optional[Tensor]:
     """The fused ``x[b] @ (W + alpha * E[b]).T`` for CPU float32/float64 ``x (B, L, n_in)``, ``W, alpha
     (n_out, n_in)`` and ``E (B, n_out, n_in)`` of one dtype, or ``None`` when it does not apply (then use the eager
-    ops). Differentiable once."""
+    ops). With ``carried (B, 2, n_in)``, the product of the rows ``[x; carried]`` ``(B, L + 2, n_out)``, without
+    copying them into one tensor: the carried rows are multiplied in the pass that builds the efficacy.
+    Differentiable once."""
     if not (
-        cpu_float_operands(E, x, weight, alpha)
+        cpu_float_operands(E, x, weight, alpha, *([] if carried is None else [carried]))
         and E.dim() == 3
         and x.dim() == 3
         and weight.shape == alpha.shape == E.shape[1:]
         and x.shape[0] == E.shape[0]
         and x.shape[2] == E.shape[2]
+        and (carried is None or carried.shape == (x.shape[0], 2, x.shape[2]))
     ):
         return None
     if _enabled_ops() is None:
         return None
-    return _PlasticLinear.apply(x, weight, alpha, E)
+    y, y_carried = _PlasticLinear.apply(x, weight, alpha, E, carried)
+    return y if carried is None else torch.cat([y, y_carried], 1)
 
 
 def interval_ops() -> Optional[Any]:

@@ -19,26 +19,30 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     const at::Tensor& synaptic, const at::Tensor& h1, const at::Tensor& h2, double d, double kappa, double theta,
     double width, double scale, bool need_surrogate);
 
-// plastic_linear.cpp: Y[b] = X[b] (W + alpha * E[b])^T and its gradients (dX, dW, dalpha, dE); dE starts from
-// dE_init when it is given (a gradient of E from elsewhere, added in the same pass).
-at::Tensor plastic_linear_forward(const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha,
-                                  const at::Tensor& E);
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> plastic_linear_backward(
-    const at::Tensor& grad, const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E,
-    bool need_x_grad, const at::Tensor& dE_init = at::Tensor());
+// plastic_linear.cpp: Y[b] = X[b] (W + alpha * E[b])^T and, for carried rows C (B, 2, n_in) when given, Yc[b] =
+// C[b] (W + alpha * E[b])^T -> (Y, Yc); its gradients (dX, dW, dalpha, dE, dC); dE starts from dE_init when it is
+// given (a gradient of E from elsewhere, added in the same pass).
+std::tuple<at::Tensor, at::Tensor> plastic_linear_forward(const at::Tensor& X, const at::Tensor& W,
+                                                          const at::Tensor& alpha, const at::Tensor& E,
+                                                          const at::Tensor& C = at::Tensor());
+std::vector<at::Tensor> plastic_linear_backward(const at::Tensor& grad, const at::Tensor& grad_c, const at::Tensor& X,
+                                                const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E,
+                                                const at::Tensor& C, bool need_x_grad,
+                                                const at::Tensor& dE_init = at::Tensor());
 
 // The same product with the previous intervals' trace updates deferred into its pass over the trace: E_t = E with
 // clamp((1 - eta) E + (eta p0) (x) q0) applied, then likewise (p1, q1) (each pair when given), written out when write
-// -> (Y, E_t, r = E_t q), and its backward pass -> (dX, dW, dalpha, dE, dq, dq0, dp0, dq1, dp1, dL/deta of the pending
-// updates).
-std::tuple<at::Tensor, at::Tensor, at::Tensor> plastic_linear_deferred_forward(
-    const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E, const at::Tensor& p0,
-    const at::Tensor& q0, const at::Tensor& p1, const at::Tensor& q1, const at::Tensor& q, double eta, double e_max,
-    bool write);
-std::vector<at::Tensor> plastic_linear_deferred_backward(
-    const at::Tensor& grad, const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E,
+// -> (Y, Yc, E_t, r = E_t q), and its backward pass -> (dX, dW, dalpha, dE, dq, dq0, dp0, dq1, dp1, dL/deta of the
+// pending updates, dC).
+std::vector<at::Tensor> plastic_linear_deferred_forward(
+    const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E, const at::Tensor& C,
     const at::Tensor& p0, const at::Tensor& q0, const at::Tensor& p1, const at::Tensor& q1, const at::Tensor& q,
-    const at::Tensor& dE_t, const at::Tensor& dr, bool need_x_grad, double eta, double e_max, bool write);
+    double eta, double e_max, bool write);
+std::vector<at::Tensor> plastic_linear_deferred_backward(
+    const at::Tensor& grad, const at::Tensor& grad_c, const at::Tensor& X, const at::Tensor& W,
+    const at::Tensor& alpha, const at::Tensor& E, const at::Tensor& C, const at::Tensor& p0, const at::Tensor& q0,
+    const at::Tensor& p1, const at::Tensor& q1, const at::Tensor& q, const at::Tensor& dE_t, const at::Tensor& dr,
+    bool need_x_grad, double eta, double e_max, bool write);
 
 // trace_step.cpp: E' = clamp((1 - eta) E + (eta p) (x) pre), p = post - [E pre] -> (E', p), and its gradients
 // (dE, dpost, dpre, deta).

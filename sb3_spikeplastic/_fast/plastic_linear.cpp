@@ -12,6 +12,10 @@
 //
 //     forward:   eff = W + alpha * E[b];          Y[b] = X[b] eff^T
 //     backward:  G = dY[b]^T X[b]                 (the gradient of W_eff[b], in W's layout)
+//
+// Rows carried beside X (C (B, 2, n_in): a layer's PSP state, the rows it would otherwise append to the interval's
+// spikes with a copy of them all) are multiplied in the pass that builds the efficacy, Yc[b] = C[b] eff^T as row
+// sums, and their part of G, dYc[b]^T C[b], is added in the backward pass over G.
 //                dE[b] = alpha * G (+ dE_init[b]),  dW += G,  dalpha += E[b] * G    (one pass over G and E[b],
 //                                                         which also writes the efficacy over G when dX is needed)
 //                dX[b] = dY[b] (W + alpha * E[b])                         (only when X needs a gradient)
@@ -41,6 +45,7 @@
 #include "lanes.h"
 
 #include <algorithm>
+#include <optional>
 #include <tuple>
 #include <type_traits>
 #include <vector>
@@ -239,38 +244,58 @@ void with_pending(int64_t pending, bool write, const F& f) {
   }
 }
 
+// Row sums of the deferred forward pass: the Oja term's v . q and the carried rows' products eff . c0, eff . c1.
+template <typename T>
+struct RowSums {
+  T q = 0, c0 = 0, c1 = 0;
+};
+
 // One row of the deferred forward pass (plastic_linear_deferred_forward): the trace row v the product uses (e0 with
-// the pending updates applied), written to et when write, and the efficacy's row w + a v to eff; returns the Oja
-// term's row sum v . q (0 without q).
+// the pending updates applied), written to et when write, and the efficacy's row w + a v to eff; returns the row
+// sums (v . q without q and the carried rows' without c0 and c1 are 0).
 template <typename T, int pending, bool write>
-inline T deferred_row(const T* __restrict e0, const PendingRow<T>& u, T keep, T lo, T hi, const T* __restrict w,
-                      const T* __restrict a, const T* __restrict q, T* __restrict et, T* __restrict eff, int64_t n) {
+inline RowSums<T> deferred_row(const T* __restrict e0, const PendingRow<T>& u, T keep, T lo, T hi,
+                               const T* __restrict w, const T* __restrict a, const T* __restrict q,
+                               const T* __restrict c0, const T* __restrict c1, T* __restrict et, T* __restrict eff,
+                               int64_t n) {
   using sb3_spikeplastic_fast::load;
   using sb3_spikeplastic_fast::splat;
   using sb3_spikeplastic_fast::store;
   using V = typename sb3_spikeplastic_fast::Lanes<T>::V;
   constexpr int64_t L = sb3_spikeplastic_fast::Lanes<T>::n;
   const V keep_v = splat(keep), ep0_v = splat(u.ep0), ep1_v = splat(u.ep1), lo_v = splat(lo), hi_v = splat(hi);
-  V acc = splat<T>(0);
+  V acc = splat<T>(0), acc0 = splat<T>(0), acc1 = splat<T>(0);
   int64_t i = 0;
   for (; i + L <= n; i += L) {
     V v = load(e0 + i);
     if constexpr (pending >= 1) v = clamp_lanes(v * keep_v + ep0_v * load(u.q0 + i), lo_v, hi_v);
     if constexpr (pending == 2) v = clamp_lanes(v * keep_v + ep1_v * load(u.q1 + i), lo_v, hi_v);
     if constexpr (write) store(et + i, v);
-    store(eff + i, load(w + i) + load(a + i) * v);
+    const V ev = load(w + i) + load(a + i) * v;
+    store(eff + i, ev);
     if (q != nullptr) acc += v * load(q + i);
+    if (c0 != nullptr) {
+      acc0 += ev * load(c0 + i);
+      acc1 += ev * load(c1 + i);
+    }
   }
-  T sum = sb3_spikeplastic_fast::sum_lanes<T>(acc);
+  RowSums<T> sums;
+  sums.q = sb3_spikeplastic_fast::sum_lanes<T>(acc);
+  sums.c0 = sb3_spikeplastic_fast::sum_lanes<T>(acc0);
+  sums.c1 = sb3_spikeplastic_fast::sum_lanes<T>(acc1);
   for (; i < n; ++i) {
     T v = e0[i];
     if constexpr (pending >= 1) v = std::min(hi, std::max(lo, v * keep + u.ep0 * u.q0[i]));
     if constexpr (pending == 2) v = std::min(hi, std::max(lo, v * keep + u.ep1 * u.q1[i]));
     if constexpr (write) et[i] = v;
     eff[i] = w[i] + a[i] * v;
-    if (q != nullptr) sum += v * q[i];
+    if (q != nullptr) sums.q += v * q[i];
+    if (c0 != nullptr) {
+      sums.c0 += eff[i] * c0[i];
+      sums.c1 += eff[i] * c1[i];
+    }
   }
-  return q != nullptr ? sum : T(0);
+  return sums;
 }
 
 // Sums of one row of the deferred backward pass, per pending update k: dL/dep_k (gx_k . q_k) and dL/dkeep_k
@@ -283,21 +308,33 @@ struct PendingSums {
 // One row of the deferred backward pass, with g the row of the efficacy's gradient dY^T X and v1, v as in
 // deferred_row (v1: the trace row after the first pending update, v: after all of them):
 //
+//     g <- g + dyc0 c0 + dyc1 c1          (the carried rows' part of the efficacy's gradient, when given)
 //     total = a g + dr q (+ d1 when the trace was written or none is pending: d1 is then dL/dv)
-//     dW += g,  dalpha += g v,  dq += dr v,  g <- w + a v (the efficacy, for dX; only when w is given)
+//     dW += g,  dalpha += g v,  dq += dr v,  g <- w + a v (the efficacy, for dX; only when w is given; then also
+//     dc0 += dyc0 (w + a v) and dc1 likewise, the carried rows' gradients, when they are given)
 //     second update:  gx2 = total where its clamp was inactive;  dq1 += ep1 gx2;  sums gx2 . q1, gx2 . v1;
 //                     gx1 = keep gx2                                              (else gx1 = total)
 //     first update:   gx1 <- gx1 where its clamp was inactive;  dq0 += ep0 gx1;  sums gx1 . q0, gx1 . e0;
 //                     d0 = keep gx1 (+ d1 when the trace was not written: d1 is then dL/de0, the input passed on)
 //     none pending:   d0 = total
 //
-// d1 and q may be null (read as zero); dq is null with q; w is null when dX is not needed.
+// d1 and q may be null (read as zero); dq is null with q; w is null when dX is not needed; c.c0 is null without
+// carried rows.
+template <typename T>
+struct CarriedRows {
+  const T* c0;
+  const T* c1;
+  T dy0, dy1;  // this row's dL/dYc
+  T* dc0;
+  T* dc1;
+};
+
 template <typename T, int pending, bool write, bool first>
 inline PendingSums<T> deferred_grad_row(T* __restrict g, const T* __restrict e0, const PendingRow<T>& u, T keep, T lo,
                                         T hi, const T* __restrict w, const T* __restrict a, const T* __restrict d1,
-                                        const T* __restrict q, T dr, T* __restrict d0, T* __restrict dw,
-                                        T* __restrict da, T* __restrict dq, T* __restrict dq0, T* __restrict dq1,
-                                        int64_t n) {
+                                        const T* __restrict q, T dr, const CarriedRows<T>& c, T* __restrict d0,
+                                        T* __restrict dw, T* __restrict da, T* __restrict dq, T* __restrict dq0,
+                                        T* __restrict dq1, int64_t n) {
   using sb3_spikeplastic_fast::load;
   using sb3_spikeplastic_fast::splat;
   using sb3_spikeplastic_fast::store;
@@ -306,11 +343,13 @@ inline PendingSums<T> deferred_grad_row(T* __restrict g, const T* __restrict e0,
   constexpr int64_t L = sb3_spikeplastic_fast::Lanes<T>::n;
   constexpr bool d1_of_v = write || pending == 0;
   const V keep_v = splat(keep), ep0_v = splat(u.ep0), ep1_v = splat(u.ep1), lo_v = splat(lo), hi_v = splat(hi),
-          dr_v = splat(dr);
+          dr_v = splat(dr), dy0_v = splat(c.dy0), dy1_v = splat(c.dy1);
   V s_ep0 = splat<T>(0), s_keep0 = splat<T>(0), s_ep1 = splat<T>(0), s_keep1 = splat<T>(0);
   int64_t i = 0;
   for (; i + L <= n; i += L) {
-    const V e = load(e0 + i), gv = load(g + i), av = load(a + i);
+    const V e = load(e0 + i), av = load(a + i);
+    V gv = load(g + i);
+    if (c.c0 != nullptr) gv = gv + dy0_v * load(c.c0 + i) + dy1_v * load(c.c1 + i);
     V v1 = e, v = e;
     Mask clip1 = {}, clip2 = {};
     if constexpr (pending >= 1) {
@@ -336,7 +375,14 @@ inline PendingSums<T> deferred_grad_row(T* __restrict g, const T* __restrict e0,
       store(dw + i, load(dw + i) + gv);
       store(da + i, load(da + i) + gv * v);
     }
-    if (w != nullptr) store(g + i, load(w + i) + av * v);
+    if (w != nullptr) {
+      const V ev = load(w + i) + av * v;
+      store(g + i, ev);
+      if (c.dc0 != nullptr) {
+        store(c.dc0 + i, load(c.dc0 + i) + dy0_v * ev);
+        store(c.dc1 + i, load(c.dc1 + i) + dy1_v * ev);
+      }
+    }
     if constexpr (pending == 0) {
       store(d0 + i, total);
     } else {
@@ -363,7 +409,9 @@ inline PendingSums<T> deferred_grad_row(T* __restrict g, const T* __restrict e0,
   sums.ep1 = sb3_spikeplastic_fast::sum_lanes<T>(s_ep1);
   sums.keep1 = sb3_spikeplastic_fast::sum_lanes<T>(s_keep1);
   for (; i < n; ++i) {
-    const T e = e0[i], gi = g[i];
+    const T e = e0[i];
+    T gi = g[i];
+    if (c.c0 != nullptr) gi = gi + c.dy0 * c.c0[i] + c.dy1 * c.c1[i];
     T v1 = e, v = e;
     bool clip1 = false, clip2 = false;
     if constexpr (pending >= 1) {
@@ -389,7 +437,13 @@ inline PendingSums<T> deferred_grad_row(T* __restrict g, const T* __restrict e0,
       dw[i] += gi;
       da[i] += gi * v;
     }
-    if (w != nullptr) g[i] = w[i] + a[i] * v;
+    if (w != nullptr) {
+      g[i] = w[i] + a[i] * v;
+      if (c.dc0 != nullptr) {
+        c.dc0[i] += c.dy0 * g[i];
+        c.dc1[i] += c.dy1 * g[i];
+      }
+    }
     if constexpr (pending == 0) {
       d0[i] = total;
     } else {
@@ -416,21 +470,26 @@ inline PendingSums<T> deferred_grad_row(T* __restrict g, const T* __restrict e0,
 
 namespace sb3_spikeplastic_fast {
 
-// The product without a trace update: the deferred form with none pending and no Oja row sums.
-at::Tensor plastic_linear_forward(const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha,
-                                  const at::Tensor& E) {
+// The product without a trace update: the deferred form with none pending and no Oja row sums. -> (Y, Yc (empty
+// without carried rows C))
+std::tuple<at::Tensor, at::Tensor> plastic_linear_forward(const at::Tensor& X, const at::Tensor& W,
+                                                          const at::Tensor& alpha, const at::Tensor& E,
+                                                          const at::Tensor& C) {
   const at::Tensor none;
-  return std::get<0>(plastic_linear_deferred_forward(X, W, alpha, E, none, none, none, none, none, 0, 1, false));
+  const std::vector<at::Tensor> out =
+      plastic_linear_deferred_forward(X, W, alpha, E, C, none, none, none, none, none, 0, 1, false);
+  return std::make_tuple(out[0], out[1]);
 }
 
-// Returns (dX, dW, dalpha, dE); dX is empty unless need_x_grad; dE starts from dE_init when it is given.
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> plastic_linear_backward(
-    const at::Tensor& grad, const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E,
-    bool need_x_grad, const at::Tensor& dE_init) {
+// Returns (dX, dW, dalpha, dE, dC); dX and dC are empty unless need_x_grad (dC also without C); dE starts from
+// dE_init when it is given.
+std::vector<at::Tensor> plastic_linear_backward(const at::Tensor& grad, const at::Tensor& grad_c, const at::Tensor& X,
+                                                const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E,
+                                                const at::Tensor& C, bool need_x_grad, const at::Tensor& dE_init) {
   const at::Tensor none;
-  const std::vector<at::Tensor> g = plastic_linear_deferred_backward(grad, X, W, alpha, E, none, none, none, none,
-                                                                     none, dE_init, none, need_x_grad, 0, 1, false);
-  return std::make_tuple(g[0], g[1], g[2], g[3]);
+  const std::vector<at::Tensor> g = plastic_linear_deferred_backward(
+      grad, grad_c, X, W, alpha, E, C, none, none, none, none, none, dE_init, none, need_x_grad, 0, 1, false);
+  return {g[0], g[1], g[2], g[3], g[10]};
 }
 
 namespace {
@@ -457,38 +516,51 @@ PendingRow<scalar_t> pending_row(const DeferredOperands<scalar_t>& v, int64_t b,
   return u;
 }
 
+// Carried rows C (B, 2, n_in), contiguous; undefined when none are given.
+at::Tensor carried_rows(const at::Tensor& C, const at::Tensor& X) {
+  if (!C.defined()) return C;
+  TORCH_CHECK(C.dim() == 3 && C.size(0) == X.size(0) && C.size(1) == 2 && C.size(2) == X.size(2) &&
+                  C.scalar_type() == X.scalar_type(),
+              "plastic_linear: carried rows (B, 2, n_in) of X's dtype");
+  return C.contiguous();
+}
+
 }  // namespace
 
 // The deferred trace update (srm_interval.cpp): the trace this interval's product uses is E_t, the input trace E with
 // the pending updates of the previous intervals applied, clamp(keep E + (eta p0) (x) q0, +-e_max) and then likewise
 // (p1, q1), built in the same pass over E as the efficacy (which also takes the Oja term's row sums r = E_t q when q
-// is given), so that each interval reads its trace once:
+// is given, and the carried rows' products Yc = C eff^T when C is), so that each interval reads its trace once:
 //
 //     forward:   E_t = the pending updates applied to E[b],  eff = W + alpha * E_t,  r = E_t q[b],  Y[b] = X[b] eff^T
 //
 // E_t is written out only when write (a sequence keeps every other trace: an interval that leaves its two
 // predecessors' updates pending recomputes the trace in registers, forward and backward, instead of storing it).
-// keep = 1 - eta and eta p are computed as trace_step.cpp computes them. Returns (Y, E_t (empty unless written), r
-// (empty without q)).
-std::tuple<at::Tensor, at::Tensor, at::Tensor> plastic_linear_deferred_forward(
+// keep = 1 - eta and eta p are computed as trace_step.cpp computes them. Returns (Y, Yc, E_t, r), each empty where
+// not computed.
+std::vector<at::Tensor> plastic_linear_deferred_forward(
     const at::Tensor& X_in, const at::Tensor& W_in, const at::Tensor& alpha_in, const at::Tensor& E_in,
-    const at::Tensor& p0_in, const at::Tensor& q0_in, const at::Tensor& p1_in, const at::Tensor& q1_in,
-    const at::Tensor& q_in, double eta, double e_max, bool write) {
+    const at::Tensor& C_in, const at::Tensor& p0_in, const at::Tensor& q0_in, const at::Tensor& p1_in,
+    const at::Tensor& q1_in, const at::Tensor& q_in, double eta, double e_max, bool write) {
   check_operands(X_in, W_in, alpha_in, E_in);
   const Pending u = pending_updates(p0_in, q0_in, p1_in, q1_in);
   write = write && u.count > 0;
   const at::Tensor X = X_in.contiguous(), W = W_in.contiguous(), alpha = alpha_in.contiguous(), E = E_in.contiguous();
-  const at::Tensor q = q_in.defined() ? q_in.contiguous() : at::Tensor();
+  const at::Tensor q = q_in.defined() ? q_in.contiguous() : at::Tensor(), C = carried_rows(C_in, X);
   const int64_t B = X.size(0), O = W.size(0), I = W.size(1), N = W.numel();
+  const at::Tensor none = at::empty({0}, E.options());
   at::Tensor Y = at::empty({B, X.size(1), O}, X.options());
-  at::Tensor Et = write ? at::empty_like(E, at::MemoryFormat::Contiguous) : at::empty({0}, E.options());
-  at::Tensor r = q.defined() ? at::empty({B, O}, E.options()) : at::empty({0}, E.options());
+  at::Tensor Yc = C.defined() ? at::empty({B, 2, O}, X.options()) : none;
+  at::Tensor Et = write ? at::empty_like(E, at::MemoryFormat::Contiguous) : none;
+  at::Tensor r = q.defined() ? at::empty({B, O}, E.options()) : none;
   const int64_t nb = block_size(B, N), blocks = (B + nb - 1) / nb;
   AT_DISPATCH_FLOATING_TYPES(E.scalar_type(), "plastic_linear_deferred_forward", [&] {
     const DeferredOperands<scalar_t> v = deferred_operands<scalar_t>(W, alpha, E, u.p0, u.q0, u.p1, u.q1, q, eta,
                                                                      e_max);
     scalar_t* et_p = write ? Et.data_ptr<scalar_t>() : nullptr;
     scalar_t* r_p = q.defined() ? r.data_ptr<scalar_t>() : nullptr;
+    const scalar_t* c_p = C.defined() ? C.data_ptr<scalar_t>() : nullptr;
+    scalar_t* yc_p = C.defined() ? Yc.data_ptr<scalar_t>() : nullptr;
     const bool blas = has_blas<scalar_t>();
     const CallerDenormalMode mode;
     at::parallel_for(0, blocks, 1, [&](int64_t begin, int64_t end) {
@@ -500,13 +572,19 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> plastic_linear_deferred_forward(
         const int64_t b0 = block * nb, n = std::min(nb, B - b0);
         for (int64_t b = b0; b < b0 + n; ++b) {
           const scalar_t* q_b = v.q != nullptr ? v.q + b * I : nullptr;
+          const scalar_t* c0 = c_p != nullptr ? c_p + 2 * b * I : nullptr;
+          const scalar_t* c1 = c_p != nullptr ? c0 + I : nullptr;
           with_pending(u.count, write, [&](auto count, auto written) {
             for (int64_t o = 0; o < O; ++o) {
               const int64_t off = b * N + o * I;
-              const scalar_t sum = deferred_row<scalar_t, decltype(count)::value, decltype(written)::value>(
-                  v.e + off, pending_row(v, b, o, O, I), v.keep, v.lo, v.hi, v.w + o * I, v.a + o * I, q_b,
+              const RowSums<scalar_t> sums = deferred_row<scalar_t, decltype(count)::value, decltype(written)::value>(
+                  v.e + off, pending_row(v, b, o, O, I), v.keep, v.lo, v.hi, v.w + o * I, v.a + o * I, q_b, c0, c1,
                   et_p != nullptr ? et_p + off : nullptr, buf_p + (b - b0) * N + o * I, I);
-              if (r_p != nullptr) r_p[b * O + o] = sum;
+              if (r_p != nullptr) r_p[b * O + o] = sums.q;
+              if (yc_p != nullptr) {
+                yc_p[2 * b * O + o] = sums.c0;
+                yc_p[(2 * b + 1) * O + o] = sums.c1;
+              }
             }
           });
         }
@@ -514,24 +592,26 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> plastic_linear_deferred_forward(
       }
     });
   });
-  return std::make_tuple(Y, Et, r);
+  return {Y, Yc, Et, r};
 }
 
-// The backward pass of plastic_linear_deferred_forward, one pass over E per environment (deferred_grad_row): dE1 is
-// the gradient of the trace the interval passes on (may be undefined): of E_t when it was written, else of E itself;
-// dr is dL/dr (undefined without q). Returns (dX (empty unless need_x_grad), dW, dalpha, dE, dq (empty without q),
-// then per pending update dq_k and dp_k (empty where none), then dL/deta of the pending updates (empty without one)).
+// The backward pass of plastic_linear_deferred_forward, one pass over E per environment (deferred_grad_row): grad_c
+// is dL/dYc (undefined: zero), dE1 the gradient of the trace the interval passes on (may be undefined): of E_t when
+// it was written, else of E itself; dr is dL/dr (undefined without q). Returns (dX (empty unless need_x_grad), dW,
+// dalpha, dE, dq (empty without q), then per pending update dq_k and dp_k (empty where none), then dL/deta of the
+// pending updates (empty without one), then dC (empty unless need_x_grad and C given)).
 std::vector<at::Tensor> plastic_linear_deferred_backward(
-    const at::Tensor& grad_in, const at::Tensor& X_in, const at::Tensor& W_in, const at::Tensor& alpha_in,
-    const at::Tensor& E_in, const at::Tensor& p0_in, const at::Tensor& q0_in, const at::Tensor& p1_in,
-    const at::Tensor& q1_in, const at::Tensor& q_in, const at::Tensor& dE1_in, const at::Tensor& dr_in,
-    bool need_x_grad, double eta, double e_max, bool write) {
+    const at::Tensor& grad_in, const at::Tensor& grad_c_in, const at::Tensor& X_in, const at::Tensor& W_in,
+    const at::Tensor& alpha_in, const at::Tensor& E_in, const at::Tensor& C_in, const at::Tensor& p0_in,
+    const at::Tensor& q0_in, const at::Tensor& p1_in, const at::Tensor& q1_in, const at::Tensor& q_in,
+    const at::Tensor& dE1_in, const at::Tensor& dr_in, bool need_x_grad, double eta, double e_max, bool write) {
   check_operands(X_in, W_in, alpha_in, E_in);
   const Pending u = pending_updates(p0_in, q0_in, p1_in, q1_in);
   write = write && u.count > 0;
   const at::Tensor g = grad_in.contiguous(), X = X_in.contiguous(), W = W_in.contiguous(),
                    alpha = alpha_in.contiguous(), E = E_in.contiguous();
-  const at::Tensor q = q_in.defined() ? q_in.contiguous() : at::Tensor();
+  const at::Tensor q = q_in.defined() ? q_in.contiguous() : at::Tensor(), C = carried_rows(C_in, X);
+  const at::Tensor gc = C.defined() && grad_c_in.defined() ? grad_c_in.contiguous() : at::Tensor();
   const at::Tensor dE1 = dE1_in.defined() ? dE1_in.contiguous() : at::Tensor();
   const at::Tensor dr = q.defined() && dr_in.defined() ? dr_in.contiguous() : at::Tensor();
   TORCH_CHECK(!dE1.defined() || (dE1.sizes() == E.sizes() && dE1.scalar_type() == E.scalar_type()),
@@ -540,12 +620,15 @@ std::vector<at::Tensor> plastic_linear_deferred_backward(
   TORCH_CHECK(g.dim() == 3 && g.size(0) == B && g.size(1) == X.size(1) && g.size(2) == O &&
                   g.scalar_type() == E.scalar_type(),
               "plastic_linear: the gradient does not match Y (B, L, o)");
+  TORCH_CHECK(!gc.defined() || (gc.dim() == 3 && gc.size(0) == B && gc.size(1) == 2 && gc.size(2) == O),
+              "plastic_linear: the gradient of the carried rows' products does not match Yc (B, 2, o)");
   const at::Tensor none = at::empty({0}, E.options());
   at::Tensor dE0 = at::empty_like(E, at::MemoryFormat::Contiguous);
   const int64_t threads = at::get_num_threads();
   at::Tensor acc = at::empty({threads, 2, O, I}, W.options());
   std::vector<char> used(threads, 0);
   at::Tensor dX = need_x_grad ? at::empty_like(X, at::MemoryFormat::Contiguous) : none;
+  at::Tensor dC = need_x_grad && C.defined() ? at::zeros({B, 2, I}, E.options()) : none;
   at::Tensor dq = q.defined() ? at::zeros({B, I}, E.options()) : none;
   at::Tensor dq0 = u.count >= 1 ? at::zeros({B, I}, E.options()) : none;
   at::Tensor dp0 = u.count >= 1 ? at::empty({B, O}, E.options()) : none;
@@ -559,8 +642,10 @@ std::vector<at::Tensor> plastic_linear_deferred_backward(
     auto ptr = [](at::Tensor& t) { return t.numel() > 0 ? t.data_ptr<scalar_t>() : nullptr; };
     const scalar_t* d1_p = dE1.defined() ? dE1.data_ptr<scalar_t>() : nullptr;
     const scalar_t* dr_p = dr.defined() ? dr.data_ptr<scalar_t>() : nullptr;
+    const scalar_t* c_p = C.defined() ? C.data_ptr<scalar_t>() : nullptr;
+    const scalar_t* gc_p = gc.defined() ? gc.data_ptr<scalar_t>() : nullptr;
     scalar_t *d0_p = dE0.data_ptr<scalar_t>(), *dq_p = ptr(dq), *dq0_p = ptr(dq0), *dp0_p = ptr(dp0),
-             *dq1_p = ptr(dq1), *dp1_p = ptr(dp1);
+             *dq1_p = ptr(dq1), *dp1_p = ptr(dp1), *dc_p = ptr(dC);
     double* deta_p = deta_rows.data_ptr<double>();
     const bool blas = has_blas<scalar_t>();
     backward_blocks<scalar_t>(B, nb, W, acc, used, [&](int64_t b0, int64_t n, at::Tensor& G, scalar_t* dw_t,
@@ -572,6 +657,9 @@ std::vector<at::Tensor> plastic_linear_deferred_backward(
         scalar_t* dq_b = dq_p != nullptr ? dq_p + b * I : nullptr;
         scalar_t* dq0_b = dq0_p != nullptr ? dq0_p + b * I : nullptr;
         scalar_t* dq1_b = dq1_p != nullptr ? dq1_p + b * I : nullptr;
+        // with carried rows but no gradient for their products, G has no part of theirs to add
+        const scalar_t* c0 = c_p != nullptr && gc_p != nullptr ? c_p + 2 * b * I : nullptr;
+        scalar_t* dc0 = dc_p != nullptr && gc_p != nullptr ? dc_p + 2 * b * I : nullptr;
         double deta = 0;
         with_pending(u.count, write, [&](auto count, auto written) {
           constexpr int pending = decltype(count)::value;
@@ -579,17 +667,20 @@ std::vector<at::Tensor> plastic_linear_deferred_backward(
           for (int64_t o = 0; o < O; ++o) {
             const int64_t off = b * N + o * I;
             const PendingRow<scalar_t> row = pending_row(v, b, o, O, I);
+            const CarriedRows<scalar_t> carried{
+                c0, c0 != nullptr ? c0 + I : nullptr, c0 != nullptr ? gc_p[2 * b * O + o] : scalar_t(0),
+                c0 != nullptr ? gc_p[(2 * b + 1) * O + o] : scalar_t(0), dc0, dc0 != nullptr ? dc0 + I : nullptr};
             scalar_t* G_row = G_p + (b - b0) * N + o * I;
             const scalar_t* d1 = d1_p != nullptr ? d1_p + off : nullptr;
             const scalar_t dr_o = dr_p != nullptr ? dr_p[b * O + o] : scalar_t(0);
             const scalar_t* w_row = need_x_grad ? v.w + o * I : nullptr;
             const PendingSums<scalar_t> sums =
                 first ? deferred_grad_row<scalar_t, pending, wrote, true>(
-                            G_row, v.e + off, row, v.keep, v.lo, v.hi, w_row, v.a + o * I, d1, q_b, dr_o, d0_p + off,
-                            dw_t + o * I, da_t + o * I, dq_b, dq0_b, dq1_b, I)
+                            G_row, v.e + off, row, v.keep, v.lo, v.hi, w_row, v.a + o * I, d1, q_b, dr_o, carried,
+                            d0_p + off, dw_t + o * I, da_t + o * I, dq_b, dq0_b, dq1_b, I)
                       : deferred_grad_row<scalar_t, pending, wrote, false>(
-                            G_row, v.e + off, row, v.keep, v.lo, v.hi, w_row, v.a + o * I, d1, q_b, dr_o, d0_p + off,
-                            dw_t + o * I, da_t + o * I, dq_b, dq0_b, dq1_b, I);
+                            G_row, v.e + off, row, v.keep, v.lo, v.hi, w_row, v.a + o * I, d1, q_b, dr_o, carried,
+                            d0_p + off, dw_t + o * I, da_t + o * I, dq_b, dq0_b, dq1_b, I);
             // ep_k = eta p_k, keep = 1 - eta: dL/dp_k = eta (gx_k . q_k), dL/deta = sum_k p_k (gx_k . q_k) - gx_k . v_k
             if constexpr (pending >= 1) {
               dp0_p[b * O + o] = v.eta * sums.ep0;
@@ -609,29 +700,39 @@ std::vector<at::Tensor> plastic_linear_deferred_backward(
   });
   const at::Tensor sums = thread_sums(acc, used);
   const at::Tensor d_eta = u.count > 0 ? deta_rows.sum().to(E.scalar_type()) : none;
-  return {dX, sums.select(0, 0), sums.select(0, 1), dE0, dq, dq0, dp0, dq1, dp1, d_eta};
+  return {dX, sums.select(0, 0), sums.select(0, 1), dE0, dq, dq0, dp0, dq1, dp1, d_eta, dC};
 }
 
 }  // namespace sb3_spikeplastic_fast
 
 TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
-  m.def("plastic_linear_forward(Tensor X, Tensor W, Tensor alpha, Tensor E) -> Tensor");
+  m.def("plastic_linear_forward(Tensor X, Tensor W, Tensor alpha, Tensor E, Tensor? carried) -> (Tensor, Tensor)");
   m.def(
-      "plastic_linear_backward(Tensor grad, Tensor X, Tensor W, Tensor alpha, Tensor E, bool need_x_grad) "
-      "-> (Tensor, Tensor, Tensor, Tensor)");
+      "plastic_linear_backward(Tensor grad, Tensor? grad_carried, Tensor X, Tensor W, Tensor alpha, Tensor E, "
+      "Tensor? carried, bool need_x_grad) -> (Tensor, Tensor, Tensor, Tensor, Tensor)");
 }
 
 namespace {
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> plastic_linear_backward_op(
-    const at::Tensor& grad, const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E,
-    bool need_x_grad) {
-  return sb3_spikeplastic_fast::plastic_linear_backward(grad, X, W, alpha, E, need_x_grad);
+at::Tensor given_or_none(const std::optional<at::Tensor>& t) { return t.has_value() ? *t : at::Tensor(); }
+
+std::tuple<at::Tensor, at::Tensor> plastic_linear_forward_op(const at::Tensor& X, const at::Tensor& W,
+                                                             const at::Tensor& alpha, const at::Tensor& E,
+                                                             const std::optional<at::Tensor>& C) {
+  return sb3_spikeplastic_fast::plastic_linear_forward(X, W, alpha, E, given_or_none(C));
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> plastic_linear_backward_op(
+    const at::Tensor& grad, const std::optional<at::Tensor>& grad_c, const at::Tensor& X, const at::Tensor& W,
+    const at::Tensor& alpha, const at::Tensor& E, const std::optional<at::Tensor>& C, bool need_x_grad) {
+  const std::vector<at::Tensor> g = sb3_spikeplastic_fast::plastic_linear_backward(
+      grad, given_or_none(grad_c), X, W, alpha, E, given_or_none(C), need_x_grad, at::Tensor());
+  return std::make_tuple(g[0], g[1], g[2], g[3], g[4]);
 }
 
 }  // namespace
 
 TORCH_LIBRARY_IMPL(sb3_spikeplastic_fast, CPU, m) {
-  m.impl("plastic_linear_forward", &sb3_spikeplastic_fast::plastic_linear_forward);
+  m.impl("plastic_linear_forward", &plastic_linear_forward_op);
   m.impl("plastic_linear_backward", &plastic_linear_backward_op);
 }

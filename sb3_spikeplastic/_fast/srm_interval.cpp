@@ -2,9 +2,12 @@
 // sb3_spikeplastic.layers.PlasticSRMLayer). The forward pass runs the same ATen ops and
 // kernels as the eager layer, in the same order, so its spikes, membrane and states are bit-identical:
 //
-//     R = [S; h1; h2]                                   (B, L + 2, n_in): the spikes and the carried PSP state
+//     R = [S; H],  H = [h1; h2]                          (B, L + 2, n_in): the spikes and the carried PSP state
 //     filter first (n_in <= n_out):  F = K R,  syn = P(F[:L]),  (h1', h2') = F[L:]
-//     otherwise:                     syn = Kpsp P(R),   (h1', h2') = Kend R
+//     otherwise:                     syn = Kpsp P(R),   (h1', h2') = Kend[:, :L] S + Kend[:, L:] H
+//
+// (a plastic layer that does not filter first multiplies H in the pass that builds its efficacy, beside S, instead
+// of copying S and H into R)
 //     (s, u, refractory', rho, r_post) = srm_loop(syn)  (in the same loop: rho, the SLAYER surrogate of u,
 //     and r_post = mean_t s),  r_pre = mean_t S
 //
@@ -45,21 +48,33 @@
 
 namespace {
 
-at::Tensor product(const at::Tensor& x, const at::Tensor& W, const std::optional<at::Tensor>& alpha,
-                   const std::optional<at::Tensor>& E) {
-  if (!alpha.has_value()) return at::matmul(x, W.t());
-  return sb3_spikeplastic_fast::plastic_linear_forward(x, W, *alpha, *E);
+// The plastic product of rows x and, when given, the rows carried beside them: [x W_eff^T; carried W_eff^T].
+at::Tensor plastic_product(const at::Tensor& x, const at::Tensor& carried, const at::Tensor& W,
+                           const at::Tensor& alpha, const at::Tensor& E) {
+  auto [y, yc] = sb3_spikeplastic_fast::plastic_linear_forward(x, W, alpha, E, carried);
+  return carried.defined() ? at::cat({y, yc}, 1) : y;
 }
 
-// (dX or undefined, dW, dalpha or undefined, dE or undefined)
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> product_backward(
-    const at::Tensor& grad, const at::Tensor& x, const at::Tensor& W, const std::optional<at::Tensor>& alpha,
-    const std::optional<at::Tensor>& E, bool need_x, const at::Tensor& dE_init) {
+at::Tensor product(const at::Tensor& x, const at::Tensor& carried, const at::Tensor& W,
+                   const std::optional<at::Tensor>& alpha, const std::optional<at::Tensor>& E) {
+  if (!alpha.has_value()) return at::matmul(x, W.t());  // a static layer's rows come whole (interval_forward)
+  return plastic_product(x, carried, W, *alpha, *E);
+}
+
+// (dX or undefined, dW, dalpha or undefined, dE or undefined, dC or undefined)
+using ProductGradients = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>;
+
+ProductGradients product_backward(const at::Tensor& grad, const at::Tensor& grad_c, const at::Tensor& x,
+                                  const at::Tensor& carried, const at::Tensor& W,
+                                  const std::optional<at::Tensor>& alpha, const std::optional<at::Tensor>& E,
+                                  bool need_x, const at::Tensor& dE_init) {
   if (!alpha.has_value()) {
     const at::Tensor dW = at::mm(grad.reshape({-1, grad.size(-1)}).t(), x.reshape({-1, x.size(-1)}));
-    return std::make_tuple(need_x ? at::matmul(grad, W) : at::Tensor(), dW, at::Tensor(), at::Tensor());
+    return {need_x ? at::matmul(grad, W) : at::Tensor(), dW, at::Tensor(), at::Tensor(), at::Tensor()};
   }
-  return sb3_spikeplastic_fast::plastic_linear_backward(grad, x, W, *alpha, *E, need_x, dE_init);
+  const std::vector<at::Tensor> g =
+      sb3_spikeplastic_fast::plastic_linear_backward(grad, grad_c, x, W, *alpha, *E, carried, need_x, dE_init);
+  return {g[0], g[1], g[2], g[3], g[4]};
 }
 
 // Autograd passes no gradient for an output that the loss does not reach (the output layer's spikes, a hidden
@@ -112,75 +127,101 @@ at::Tensor synaptic_gradient(const at::Tensor& d_spikes, const at::Tensor& d_r_p
   return out;
 }
 
-// -> spikes, membrane, psp h1', psp h2', refractory h1', refractory h2', r_pre, r_post, product input, surrogate
-using Projection = std::function<at::Tensor(const at::Tensor&)>;  // the product P of the interval's rows
+// -> spikes, membrane, psp h1', psp h2', refractory h1', refractory h2', r_pre, r_post, product input, surrogate,
+// carried rows (below; empty when there are none)
+//
+// The product P of the interval's rows: (rows, carried rows or undefined) -> P of [rows; carried]. With carries
+// (a plastic layer that does not filter first), the carried PSP state [h1; h2] is multiplied beside the spikes in
+// the pass that builds the efficacy, so that the spikes are not copied into one block of L + 2 rows with it; the
+// backward pass then takes x as the product's input and the carried rows apart.
+using Projection = std::function<at::Tensor(const at::Tensor&, const at::Tensor&)>;
 
 std::vector<at::Tensor> interval_forward(const at::Tensor& x, const at::Tensor& h1, const at::Tensor& h2,
                                          const at::Tensor& ref_h1, const at::Tensor& ref_h2, const Projection& project,
-                                         const at::Tensor& op, const at::Tensor& psp_rows, const at::Tensor& end_rows,
-                                         bool filter_first, double d, double kappa, double theta, double width,
-                                         double scale, bool need_surrogate, const at::Tensor& r_pre = at::Tensor()) {
+                                         bool carries, const at::Tensor& op, const at::Tensor& psp_rows,
+                                         const at::Tensor& end_rows, bool filter_first, double d, double kappa,
+                                         double theta, double width, double scale, bool need_surrogate,
+                                         const at::Tensor& r_pre = at::Tensor()) {
   TORCH_CHECK(x.dim() == 3 && op.dim() == 2 && op.size(0) == x.size(1) + 2,
               "srm_interval: spikes (B, L, n_in) and a (L + 2, L + 2) filter operator");
   const at::NoGradGuard no_grad;
   const int64_t L = x.size(1);
-  const at::Tensor rows = at::cat({x, h1.unsqueeze(1), h2.unsqueeze(1)}, 1);
-  at::Tensor product_in, synaptic, end;
+  at::Tensor product_in, synaptic, end, carried = at::empty({0}, x.options());
   if (filter_first) {
-    const at::Tensor filtered = at::matmul(op, rows);
+    const at::Tensor filtered = at::matmul(op, at::cat({x, h1.unsqueeze(1), h2.unsqueeze(1)}, 1));
     product_in = filtered.narrow(1, 0, L);
     end = filtered.narrow(1, L, 2);
-    synaptic = project(product_in);
+    synaptic = project(product_in, at::Tensor());
   } else {
-    product_in = rows;
-    synaptic = at::matmul(psp_rows, project(rows));
-    end = at::matmul(end_rows, rows);
+    // The end state from the spikes and the carried state apart (layers.PlasticSRMLayer.interval does the same).
+    const at::Tensor state = at::stack({h1, h2}, 1);
+    end = at::matmul(end_rows.narrow(1, 0, L), x) + at::matmul(end_rows.narrow(1, L, 2), state);
+    if (carries) {
+      product_in = x;
+      carried = state;
+      synaptic = at::matmul(psp_rows, project(x, state));
+    } else {
+      product_in = at::cat({x, state}, 1);
+      synaptic = at::matmul(psp_rows, project(product_in, at::Tensor()));
+    }
   }
   // the surrogate (neurons.slayer_surrogate) only for training: in rollouts it would be the layer's largest cost
   auto [spikes, membrane, rh1, rh2, surrogate, r_post] = sb3_spikeplastic_fast::srm_loop_interval_cpu(
       synaptic, ref_h1, ref_h2, d, kappa, theta, width, scale, need_surrogate);
   return {spikes, membrane, end.select(1, 0), end.select(1, 1), rh1, rh2, r_pre.defined() ? r_pre : x.mean(1), r_post,
-          product_in, surrogate};
+          product_in, surrogate, carried};
 }
 
 // -> dS, dh1, dh2 (empty unless need_rows), dW, dalpha, dE (empty for a static layer); dE_init: a gradient of E
 // from elsewhere, added to the product's. Undefined output gradients are zero.
-// The product's backward pass: (dL/dP, need_rows) -> (dX or undefined, dW, dalpha or undefined, dE or undefined)
-using ProjectionBackward =
-    std::function<std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor>(const at::Tensor&, bool)>;
+// The product's backward pass: (dL/dP of the rows, of the carried rows (undefined without), need_rows) -> (dX or
+// undefined, dW, dalpha or undefined, dE or undefined, dC or undefined)
+using ProjectionBackward = std::function<ProductGradients(const at::Tensor&, const at::Tensor&, bool)>;
 
 std::vector<at::Tensor> interval_backward(const at::Tensor& d_spikes, const at::Tensor& d_h1, const at::Tensor& d_h2,
                                           const at::Tensor& d_r_pre, const at::Tensor& d_r_post,
-                                          const at::Tensor& product_in, const ProjectionBackward& project_backward,
-                                          const at::Tensor& W, const at::Tensor& surrogate, const at::Tensor& op,
+                                          const at::Tensor& product_in, const at::Tensor& carried,
+                                          const ProjectionBackward& project_backward, const at::Tensor& W,
+                                          const at::Tensor& surrogate, const at::Tensor& op,
                                           const at::Tensor& psp_rows, const at::Tensor& end_rows, bool filter_first,
                                           bool need_rows) {
   const at::NoGradGuard no_grad;
   const int64_t L = surrogate.size(1);
   const at::Tensor d_synaptic = synaptic_gradient(d_spikes, d_r_post, surrogate);
-  at::Tensor d_rows;
-  at::Tensor d_in, dW, d_alpha, dE;
+  const at::Tensor like = product_in.select(1, 0);  // (B, n_in), the PSP state's shape
+  at::Tensor d_x, d_state;                          // (B, L, n_in) and (B, 2, n_in) when need_rows
+  at::Tensor d_in, dW, d_alpha, dE, d_c;
   if (filter_first) {
-    std::tie(d_in, dW, d_alpha, dE) = project_backward(d_synaptic, need_rows);
+    std::tie(d_in, dW, d_alpha, dE, d_c) = project_backward(d_synaptic, at::Tensor(), need_rows);
     if (need_rows) {
-      const at::Tensor like = product_in.select(1, 0);  // (B, n_in), the PSP state's shape
-      d_rows = at::matmul(op.t(),
-                          at::cat({d_in, or_zeros(d_h1, like).unsqueeze(1), or_zeros(d_h2, like).unsqueeze(1)}, 1));
+      const at::Tensor d_rows = at::matmul(
+          op.t(), at::cat({d_in, or_zeros(d_h1, like).unsqueeze(1), or_zeros(d_h2, like).unsqueeze(1)}, 1));
+      d_x = d_rows.narrow(1, 0, L);
+      d_state = d_rows.narrow(1, L, 2);
     }
   } else {
-    std::tie(d_in, dW, d_alpha, dE) = project_backward(at::matmul(psp_rows.t(), d_synaptic), need_rows);
+    const at::Tensor d_product = at::matmul(psp_rows.t(), d_synaptic);  // (B, L + 2, n_out)
+    const bool carries = carried.numel() > 0;
+    if (carries) {
+      std::tie(d_in, dW, d_alpha, dE, d_c) =
+          project_backward(d_product.narrow(1, 0, L), d_product.narrow(1, L, 2), need_rows);
+    } else {
+      std::tie(d_in, dW, d_alpha, dE, d_c) = project_backward(d_product, at::Tensor(), need_rows);
+    }
     if (need_rows) {
-      const at::Tensor like = product_in.select(1, 0);
-      d_rows = d_in + at::matmul(end_rows.t(), at::stack({or_zeros(d_h1, like), or_zeros(d_h2, like)}, 1));
+      const at::Tensor d_end = at::stack({or_zeros(d_h1, like), or_zeros(d_h2, like)}, 1);
+      d_x = d_in.narrow(1, 0, L) + at::matmul(end_rows.narrow(1, 0, L).t(), d_end);
+      d_state = (carries ? d_c : d_in.narrow(1, L, 2)) + at::matmul(end_rows.narrow(1, L, 2).t(), d_end);
     }
   }
   const at::Tensor none = at::empty({0}, W.options());
-  at::Tensor d_x = none, d_rh1 = none, d_rh2 = none;
+  at::Tensor d_rh1 = none, d_rh2 = none;
   if (need_rows) {
-    d_x = d_rows.narrow(1, 0, L);
     if (d_r_pre.defined()) d_x = d_x + (d_r_pre / L).unsqueeze(1);
-    d_rh1 = d_rows.select(1, L);
-    d_rh2 = d_rows.select(1, L + 1);
+    d_rh1 = d_state.select(1, 0);
+    d_rh2 = d_state.select(1, 1);
+  } else {
+    d_x = none;
   }
   return {d_x, d_rh1, d_rh2, dW, d_alpha.defined() ? d_alpha : none, dE.defined() ? dE : none};
 }
@@ -259,8 +300,11 @@ std::vector<at::Tensor> srm_interval_forward(
   const at::NoGradGuard no_grad;
   TORCH_CHECK(alpha.has_value() == E.has_value(), "srm_interval: alpha and E come together");
   std::vector<at::Tensor> out = interval_forward(
-      x, h1, h2, ref_h1, ref_h2, [&](const at::Tensor& rows) { return product(rows, W, alpha, E); }, op, psp_rows,
-      end_rows, filter_first, d, kappa, theta, width, scale, need_surrogate);
+      x, h1, h2, ref_h1, ref_h2,
+      [&](const at::Tensor& rows, const at::Tensor& carried) { return product(rows, carried, W, alpha, E); },
+      alpha.has_value(), op, psp_rows, end_rows, filter_first, d, kappa, theta, width, scale, need_surrogate);
+  const at::Tensor carried = out.back();
+  out.pop_back();
   const at::Tensor none = at::empty({0}, W.options());
   at::Tensor new_E = none, new_phi = none, p = none, pre = none, m = none;
   if (eta.has_value()) {
@@ -270,7 +314,7 @@ std::vector<at::Tensor> srm_interval_forward(
     std::tie(new_E, p) = sb3_spikeplastic_fast::trace_step_forward(*E, post, pre, eta->item<double>(), e_max, oja);
   }
   out.insert(out.begin() + 8, {new_E, new_phi});
-  out.insert(out.end(), {p, pre, m});
+  out.insert(out.end(), {p, pre, m, carried});
   return out;
 }
 
@@ -280,8 +324,8 @@ std::vector<at::Tensor> srm_interval_backward(
     const std::optional<at::Tensor>& d_spikes, const std::optional<at::Tensor>& d_h1,
     const std::optional<at::Tensor>& d_h2, const std::optional<at::Tensor>& d_r_pre,
     const std::optional<at::Tensor>& d_r_post, const std::optional<at::Tensor>& d_new_E,
-    const std::optional<at::Tensor>& d_new_phi,
-    const at::Tensor& product_in, const at::Tensor& W, const std::optional<at::Tensor>& alpha,
+    const std::optional<at::Tensor>& d_new_phi, const at::Tensor& product_in, const at::Tensor& carried,
+    const at::Tensor& W, const std::optional<at::Tensor>& alpha,
     const std::optional<at::Tensor>& E, const at::Tensor& surrogate, const at::Tensor& p, const at::Tensor& pre,
     const std::optional<at::Tensor>& m, const at::Tensor& r_pre, const at::Tensor& r_post,
     const std::optional<at::Tensor>& phi, const std::optional<at::Tensor>& eta,
@@ -301,9 +345,10 @@ std::vector<at::Tensor> srm_interval_backward(
     presynaptic_backward(d_pre, r_pre, phi, eta_phi, psi, given(d_new_phi), d_rpre, d_phi, d_psi, d_eta_phi);
   }
   std::vector<at::Tensor> grads = interval_backward(
-      given(d_spikes), given(d_h1), given(d_h2), d_rpre, d_rpost, product_in,
-      [&](const at::Tensor& grad, bool need_x) {
-        return product_backward(grad, product_in, W, alpha, E, need_x, dE_trace);
+      given(d_spikes), given(d_h1), given(d_h2), d_rpre, d_rpost, product_in, carried,
+      [&](const at::Tensor& grad, const at::Tensor& grad_c, bool need_x) {
+        return product_backward(grad, grad_c, product_in, carried.numel() > 0 ? carried : at::Tensor(), W, alpha, E,
+                                need_x, dE_trace);
       },
       W, surrogate, op, psp_rows, end_rows, filter_first, need_rows);
   grads.insert(grads.end(), {d_phi, d_eta_phi, d_psi, d_eta, d_wm});
@@ -341,20 +386,23 @@ std::vector<at::Tensor> srm_interval_deferred_forward(
   at::Tensor E_t, r;
   std::vector<at::Tensor> out = interval_forward(
       x, h1, h2, ref_h1, ref_h2,
-      [&](const at::Tensor& rows) {
-        at::Tensor Y;
-        std::tie(Y, E_t, r) = sb3_spikeplastic_fast::plastic_linear_deferred_forward(
-            rows, W, alpha, E, given(p_first), given(q_first), given(p_second), given(q_second),
+      [&](const at::Tensor& rows, const at::Tensor& carried) {
+        const std::vector<at::Tensor> y = sb3_spikeplastic_fast::plastic_linear_deferred_forward(
+            rows, W, alpha, E, carried, given(p_first), given(q_first), given(p_second), given(q_second),
             oja ? pre : at::Tensor(), eta_value, e_max, write_trace);
-        return Y;
+        E_t = y[2];
+        r = y[3];
+        return carried.defined() ? at::cat({y[0], y[1]}, 1) : y[0];
       },
-      op, psp_rows, end_rows, filter_first, d, kappa, theta, width, scale, need_surrogate, r_pre);
+      true, op, psp_rows, end_rows, filter_first, d, kappa, theta, width, scale, need_surrogate, r_pre);
+  const at::Tensor carried = out.back();
+  out.pop_back();
   std::tie(post, m) = postsynaptic_term(out[7], w_m, modulation);
   const at::Tensor p = oja ? post - r : post;
   out.insert(out.begin() + 8, {E_t, new_phi});
   // p and q as outputs of their own: without Oja's term or BCM's they are r_post and r_pre themselves
   const at::Tensor p_next = p.is_same(out[7]) ? p.clone() : p, q_next = pre.is_same(out[6]) ? pre.clone() : pre;
-  out.insert(out.end(), {p, pre, m, p_next, q_next});
+  out.insert(out.end(), {p, pre, m, p_next, q_next, carried});
   return out;
 }
 
@@ -366,8 +414,8 @@ std::vector<at::Tensor> srm_interval_deferred_backward(
     const std::optional<at::Tensor>& d_h2, const std::optional<at::Tensor>& d_r_pre,
     const std::optional<at::Tensor>& d_r_post, const std::optional<at::Tensor>& d_E_t,
     const std::optional<at::Tensor>& d_new_phi, const std::optional<at::Tensor>& d_p_next,
-    const std::optional<at::Tensor>& d_q, const at::Tensor& product_in, const at::Tensor& W, const at::Tensor& alpha,
-    const at::Tensor& E, const std::optional<at::Tensor>& p_first, const std::optional<at::Tensor>& q_first,
+    const std::optional<at::Tensor>& d_q, const at::Tensor& product_in, const at::Tensor& carried,
+    const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E, const std::optional<at::Tensor>& p_first, const std::optional<at::Tensor>& q_first,
     const std::optional<at::Tensor>& p_second, const std::optional<at::Tensor>& q_second,
     const at::Tensor& surrogate, const at::Tensor& p, const at::Tensor& pre, const std::optional<at::Tensor>& m,
     const at::Tensor& r_pre, const at::Tensor& r_post, const std::optional<at::Tensor>& phi, const at::Tensor& eta,
@@ -386,17 +434,17 @@ std::vector<at::Tensor> srm_interval_deferred_backward(
   postsynaptic_backward(d_p, r_post, m, w_m, modulation, d_rpost, d_wm);
   std::vector<at::Tensor> product_grads;
   std::vector<at::Tensor> grads = interval_backward(
-      given(d_spikes), given(d_h1), given(d_h2), at::Tensor(), d_rpost, product_in,
-      [&](const at::Tensor& grad, bool need_x) {
+      given(d_spikes), given(d_h1), given(d_h2), at::Tensor(), d_rpost, product_in, carried,
+      [&](const at::Tensor& grad, const at::Tensor& grad_c, bool need_x) {
         product_grads = sb3_spikeplastic_fast::plastic_linear_deferred_backward(
-            grad, product_in, W, alpha, E, given(p_first), given(q_first), given(p_second), given(q_second),
-            oja ? pre : at::Tensor(), given(d_E_t), oja ? -d_p : at::Tensor(), need_x, eta_value, e_max,
-            write_trace);
+            grad, grad_c, product_in, W, alpha, E, carried.numel() > 0 ? carried : at::Tensor(), given(p_first),
+            given(q_first), given(p_second), given(q_second), oja ? pre : at::Tensor(), given(d_E_t),
+            oja ? -d_p : at::Tensor(), need_x, eta_value, e_max, write_trace);
         const std::vector<at::Tensor>& g = product_grads;
-        return std::make_tuple(g[0], g[1], g[2], g[3]);
+        return ProductGradients{g[0], g[1], g[2], g[3], g[10]};
       },
       W, surrogate, op, psp_rows, end_rows, filter_first, need_rows);
-  // product_grads: dX, dW, dalpha, dE, dq (the Oja row sums'), dq0, dp0, dq1, dp1, deta of the pending updates.
+  // product_grads: dX, dW, dalpha, dE, dq (the Oja row sums'), dq0, dp0, dq1, dp1, deta of the pending updates, dC
   // dL/dpre: from the next interval's update and from the Oja term's row sums; then the rates (only now: the row
   // sums' gradient comes out of the product's pass)
   at::Tensor d_pre = given(d_q);
@@ -429,14 +477,15 @@ TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
       "int modulation, bool need_surrogate, bool write_trace) -> Tensor[]");
   m.def(
       "srm_interval_deferred_backward(Tensor? d_spikes, Tensor? d_h1, Tensor? d_h2, Tensor? d_r_pre, "
-      "Tensor? d_r_post, Tensor? d_E_t, Tensor? d_new_phi, Tensor? d_p, Tensor? d_q, Tensor product_in, Tensor W, "
-      "Tensor alpha, Tensor E, Tensor? p_first, Tensor? q_first, Tensor? p_second, Tensor? q_second, "
-      "Tensor surrogate, Tensor p, Tensor pre, Tensor? m, Tensor r_pre, Tensor r_post, Tensor? phi, Tensor eta, "
+      "Tensor? d_r_post, Tensor? d_E_t, Tensor? d_new_phi, Tensor? d_p, Tensor? d_q, Tensor product_in, "
+      "Tensor carried, Tensor W, Tensor alpha, Tensor E, Tensor? p_first, Tensor? q_first, Tensor? p_second, "
+      "Tensor? q_second, Tensor surrogate, Tensor p, Tensor pre, Tensor? m, Tensor r_pre, Tensor r_post, Tensor? phi, Tensor eta, "
       "Tensor? eta_phi, Tensor? psi, Tensor? w_m, Tensor op, Tensor psp_rows, Tensor end_rows, bool filter_first, "
       "bool need_rows, float e_max, bool oja, int modulation, bool write_trace) -> Tensor[]");
   m.def(
       "srm_interval_backward(Tensor? d_spikes, Tensor? d_h1, Tensor? d_h2, Tensor? d_r_pre, Tensor? d_r_post, "
-      "Tensor? d_new_E, Tensor? d_new_phi, Tensor product_in, Tensor W, Tensor? alpha, Tensor? E, Tensor surrogate, "
+      "Tensor? d_new_E, Tensor? d_new_phi, Tensor product_in, Tensor carried, Tensor W, Tensor? alpha, Tensor? E, "
+      "Tensor surrogate, "
       "Tensor p, Tensor pre, Tensor? m, Tensor r_pre, Tensor r_post, Tensor? phi, Tensor? eta, Tensor? eta_phi, "
       "Tensor? psi, Tensor? w_m, Tensor op, Tensor psp_rows, Tensor end_rows, bool filter_first, bool need_rows, "
       "float e_max, bool oja, int modulation) -> Tensor[]");
