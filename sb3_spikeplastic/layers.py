@@ -26,6 +26,12 @@ from .neurons import (
 from .plasticity import CompiledForm, PlasticityRule, PlasticState, compiled_form
 
 
+#: a plastic layer that does not filter first multiplies its carried PSP state beside an interval's spikes (instead of
+#: copying both into one block of rows) from this many spike values per environment on: the copy it saves then costs
+#: more than the few small ops it adds (the paper network's input layer has 50 x 600, the CPU entry's 10 x 170)
+CARRY_MIN_ROW_VALUES = 4096
+
+
 class LayerState(NamedTuple):
     """Per-environment state of one layer, all with a leading batch axis.
 
@@ -63,6 +69,7 @@ class _IntervalConstants(NamedTuple):
     :param e_max: the rule's trace bound.
     :param form: the rule's :class:`~sb3_spikeplastic.plasticity.CompiledForm`; ``None`` when the op does not update
         the trace (static layers, rules of one's own).
+    :param carry_state: :meth:`PlasticSRMLayer.carries_state` for this interval length.
     """
 
     filters: tuple[Tensor, Tensor, Tensor]
@@ -70,6 +77,7 @@ class _IntervalConstants(NamedTuple):
     spike: tuple[float, float, float, float, float]
     e_max: float
     form: Optional[CompiledForm]
+    carry_state: bool
 
     @property
     def rule_flags(self) -> tuple[bool, int]:
@@ -223,17 +231,24 @@ class PlasticSRMLayer(nn.Module):
             filtered = operator @ rows  # (B, L + 2, n_in): the PSP of each step, then the end state
             return self.project(filtered[:, :length], trace), AlphaFilterState(filtered[:, length],
                                                                                filtered[:, length + 1])
-        carried = torch.stack([psp.h1, psp.h2], 1)
-        end = end_rows[:, :length] @ spikes_in + end_rows[:, length:] @ carried
         # The carried state rides along in the product: projecting h1 and h2 on their own would cost two
-        # trace-sized outer products (and their sum) in the backward pass. The compiled op takes it beside the
-        # spikes (as the fused interval does), without copying them into one block of rows.
-        projected = None
-        if self.alpha is not None:
+        # trace-sized outer products (and their sum) in the backward pass.
+        if self.carries_state(length):  # beside the spikes, as the fused interval does (see carries_state)
+            carried = torch.stack([psp.h1, psp.h2], 1)
+            end = end_rows[:, :length] @ spikes_in + end_rows[:, length:] @ carried
             projected = _fast.plastic_linear(spikes_in, self.weight, self.alpha, trace, carried)
-        if projected is None:
-            projected = self.project(torch.cat([spikes_in, carried], 1), trace, efficacy_left=True)
-        return psp_rows @ projected, AlphaFilterState(end[:, 0], end[:, 1])
+            if projected is None:
+                projected = self.project(torch.cat([spikes_in, carried], 1), trace, efficacy_left=True)
+            return psp_rows @ projected, AlphaFilterState(end[:, 0], end[:, 1])
+        rows = torch.cat([spikes_in, psp.h1.unsqueeze(1), psp.h2.unsqueeze(1)], 1)
+        end = end_rows @ rows
+        return psp_rows @ self.project(rows, trace, efficacy_left=True), AlphaFilterState(end[:, 0], end[:, 1])
+
+    def carries_state(self, length: int) -> bool:
+        """Whether an interval of ``length`` steps multiplies the carried PSP state beside its spikes (a plastic
+        layer that does not filter first, with at least :data:`CARRY_MIN_ROW_VALUES` spike values per environment),
+        instead of copying both into one block of ``L + 2`` rows for the product."""
+        return self.alpha is not None and not self.filter_first and length * self.n_in >= CARRY_MIN_ROW_VALUES
 
     def _interval_constants(self, length: int, dtype, device) -> _IntervalConstants:
         """The fused op's fixed arguments for intervals of ``length`` steps (cached)."""
@@ -241,7 +256,8 @@ class PlasticSRMLayer(nn.Module):
         if key not in self._constants:
             form = compiled_form(self.rule) if self.plastic else None
             self._constants[key] = _IntervalConstants(self._psp_filter(length, dtype, device), self.filter_first,
-                                                      spike_constants(self.neuron), self.rule.e_max, form)
+                                                      spike_constants(self.neuron), self.rule.e_max, form,
+                                                      self.carries_state(length))
         return self._constants[key]
 
     @property
@@ -301,7 +317,8 @@ class _FusedInterval(torch.autograd.Function):
         oja, modulation = constants.rule_flags
         return ops.srm_interval_forward(
             spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m, *constants.filters,
-            constants.filter_first, *constants.spike, constants.e_max, oja, modulation, need_surrogate)
+            constants.filter_first, *constants.spike, constants.e_max, oja, modulation, need_surrogate,
+            constants.carry_state)
 
     @staticmethod
     def outputs(outputs: list, form: Optional[CompiledForm]) -> list:
@@ -378,7 +395,7 @@ class _DeferredInterval(torch.autograd.Function):
         return ops.srm_interval_deferred_forward(
             spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, p0, q0, p1, q1, phi, eta, eta_phi, psi, w_m,
             *constants.filters, constants.filter_first, *constants.spike, constants.e_max, oja, modulation,
-            need_surrogate, write)
+            need_surrogate, write, constants.carry_state)
 
     @staticmethod
     def outputs(outputs: list, trace: Tensor, bcm: bool) -> list:

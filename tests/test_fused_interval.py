@@ -5,7 +5,7 @@ states, and the gradients of the eager graph."""
 import pytest
 import torch
 
-from sb3_spikeplastic import _fast
+from sb3_spikeplastic import _fast, layers
 from sb3_spikeplastic.layers import PlasticSRMLayer, _FusedInterval
 from sb3_spikeplastic.network import tensor_leaves
 from sb3_spikeplastic.neurons import SRMParameters, slayer_surrogate
@@ -73,8 +73,13 @@ def run_intervals(layer, fused: bool, monkeypatch, dtype=torch.float64, batch=4,
 @pytest.mark.parametrize("rule", ["dp-linear", "dp-oja", "dp-bcm", "ndp-oja", "ndp-oja+tanh", "ndp-bcm",
                                   "ndp-bcm+tanh", "static", "shifted-oja"])
 @pytest.mark.parametrize("n_in, n_out", [(30, 20), (20, 30)], ids=["product-first", "filter-first"])
-def test_fused_interval_equals_eager_layer(rule, n_in, n_out, monkeypatch):
+@pytest.mark.parametrize("carry", [False, True], ids=["rows", "carried-state"])
+def test_fused_interval_equals_eager_layer(rule, n_in, n_out, carry, monkeypatch):
+    """The fused interval against the eager layer; ``carried-state``: with the PSP state multiplied beside the spikes
+    (``PlasticSRMLayer.carries_state``, here for small layers too), in both."""
+    monkeypatch.setattr(layers, "CARRY_MIN_ROW_VALUES", 0 if carry else layers.CARRY_MIN_ROW_VALUES)
     layer = make_layer(rule, n_in, n_out)
+    assert layer.carries_state(6) == (carry and n_in > n_out and rule != "static")
     fused_out, fused_state, fused_grads = run_intervals(layer, True, monkeypatch)
     eager_out, eager_state, eager_grads = run_intervals(layer, False, monkeypatch)
     assert type(fused_out[0].spikes.grad_fn).__name__ == "_FusedIntervalBackward"
@@ -189,12 +194,13 @@ def test_disabled_compilation_uses_the_eager_layer(monkeypatch):
 @pytest.mark.parametrize("rule", ["dp-linear", "dp-oja", "dp-bcm", "ndp-oja", "ndp-oja+tanh", "ndp-bcm+tanh"])
 @pytest.mark.parametrize("n_in, n_out", [(30, 20), (20, 30)], ids=["product-first", "filter-first"])
 @pytest.mark.parametrize("rates_only", [False, True], ids=["all-outputs", "rates-only"])
-@pytest.mark.parametrize("intervals", [3, 4])
-def test_deferred_trace_update_equals_immediate(rule, n_in, n_out, rates_only, intervals, monkeypatch):
+@pytest.mark.parametrize("intervals, carry", [(3, False), (4, False), (4, True)], ids=["3", "4", "4-carried-state"])
+def test_deferred_trace_update_equals_immediate(rule, n_in, n_out, rates_only, intervals, carry, monkeypatch):
     """Intervals that defer their trace update to the next interval's pass over ``E`` (the training sequences')
     give the same spikes, states and final trace bit for bit as intervals that update at their end, and the same
     gradients to float rounding, for every built-in rule and both product orders. Four intervals end with two
     updates pending (the second passed its input trace on unwritten), three with one."""
+    monkeypatch.setattr(layers, "CARRY_MIN_ROW_VALUES", 0 if carry else layers.CARRY_MIN_ROW_VALUES)
     layer = make_layer(rule, n_in, n_out)
     deferred_out, deferred_state, deferred_grads = run_intervals(layer, True, monkeypatch, rates_only=rates_only,
                                                                  defer=True, intervals=intervals)

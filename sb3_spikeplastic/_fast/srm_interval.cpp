@@ -131,9 +131,10 @@ at::Tensor synaptic_gradient(const at::Tensor& d_spikes, const at::Tensor& d_r_p
 // carried rows (below; empty when there are none)
 //
 // The product P of the interval's rows: (rows, carried rows or undefined) -> P of [rows; carried]. With carries
-// (a plastic layer that does not filter first), the carried PSP state [h1; h2] is multiplied beside the spikes in
-// the pass that builds the efficacy, so that the spikes are not copied into one block of L + 2 rows with it; the
-// backward pass then takes x as the product's input and the carried rows apart.
+// (a plastic layer that does not filter first, with many spike rows: layers.PlasticSRMLayer.carries_state), the
+// carried PSP state [h1; h2] is multiplied beside the spikes in the pass that builds the efficacy, so that the
+// spikes are not copied into one block of L + 2 rows with it; the backward pass then takes x as the product's input
+// and the carried rows apart.
 using Projection = std::function<at::Tensor(const at::Tensor&, const at::Tensor&)>;
 
 std::vector<at::Tensor> interval_forward(const at::Tensor& x, const at::Tensor& h1, const at::Tensor& h2,
@@ -152,18 +153,16 @@ std::vector<at::Tensor> interval_forward(const at::Tensor& x, const at::Tensor& 
     product_in = filtered.narrow(1, 0, L);
     end = filtered.narrow(1, L, 2);
     synaptic = project(product_in, at::Tensor());
-  } else {
+  } else if (carries) {
     // The end state from the spikes and the carried state apart (layers.PlasticSRMLayer.interval does the same).
-    const at::Tensor state = at::stack({h1, h2}, 1);
-    end = at::matmul(end_rows.narrow(1, 0, L), x) + at::matmul(end_rows.narrow(1, L, 2), state);
-    if (carries) {
-      product_in = x;
-      carried = state;
-      synaptic = at::matmul(psp_rows, project(x, state));
-    } else {
-      product_in = at::cat({x, state}, 1);
-      synaptic = at::matmul(psp_rows, project(product_in, at::Tensor()));
-    }
+    carried = at::stack({h1, h2}, 1);
+    end = at::matmul(end_rows.narrow(1, 0, L), x) + at::matmul(end_rows.narrow(1, L, 2), carried);
+    product_in = x;
+    synaptic = at::matmul(psp_rows, project(x, carried));
+  } else {
+    product_in = at::cat({x, h1.unsqueeze(1), h2.unsqueeze(1)}, 1);
+    synaptic = at::matmul(psp_rows, project(product_in, at::Tensor()));
+    end = at::matmul(end_rows, product_in);
   }
   // the surrogate (neurons.slayer_surrogate) only for training: in rollouts it would be the layer's largest cost
   auto [spikes, membrane, rh1, rh2, surrogate, r_post] = sb3_spikeplastic_fast::srm_loop_interval_cpu(
@@ -291,7 +290,7 @@ std::vector<at::Tensor> srm_interval_forward(
     const std::optional<at::Tensor>& eta_phi, const std::optional<at::Tensor>& psi,
     const std::optional<at::Tensor>& w_m, const at::Tensor& op, const at::Tensor& psp_rows,
     const at::Tensor& end_rows, bool filter_first, double d, double kappa, double theta, double width, double scale,
-    double e_max, bool oja, int64_t modulation, bool need_surrogate) {
+    double e_max, bool oja, int64_t modulation, bool need_surrogate, bool carry_state) {
   TORCH_CHECK(!eta.has_value() || E.has_value(), "srm_interval: a trace update needs E");
   TORCH_CHECK(phi.has_value() == eta_phi.has_value() && phi.has_value() == psi.has_value(),
               "srm_interval: phi, eta_phi and psi come together (BCM rules)");
@@ -302,7 +301,8 @@ std::vector<at::Tensor> srm_interval_forward(
   std::vector<at::Tensor> out = interval_forward(
       x, h1, h2, ref_h1, ref_h2,
       [&](const at::Tensor& rows, const at::Tensor& carried) { return product(rows, carried, W, alpha, E); },
-      alpha.has_value(), op, psp_rows, end_rows, filter_first, d, kappa, theta, width, scale, need_surrogate);
+      carry_state && alpha.has_value(), op, psp_rows, end_rows, filter_first, d, kappa, theta, width, scale,
+      need_surrogate);
   const at::Tensor carried = out.back();
   out.pop_back();
   const at::Tensor none = at::empty({0}, W.options());
@@ -373,7 +373,7 @@ std::vector<at::Tensor> srm_interval_deferred_forward(
     const std::optional<at::Tensor>& eta_phi, const std::optional<at::Tensor>& psi,
     const std::optional<at::Tensor>& w_m, const at::Tensor& op, const at::Tensor& psp_rows,
     const at::Tensor& end_rows, bool filter_first, double d, double kappa, double theta, double width, double scale,
-    double e_max, bool oja, int64_t modulation, bool need_surrogate, bool write_trace) {
+    double e_max, bool oja, int64_t modulation, bool need_surrogate, bool write_trace, bool carry_state) {
   TORCH_CHECK(phi.has_value() == eta_phi.has_value() && phi.has_value() == psi.has_value(),
               "srm_interval: phi, eta_phi and psi come together (BCM rules)");
   TORCH_CHECK((modulation == kUnmodulated) != w_m.has_value() && modulation >= kUnmodulated && modulation <= kTanh,
@@ -394,7 +394,7 @@ std::vector<at::Tensor> srm_interval_deferred_forward(
         r = y[3];
         return carried.defined() ? at::cat({y[0], y[1]}, 1) : y[0];
       },
-      true, op, psp_rows, end_rows, filter_first, d, kappa, theta, width, scale, need_surrogate, r_pre);
+      carry_state, op, psp_rows, end_rows, filter_first, d, kappa, theta, width, scale, need_surrogate, r_pre);
   const at::Tensor carried = out.back();
   out.pop_back();
   std::tie(post, m) = postsynaptic_term(out[7], w_m, modulation);
@@ -468,13 +468,13 @@ TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
       "srm_interval_forward(Tensor x, Tensor h1, Tensor h2, Tensor ref_h1, Tensor ref_h2, Tensor W, Tensor? alpha, "
       "Tensor? E, Tensor? phi, Tensor? eta, Tensor? eta_phi, Tensor? psi, Tensor? w_m, Tensor op, Tensor psp_rows, "
       "Tensor end_rows, bool filter_first, float d, float kappa, float theta, float width, float scale, "
-      "float e_max, bool oja, int modulation, bool need_surrogate) -> Tensor[]");
+      "float e_max, bool oja, int modulation, bool need_surrogate, bool carry_state) -> Tensor[]");
   m.def(
       "srm_interval_deferred_forward(Tensor x, Tensor h1, Tensor h2, Tensor ref_h1, Tensor ref_h2, Tensor W, "
       "Tensor alpha, Tensor E, Tensor? p_first, Tensor? q_first, Tensor? p_second, Tensor? q_second, Tensor? phi, "
       "Tensor eta, Tensor? eta_phi, Tensor? psi, Tensor? w_m, Tensor op, Tensor psp_rows, Tensor end_rows, "
       "bool filter_first, float d, float kappa, float theta, float width, float scale, float e_max, bool oja, "
-      "int modulation, bool need_surrogate, bool write_trace) -> Tensor[]");
+      "int modulation, bool need_surrogate, bool write_trace, bool carry_state) -> Tensor[]");
   m.def(
       "srm_interval_deferred_backward(Tensor? d_spikes, Tensor? d_h1, Tensor? d_h2, Tensor? d_r_pre, "
       "Tensor? d_r_post, Tensor? d_E_t, Tensor? d_new_phi, Tensor? d_p, Tensor? d_q, Tensor product_in, "
