@@ -252,8 +252,8 @@ struct RowSums {
 
 // One row of the deferred forward pass (plastic_linear_deferred_forward): the trace row v the product uses (e0 with
 // the pending updates applied), written to et when write, and the efficacy's row w + a v to eff; returns the row
-// sums (v . q without q and the carried rows' without c0 and c1 are 0).
-template <typename T, int pending, bool write>
+// sums (v . q without q and the carried rows' without them are 0).
+template <typename T, int pending, bool write, bool carried>
 inline RowSums<T> deferred_row(const T* __restrict e0, const PendingRow<T>& u, T keep, T lo, T hi,
                                const T* __restrict w, const T* __restrict a, const T* __restrict q,
                                const T* __restrict c0, const T* __restrict c1, T* __restrict et, T* __restrict eff,
@@ -274,7 +274,7 @@ inline RowSums<T> deferred_row(const T* __restrict e0, const PendingRow<T>& u, T
     const V ev = load(w + i) + load(a + i) * v;
     store(eff + i, ev);
     if (q != nullptr) acc += v * load(q + i);
-    if (c0 != nullptr) {
+    if constexpr (carried) {
       acc0 += ev * load(c0 + i);
       acc1 += ev * load(c1 + i);
     }
@@ -290,7 +290,7 @@ inline RowSums<T> deferred_row(const T* __restrict e0, const PendingRow<T>& u, T
     if constexpr (write) et[i] = v;
     eff[i] = w[i] + a[i] * v;
     if (q != nullptr) sums.q += v * q[i];
-    if (c0 != nullptr) {
+    if constexpr (carried) {
       sums.c0 += eff[i] * c0[i];
       sums.c1 += eff[i] * c1[i];
     }
@@ -318,8 +318,8 @@ struct PendingSums {
 //                     d0 = keep gx1 (+ d1 when the trace was not written: d1 is then dL/de0, the input passed on)
 //     none pending:   d0 = total
 //
-// d1 and q may be null (read as zero); dq is null with q; w is null when dX is not needed; c.c0 is null without
-// carried rows.
+// d1 and q may be null (read as zero); dq is null with q; w is null when dX is not needed; c is read only when
+// carried, and c.dc0 and c.dc1 are null when the rows need no gradient.
 template <typename T>
 struct CarriedRows {
   const T* c0;
@@ -329,7 +329,7 @@ struct CarriedRows {
   T* dc1;
 };
 
-template <typename T, int pending, bool write, bool first>
+template <typename T, int pending, bool write, bool first, bool carried>
 inline PendingSums<T> deferred_grad_row(T* __restrict g, const T* __restrict e0, const PendingRow<T>& u, T keep, T lo,
                                         T hi, const T* __restrict w, const T* __restrict a, const T* __restrict d1,
                                         const T* __restrict q, T dr, const CarriedRows<T>& c, T* __restrict d0,
@@ -349,7 +349,7 @@ inline PendingSums<T> deferred_grad_row(T* __restrict g, const T* __restrict e0,
   for (; i + L <= n; i += L) {
     const V e = load(e0 + i), av = load(a + i);
     V gv = load(g + i);
-    if (c.c0 != nullptr) gv = gv + dy0_v * load(c.c0 + i) + dy1_v * load(c.c1 + i);
+    if constexpr (carried) gv = gv + dy0_v * load(c.c0 + i) + dy1_v * load(c.c1 + i);
     V v1 = e, v = e;
     Mask clip1 = {}, clip2 = {};
     if constexpr (pending >= 1) {
@@ -378,7 +378,7 @@ inline PendingSums<T> deferred_grad_row(T* __restrict g, const T* __restrict e0,
     if (w != nullptr) {
       const V ev = load(w + i) + av * v;
       store(g + i, ev);
-      if (c.dc0 != nullptr) {
+      if (carried && c.dc0 != nullptr) {
         store(c.dc0 + i, load(c.dc0 + i) + dy0_v * ev);
         store(c.dc1 + i, load(c.dc1 + i) + dy1_v * ev);
       }
@@ -411,7 +411,7 @@ inline PendingSums<T> deferred_grad_row(T* __restrict g, const T* __restrict e0,
   for (; i < n; ++i) {
     const T e = e0[i];
     T gi = g[i];
-    if (c.c0 != nullptr) gi = gi + c.dy0 * c.c0[i] + c.dy1 * c.c1[i];
+    if constexpr (carried) gi = gi + c.dy0 * c.c0[i] + c.dy1 * c.c1[i];
     T v1 = e, v = e;
     bool clip1 = false, clip2 = false;
     if constexpr (pending >= 1) {
@@ -439,7 +439,7 @@ inline PendingSums<T> deferred_grad_row(T* __restrict g, const T* __restrict e0,
     }
     if (w != nullptr) {
       g[i] = w[i] + a[i] * v;
-      if (c.dc0 != nullptr) {
+      if (carried && c.dc0 != nullptr) {
         c.dc0[i] += c.dy0 * g[i];
         c.dc1[i] += c.dy1 * g[i];
       }
@@ -575,17 +575,21 @@ std::vector<at::Tensor> plastic_linear_deferred_forward(
           const scalar_t* c0 = c_p != nullptr ? c_p + 2 * b * I : nullptr;
           const scalar_t* c1 = c_p != nullptr ? c0 + I : nullptr;
           with_pending(u.count, write, [&](auto count, auto written) {
-            for (int64_t o = 0; o < O; ++o) {
-              const int64_t off = b * N + o * I;
-              const RowSums<scalar_t> sums = deferred_row<scalar_t, decltype(count)::value, decltype(written)::value>(
-                  v.e + off, pending_row(v, b, o, O, I), v.keep, v.lo, v.hi, v.w + o * I, v.a + o * I, q_b, c0, c1,
-                  et_p != nullptr ? et_p + off : nullptr, buf_p + (b - b0) * N + o * I, I);
-              if (r_p != nullptr) r_p[b * O + o] = sums.q;
-              if (yc_p != nullptr) {
-                yc_p[2 * b * O + o] = sums.c0;
-                yc_p[(2 * b + 1) * O + o] = sums.c1;
+            auto rows = [&](auto carries) {
+              for (int64_t o = 0; o < O; ++o) {
+                const int64_t off = b * N + o * I;
+                const RowSums<scalar_t> sums =
+                    deferred_row<scalar_t, decltype(count)::value, decltype(written)::value, decltype(carries)::value>(
+                        v.e + off, pending_row(v, b, o, O, I), v.keep, v.lo, v.hi, v.w + o * I, v.a + o * I, q_b, c0,
+                        c1, et_p != nullptr ? et_p + off : nullptr, buf_p + (b - b0) * N + o * I, I);
+                if (r_p != nullptr) r_p[b * O + o] = sums.q;
+                if constexpr (decltype(carries)::value) {
+                  yc_p[2 * b * O + o] = sums.c0;
+                  yc_p[(2 * b + 1) * O + o] = sums.c1;
+                }
               }
-            }
+            };
+            c0 != nullptr ? rows(std::true_type{}) : rows(std::false_type{});
           });
         }
         block_forward<scalar_t>(blas, X, Y, buf, b0, n);
@@ -664,33 +668,38 @@ std::vector<at::Tensor> plastic_linear_deferred_backward(
         with_pending(u.count, write, [&](auto count, auto written) {
           constexpr int pending = decltype(count)::value;
           constexpr bool wrote = decltype(written)::value;
-          for (int64_t o = 0; o < O; ++o) {
-            const int64_t off = b * N + o * I;
-            const PendingRow<scalar_t> row = pending_row(v, b, o, O, I);
-            const CarriedRows<scalar_t> carried{
-                c0, c0 != nullptr ? c0 + I : nullptr, c0 != nullptr ? gc_p[2 * b * O + o] : scalar_t(0),
-                c0 != nullptr ? gc_p[(2 * b + 1) * O + o] : scalar_t(0), dc0, dc0 != nullptr ? dc0 + I : nullptr};
-            scalar_t* G_row = G_p + (b - b0) * N + o * I;
-            const scalar_t* d1 = d1_p != nullptr ? d1_p + off : nullptr;
-            const scalar_t dr_o = dr_p != nullptr ? dr_p[b * O + o] : scalar_t(0);
-            const scalar_t* w_row = need_x_grad ? v.w + o * I : nullptr;
-            const PendingSums<scalar_t> sums =
-                first ? deferred_grad_row<scalar_t, pending, wrote, true>(
-                            G_row, v.e + off, row, v.keep, v.lo, v.hi, w_row, v.a + o * I, d1, q_b, dr_o, carried,
-                            d0_p + off, dw_t + o * I, da_t + o * I, dq_b, dq0_b, dq1_b, I)
-                      : deferred_grad_row<scalar_t, pending, wrote, false>(
-                            G_row, v.e + off, row, v.keep, v.lo, v.hi, w_row, v.a + o * I, d1, q_b, dr_o, carried,
-                            d0_p + off, dw_t + o * I, da_t + o * I, dq_b, dq0_b, dq1_b, I);
-            // ep_k = eta p_k, keep = 1 - eta: dL/dp_k = eta (gx_k . q_k), dL/deta = sum_k p_k (gx_k . q_k) - gx_k . v_k
-            if constexpr (pending >= 1) {
-              dp0_p[b * O + o] = v.eta * sums.ep0;
-              deta += static_cast<double>(v.p0[b * O + o] * sums.ep0 - sums.keep0);
+          auto rows = [&](auto carries) {
+            constexpr bool with_c = decltype(carries)::value;
+            for (int64_t o = 0; o < O; ++o) {
+              const int64_t off = b * N + o * I;
+              const PendingRow<scalar_t> row = pending_row(v, b, o, O, I);
+              const CarriedRows<scalar_t> carried{
+                  c0, c0 != nullptr ? c0 + I : nullptr, c0 != nullptr ? gc_p[2 * b * O + o] : scalar_t(0),
+                  c0 != nullptr ? gc_p[(2 * b + 1) * O + o] : scalar_t(0), dc0, dc0 != nullptr ? dc0 + I : nullptr};
+              scalar_t* G_row = G_p + (b - b0) * N + o * I;
+              const scalar_t* d1 = d1_p != nullptr ? d1_p + off : nullptr;
+              const scalar_t dr_o = dr_p != nullptr ? dr_p[b * O + o] : scalar_t(0);
+              const scalar_t* w_row = need_x_grad ? v.w + o * I : nullptr;
+              const PendingSums<scalar_t> sums =
+                  first ? deferred_grad_row<scalar_t, pending, wrote, true, with_c>(
+                              G_row, v.e + off, row, v.keep, v.lo, v.hi, w_row, v.a + o * I, d1, q_b, dr_o, carried,
+                              d0_p + off, dw_t + o * I, da_t + o * I, dq_b, dq0_b, dq1_b, I)
+                        : deferred_grad_row<scalar_t, pending, wrote, false, with_c>(
+                              G_row, v.e + off, row, v.keep, v.lo, v.hi, w_row, v.a + o * I, d1, q_b, dr_o, carried,
+                              d0_p + off, dw_t + o * I, da_t + o * I, dq_b, dq0_b, dq1_b, I);
+              // ep_k = eta p_k, keep = 1 - eta: dL/dp_k = eta (gx_k . q_k),
+              // dL/deta = sum_k p_k (gx_k . q_k) - gx_k . v_k
+              if constexpr (pending >= 1) {
+                dp0_p[b * O + o] = v.eta * sums.ep0;
+                deta += static_cast<double>(v.p0[b * O + o] * sums.ep0 - sums.keep0);
+              }
+              if constexpr (pending == 2) {
+                dp1_p[b * O + o] = v.eta * sums.ep1;
+                deta += static_cast<double>(v.p1[b * O + o] * sums.ep1 - sums.keep1);
+              }
             }
-            if constexpr (pending == 2) {
-              dp1_p[b * O + o] = v.eta * sums.ep1;
-              deta += static_cast<double>(v.p1[b * O + o] * sums.ep1 - sums.keep1);
-            }
-          }
+          };
+          c0 != nullptr ? rows(std::true_type{}) : rows(std::false_type{});
         });
         first = false;  // the rows of a thread's first environment fill its sums
         deta_p[b] = deta;

@@ -415,7 +415,8 @@ std::vector<at::Tensor> srm_interval_deferred_backward(
     const std::optional<at::Tensor>& d_r_post, const std::optional<at::Tensor>& d_E_t,
     const std::optional<at::Tensor>& d_new_phi, const std::optional<at::Tensor>& d_p_next,
     const std::optional<at::Tensor>& d_q, const at::Tensor& product_in, const at::Tensor& carried,
-    const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E, const std::optional<at::Tensor>& p_first, const std::optional<at::Tensor>& q_first,
+    const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E, const std::optional<at::Tensor>& p_first,
+    const std::optional<at::Tensor>& q_first,
     const std::optional<at::Tensor>& p_second, const std::optional<at::Tensor>& q_second,
     const at::Tensor& surrogate, const at::Tensor& p, const at::Tensor& pre, const std::optional<at::Tensor>& m,
     const at::Tensor& r_pre, const at::Tensor& r_post, const std::optional<at::Tensor>& phi, const at::Tensor& eta,
@@ -479,7 +480,8 @@ TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
       "srm_interval_deferred_backward(Tensor? d_spikes, Tensor? d_h1, Tensor? d_h2, Tensor? d_r_pre, "
       "Tensor? d_r_post, Tensor? d_E_t, Tensor? d_new_phi, Tensor? d_p, Tensor? d_q, Tensor product_in, "
       "Tensor carried, Tensor W, Tensor alpha, Tensor E, Tensor? p_first, Tensor? q_first, Tensor? p_second, "
-      "Tensor? q_second, Tensor surrogate, Tensor p, Tensor pre, Tensor? m, Tensor r_pre, Tensor r_post, Tensor? phi, Tensor eta, "
+      "Tensor? q_second, Tensor surrogate, Tensor p, Tensor pre, Tensor? m, Tensor r_pre, Tensor r_post, "
+      "Tensor? phi, Tensor eta, "
       "Tensor? eta_phi, Tensor? psi, Tensor? w_m, Tensor op, Tensor psp_rows, Tensor end_rows, bool filter_first, "
       "bool need_rows, float e_max, bool oja, int modulation, bool write_trace) -> Tensor[]");
   m.def(
