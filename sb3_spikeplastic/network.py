@@ -238,7 +238,8 @@ class SpikingPlasticNetwork(nn.Module):
         return [self.layers[0].n_in] + [layer.n_out for layer in self.layers]
 
     def backward_bytes_per_step(self, dtype: torch.dtype = torch.float32) -> int:
-        """Memory that backpropagation keeps per environment step of one sequence, estimated from the sizes: per
+        """Memory that backpropagation keeps per environment step of one sequence with the compiled CPU ops (which
+        ``chunks_per_pass="auto"`` sizes its passes for; the eager ops keep more), estimated from the sizes: per
         layer and interval, the trace ``E`` (plastic layers; every other one where the compiled ops defer the
         built-in rules' updates, see :meth:`forward_sequence`), the ``L + 2`` rows its product reads (the spikes and
         the carried PSP state, filtered or not), its surrogate gradient ``(L, n_out)``, both rates and the rule's
