@@ -235,11 +235,10 @@ class PlasticSRMLayer(nn.Module):
         # trace-sized outer products (and their sum) in the backward pass.
         if self.carries_state(length):  # beside the spikes, as the fused interval does (see carries_state)
             carried = torch.stack([psp.h1, psp.h2], 1)
-            end = end_rows[:, :length] @ spikes_in + end_rows[:, length:] @ carried
             projected = _fast.plastic_linear(spikes_in, self.weight, self.alpha, trace, carried)
-            if projected is None:
-                projected = self.project(torch.cat([spikes_in, carried], 1), trace, efficacy_left=True)
-            return psp_rows @ projected, AlphaFilterState(end[:, 0], end[:, 1])
+            if projected is not None:  # else (no compiled op: a GPU) the rows as below
+                end = end_rows[:, :length] @ spikes_in + end_rows[:, length:] @ carried
+                return psp_rows @ projected, AlphaFilterState(end[:, 0], end[:, 1])
         rows = torch.cat([spikes_in, psp.h1.unsqueeze(1), psp.h2.unsqueeze(1)], 1)
         end = end_rows @ rows
         return psp_rows @ self.project(rows, trace, efficacy_left=True), AlphaFilterState(end[:, 0], end[:, 1])

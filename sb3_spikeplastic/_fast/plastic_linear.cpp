@@ -280,9 +280,11 @@ inline RowSums<T> deferred_row(const T* __restrict e0, const PendingRow<T>& u, T
     }
   }
   RowSums<T> sums;
-  sums.q = sb3_spikeplastic_fast::sum_lanes<T>(acc);
-  sums.c0 = sb3_spikeplastic_fast::sum_lanes<T>(acc0);
-  sums.c1 = sb3_spikeplastic_fast::sum_lanes<T>(acc1);
+  if (q != nullptr) sums.q = sb3_spikeplastic_fast::sum_lanes<T>(acc);
+  if constexpr (carried) {
+    sums.c0 = sb3_spikeplastic_fast::sum_lanes<T>(acc0);
+    sums.c1 = sb3_spikeplastic_fast::sum_lanes<T>(acc1);
+  }
   for (; i < n; ++i) {
     T v = e0[i];
     if constexpr (pending >= 1) v = std::min(hi, std::max(lo, v * keep + u.ep0 * u.q0[i]));
@@ -404,10 +406,14 @@ inline PendingSums<T> deferred_grad_row(T* __restrict g, const T* __restrict e0,
     }
   }
   PendingSums<T> sums;
-  sums.ep0 = sb3_spikeplastic_fast::sum_lanes<T>(s_ep0);
-  sums.keep0 = sb3_spikeplastic_fast::sum_lanes<T>(s_keep0);
-  sums.ep1 = sb3_spikeplastic_fast::sum_lanes<T>(s_ep1);
-  sums.keep1 = sb3_spikeplastic_fast::sum_lanes<T>(s_keep1);
+  if constexpr (pending >= 1) {
+    sums.ep0 = sb3_spikeplastic_fast::sum_lanes<T>(s_ep0);
+    sums.keep0 = sb3_spikeplastic_fast::sum_lanes<T>(s_keep0);
+  }
+  if constexpr (pending == 2) {
+    sums.ep1 = sb3_spikeplastic_fast::sum_lanes<T>(s_ep1);
+    sums.keep1 = sb3_spikeplastic_fast::sum_lanes<T>(s_keep1);
+  }
   for (; i < n; ++i) {
     const T e = e0[i];
     T gi = g[i];
