@@ -141,14 +141,18 @@ class PlasticSRMLayer(nn.Module):
         On CPU the compiled op of :mod:`sb3_spikeplastic._fast` builds the efficacy of a few environments at a
         time (the ``(batch, n_out, n_in)`` efficacy and its gradient are never materialised). The eager path multiplies
         with the efficacy on the left when ``efficacy_left`` (so that its gradient comes out in its own
-        ``(n_out, n_in)`` layout, not transposed: cheaper when ``n_in > n_out``), else on the right.
+        ``(n_out, n_in)`` layout, not transposed: cheaper when ``n_in > n_out``; a plastic layer's only), else on the
+        right.
         """
         if self.alpha is not None:
             fused = _fast.plastic_linear(x, self.weight, self.alpha, trace)
             if fused is not None:
                 return fused
         w_eff = self.efficacy(trace)
-        if efficacy_left:
+        # A static layer's weight is shared, so its gradient comes out in its own layout either way; x W^T is also the
+        # compiled interval's product, which gives the same values only in the same form (BLAS libraries need not sum
+        # a product and its transpose in the same order).
+        if efficacy_left and self.alpha is not None:
             return (w_eff @ x.transpose(-1, -2)).transpose(-1, -2)
         return x @ w_eff.transpose(-1, -2)
 

@@ -309,3 +309,83 @@ print(kept, bool((_fast.plastic_linear(x, W, alpha, E) == 0).all()))
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]
     assert result.stdout.split() == ["True", "True"]
+
+
+@pytest.fixture
+def spike_limit(fused):
+    """Sets the spike products' density limit for one test and restores it."""
+    before = _fast.spike_density_limit()
+    yield _fast.spike_density_limit
+    _fast.spike_density_limit(before)
+
+
+@pytest.mark.parametrize("n_in, n_out, length", [(600, 64, 50), (603, 72, 3), (2000, 40, 1)],
+                         ids=["paper-input-layer", "ragged", "narrow"])
+@pytest.mark.parametrize("density", [0.0, 0.05, 0.15])
+@pytest.mark.parametrize("carry", [False, True], ids=["spikes", "carried-rows"])
+def test_spike_products_equal_dense_products(spike_limit, n_in, n_out, length, density, carry):
+    """Binary float32 ``x`` taken through the spike products (firing inputs' columns added up; forward and the
+    efficacy's gradient): values and all gradients agree with the dense path and with the product in float64, and
+    every environment, forward and backward, is counted on the spike path."""
+    g = torch.Generator().manual_seed(7)
+    B = 3
+    x = (torch.rand(B, length, n_in, generator=g) < density).float()
+    carried = torch.randn(B, 2, n_in, generator=g) if carry else None
+    W, alpha = (0.3 * torch.randn(n_out, n_in, generator=g) for _ in range(2))
+    E = torch.randn(B, n_out, n_in, generator=g)
+    upstream = torch.randn(B, length + (2 if carry else 0), n_out, generator=g)
+
+    def run(limit):
+        spike_limit(limit)
+        params = [t.clone().requires_grad_() for t in (W, alpha, E)]
+        out = _fast.plastic_linear(x, *params, carried)
+        return out, torch.autograd.grad((out * upstream).sum(), params)
+
+    before = _fast.spike_product_counts()
+    out, grads = run(1.0)
+    after = _fast.spike_product_counts()
+    assert (after[0] - before[0], after[1] - before[1]) == (2 * B, 0)
+    dense_out, dense_grads = run(0.0)
+    assert _fast.spike_product_counts() == after  # limit 0: the spikes are not even looked at
+    exact = [t.double().requires_grad_() for t in (W, alpha, E)]
+    rows = x.double() if carried is None else torch.cat([x, carried], 1).double()
+    ref = rows @ torch.addcmul(exact[0], exact[1], exact[2]).transpose(1, 2)
+    ref_grads = torch.autograd.grad((ref * upstream.double()).sum(), exact)
+    for a, b, r in zip((out, *grads), (dense_out, *dense_grads), (ref, *ref_grads)):
+        scale = max(1.0, float(r.abs().max()))
+        torch.testing.assert_close(a.double(), r.detach(), rtol=1e-5, atol=1e-5 * scale)
+        torch.testing.assert_close(b.double(), r.detach(), rtol=1e-5, atol=1e-5 * scale)
+
+
+def test_spike_products_only_for_sparse_binary_float32(spike_limit):
+    """The dense product is kept for values other than 0 and 1 (a NaN spreads as it does there), for more spikes
+    than the limit allows, for float64 and for blocks of several environments; an out-of-range limit is refused."""
+    g = torch.Generator().manual_seed(8)
+    W, alpha = torch.randn(64, 600, generator=g), torch.randn(64, 600, generator=g)
+    E = torch.randn(2, 64, 600, generator=g)
+    sparse = (torch.rand(2, 10, 600, generator=g) < 0.1).float()
+    spike_limit(0.2)
+
+    def counted(x, w=W, a=alpha, e=E):
+        before = _fast.spike_product_counts()
+        out = _fast.plastic_linear(x, w, a, e)
+        after = _fast.spike_product_counts()
+        return out, (after[0] - before[0], after[1] - before[1])
+
+    assert counted(sparse)[1] == (2, 0)
+    half = sparse.clone()
+    half[1, 3, 5] = 0.5
+    out, counts = counted(half)
+    assert counts == (1, 1)
+    torch.testing.assert_close(out, half @ torch.addcmul(W, alpha, E).transpose(1, 2), rtol=1e-5, atol=1e-4)
+    nan = sparse.clone()
+    nan[0, 0, 599] = float("nan")
+    out, counts = counted(nan)
+    assert counts == (1, 1) and torch.isnan(out[0, 0]).all() and not torch.isnan(out[1]).any()
+    dense = (torch.rand(2, 10, 600, generator=g) < 0.5).float()
+    assert counted(dense)[1] == (0, 2)
+    assert counted(sparse.double(), W.double(), alpha.double(), E.double())[1] == (0, 0)
+    small = (torch.rand(2, 10, 16, generator=g) < 0.1).float()  # 16 -> 8: blocks of both environments
+    assert counted(small, W[:8, :16], alpha[:8, :16], E[:, :8, :16])[1] == (0, 0)
+    with pytest.raises(ValueError, match="limit=1.5"):
+        spike_limit(1.5)

@@ -11,7 +11,10 @@
 * :func:`plastic_linear` (``plastic_linear.cpp``), for :meth:`sb3_spikeplastic.layers.PlasticSRMLayer.project`:
   the synaptic product ``X[b] (W + alpha * E[b])^T`` with the efficacy of a few environments at a time in a
   cache-sized buffer, so that neither the ``(B, n_out, n_in)`` efficacy nor its gradient is ever materialised
-  (eager: four extra passes over trace-sized arrays); equal to the eager ops to float rounding.
+  (eager: four extra passes over trace-sized arrays); equal to the eager ops to float rounding. Where an
+  environment's ``x`` is binary spikes at most :func:`spike_density_limit` of which fire (the input layer's place
+  cells), its forward and gradient products add up the firing inputs' columns instead of multiplying through the
+  zeros (``spike_product.h``, AVX2 builds).
 * :func:`interval_ops` (``srm_interval.cpp``), for :class:`sb3_spikeplastic.layers.PlasticSRMLayer`: a whole
   layer interval (filter, product, spike loop, surrogate, rates and, for the built-in rules, the trace update) as
   one op forward and one backward, built from the kernels above; one autograd node per layer and interval where
@@ -57,7 +60,8 @@ import torch
 from torch import Tensor
 
 __all__ = ["NO_COMPILE_ENV", "bernoulli_spikes", "build_directory", "compiled_disabled", "cpu_float_operands",
-           "interval_ops", "load_cuda_ops", "load_ops", "plastic_linear", "srm_loop", "trace_step"]
+           "interval_ops", "load_cuda_ops", "load_ops", "plastic_linear", "spike_density_limit", "spike_product_counts",
+           "srm_loop", "trace_step"]
 
 NO_COMPILE_ENV = "SB3_SPIKEPLASTIC_NO_COMPILE"
 BUILD_DIR_ENV = "SB3_SPIKEPLASTIC_BUILD_DIR"
@@ -69,7 +73,7 @@ _SOURCES = [Path(__file__).with_name(name)
 _CUDA_EXTENSION = "sb3_spikeplastic_fast_cuda"
 _CUDA_SOURCES = [Path(__file__).with_name("srm_loop_cuda.cu")]
 _HEADERS = [Path(__file__).with_name(name)
-            for name in ("srm_loop_checks.h", "denormal_mode.h", "kernels.h", "lanes.h")]
+            for name in ("srm_loop_checks.h", "denormal_mode.h", "kernels.h", "lanes.h", "spike_product.h")]
 
 _lock = threading.Lock()
 _tried = False
@@ -380,6 +384,28 @@ def plastic_linear(x: Tensor, weight: Tensor, alpha: Tensor, E: Tensor,
         return None
     y, y_carried = _PlasticLinear.apply(x, weight, alpha, E, carried)
     return y if carried is None else torch.cat([y, y_carried], 1)
+
+
+def spike_density_limit(limit: Optional[float] = None) -> Optional[float]:
+    """The largest fraction of an environment's ``x`` values that may be spikes for :func:`plastic_linear` (and the
+    fused interval) to take the spike products (default 0.2; 0 turns them off); sets it when ``limit`` is given and
+    returns the previous one. ``None`` without the compiled ops."""
+    ops = _enabled_ops()
+    if ops is None:
+        return None
+    if limit is not None and not 0.0 <= float(limit) <= 1.0:
+        raise ValueError(f"spike_density_limit: limit={limit!r} is not a fraction in [0, 1]")
+    return ops.spike_density_limit(-1.0 if limit is None else float(limit))
+
+
+def spike_product_counts() -> Optional[tuple[int, int]]:
+    """How many environments' products took the spike path and how many the dense one since the compiled ops were
+    loaded (``(spike, dense)``), or ``None`` without them."""
+    ops = _enabled_ops()
+    if ops is None:
+        return None
+    spike, dense = ops.spike_product_counts()
+    return int(spike), int(dense)
 
 
 def interval_ops() -> Optional[Any]:

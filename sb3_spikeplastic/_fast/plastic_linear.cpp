@@ -21,10 +21,12 @@
 //                dX[b] = dY[b] (W + alpha * E[b])                         (only when X needs a gradient)
 //
 // Environments are independent, so they are split between threads (dW and dalpha are summed per thread, then
-// added; a thread's first row fills its sums, so they are not zero-filled first). The products stay dense: X's rows
-// are binary spikes, but skipping the silent inputs (gathering the efficacy's columns of the firing ones) needs the
-// efficacy transposed per environment, which costs more than it saves at these sizes (benchmarks/README.md,
-// "Sparse products").
+// added; a thread's first row fills its sums, so they are not zero-filled first).
+//
+// Where X[b] is binary spikes firing at most at spike_density_limit (the input layer's place cells, ~10 %), the
+// forward and gradient products of a one-environment block add up the efficacy's columns of the firing inputs and
+// dY's rows at each input's firing steps instead (spike_product.h; about twice as fast at 10 %); any other X, or
+// more spikes, takes the dense product, the tested reference.
 //
 // Equal to the eager ops to float rounding (sums run in another order).
 
@@ -43,8 +45,10 @@
 #include "denormal_mode.h"
 #include "kernels.h"
 #include "lanes.h"
+#include "spike_product.h"
 
 #include <algorithm>
+#include <atomic>
 #include <optional>
 #include <tuple>
 #include <type_traits>
@@ -75,6 +79,60 @@ bool has_blas() {
   } else {
     return mkl && dgemm_ != nullptr;
   }
+}
+
+// The largest fraction of X[b]'s values that may be spikes for the spike products (benchmarks/README.md, "Sparse
+// products": the forward product breaks even at ~30 %, the gradient at ~20 %), and how many environments' products
+// took each path since the library was loaded (spike, dense).
+std::atomic<double> spike_density_limit{0.2};
+std::atomic<int64_t> spike_products{0}, dense_products{0};
+
+// X[b] (R, I) indexed in s when it is binary and sparse enough (then counted as a spike product, else as dense).
+bool index_environment(const float* X, int64_t R, int64_t I, sb3_spikeplastic_fast::SpikeIndex& s) {
+  const auto limit = static_cast<int64_t>(spike_density_limit.load() * static_cast<double>(R * I));
+  const bool sparse = sb3_spikeplastic_fast::index_spikes(X, R, I, limit, s);
+  (sparse ? spike_products : dense_products).fetch_add(1, std::memory_order_relaxed);
+  return sparse;
+}
+
+// Whether the spike products may apply: float32 blocks of one environment, n_out a multiple of the vector width.
+template <typename scalar_t>
+bool spike_block(int64_t n, int64_t O) {
+  return std::is_same_v<scalar_t, float> && n == 1 && O % 8 == 0 && spike_density_limit.load() > 0;
+}
+
+// Y[b] (R, O) = X[b] eff^T as a spike product, eff (O, I) the block's efficacy; false where it does not apply (the
+// caller then takes the dense product).
+template <typename scalar_t>
+bool spike_block_forward(const at::Tensor& X, at::Tensor& Y, const scalar_t* eff, int64_t b, int64_t n) {
+  if constexpr (std::is_same_v<scalar_t, float>) {
+    const int64_t R = X.size(1), I = X.size(2), O = Y.size(2);
+    static thread_local sb3_spikeplastic_fast::SpikeIndex spikes;
+    static thread_local std::vector<float> effT;
+    if (!spike_block<scalar_t>(n, O) || !index_environment(X.data_ptr<float>() + b * R * I, R, I, spikes)) {
+      return false;
+    }
+    effT.resize(I * O);
+    sb3_spikeplastic_fast::transpose_rows(eff, O, I, effT.data());
+    sb3_spikeplastic_fast::spike_product(spikes, R, effT.data(), O, Y.data_ptr<float>() + b * R * O);
+    return true;
+  }
+  return false;
+}
+
+// G (O, I) = dY[b]^T X[b] as a spike product; false where it does not apply.
+template <typename scalar_t>
+bool spike_block_gradient(const at::Tensor& dY, const at::Tensor& X, at::Tensor& G, int64_t b, int64_t n) {
+  if constexpr (std::is_same_v<scalar_t, float>) {
+    const int64_t R = X.size(1), I = X.size(2), O = dY.size(2);
+    static thread_local sb3_spikeplastic_fast::SpikeIndex spikes;
+    if (!spike_block<scalar_t>(n, O) || !index_environment(X.data_ptr<float>() + b * R * I, R, I, spikes)) {
+      return false;
+    }
+    sb3_spikeplastic_fast::spike_gradient(spikes, R, I, dY.data_ptr<float>() + b * R * O, O, G.data_ptr<float>());
+    return true;
+  }
+  return false;
 }
 
 // Column-major C (m, n) = op(A) op(B), BLAS's convention; a row-major (r, c) matrix is a column-major (c, r) one.
@@ -598,7 +656,7 @@ std::vector<at::Tensor> plastic_linear_deferred_forward(
             c0 != nullptr ? rows(std::true_type{}) : rows(std::false_type{});
           });
         }
-        block_forward<scalar_t>(blas, X, Y, buf, b0, n);
+        if (!spike_block_forward<scalar_t>(X, Y, buf_p, b0, n)) block_forward<scalar_t>(blas, X, Y, buf, b0, n);
       }
     });
   });
@@ -660,7 +718,7 @@ std::vector<at::Tensor> plastic_linear_deferred_backward(
     const bool blas = has_blas<scalar_t>();
     backward_blocks<scalar_t>(B, nb, W, acc, used, [&](int64_t b0, int64_t n, at::Tensor& G, scalar_t* dw_t,
                                                         scalar_t* da_t, bool& first) {
-      block_gradient<scalar_t>(blas, g, X, G, b0, n);
+      if (!spike_block_gradient<scalar_t>(g, X, G, b0, n)) block_gradient<scalar_t>(blas, g, X, G, b0, n);
       scalar_t* G_p = G.data_ptr<scalar_t>();
       for (int64_t b = b0; b < b0 + n; ++b) {
         const scalar_t* q_b = v.q != nullptr ? v.q + b * I : nullptr;
@@ -718,9 +776,20 @@ std::vector<at::Tensor> plastic_linear_deferred_backward(
   return {dX, sums.select(0, 0), sums.select(0, 1), dE0, dq, dq0, dp0, dq1, dp1, d_eta, dC};
 }
 
+// The spike products' density limit: sets it to limit when limit >= 0 and returns the previous one (0 disables
+// them); and the counts of environments' products (spike, dense) since the library was loaded.
+double set_spike_density_limit(double limit) {
+  TORCH_CHECK(limit <= 1, "spike_density_limit: a fraction of X's values in [0, 1], got ", limit);
+  return limit < 0 ? spike_density_limit.load() : spike_density_limit.exchange(limit);
+}
+
+std::vector<int64_t> spike_product_counts() { return {spike_products.load(), dense_products.load()}; }
+
 }  // namespace sb3_spikeplastic_fast
 
 TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
+  m.def("spike_density_limit(float limit) -> float", &sb3_spikeplastic_fast::set_spike_density_limit);
+  m.def("spike_product_counts() -> int[]", &sb3_spikeplastic_fast::spike_product_counts);
   m.def("plastic_linear_forward(Tensor X, Tensor W, Tensor alpha, Tensor E, Tensor? carried) -> (Tensor, Tensor)");
   m.def(
       "plastic_linear_backward(Tensor grad, Tensor? grad_carried, Tensor X, Tensor W, Tensor alpha, Tensor E, "
