@@ -388,7 +388,7 @@ def plastic_linear(x: Tensor, weight: Tensor, alpha: Tensor, E: Tensor,
 
 def spike_density_limit(limit: Optional[float] = None) -> Optional[float]:
     """The largest fraction of an environment's ``x`` values that may be spikes for :func:`plastic_linear` (and the
-    fused interval) to take the spike products (default 0.2; 0 turns them off); sets it when ``limit`` is given and
+    fused interval) to take the spike products (default 0.3; 0 turns them off); sets it when ``limit`` is given and
     returns the previous one. ``None`` without the compiled ops."""
     ops = _enabled_ops()
     if ops is None:

@@ -23,9 +23,9 @@
 // Environments are independent, so they are split between threads (dW and dalpha are summed per thread, then
 // added; a thread's first row fills its sums, so they are not zero-filled first).
 //
-// Where X[b] is binary spikes firing at most at spike_density_limit (the input layer's place cells, ~10 %), the
+// Where X[b] is binary spikes firing at most at spike_density_limit (30 %; the input layer's place cells: ~10 %), the
 // forward and gradient products of a one-environment block add up the efficacy's columns of the firing inputs and
-// dY's rows at each input's firing steps instead (spike_product.h; about twice as fast at 10 %); any other X, or
+// dY's rows at each input's firing steps instead (spike_product.h; 2-3 times as fast at 10 %); any other X, or
 // more spikes, takes the dense product, the tested reference.
 //
 // Equal to the eager ops to float rounding (sums run in another order).
@@ -82,9 +82,9 @@ bool has_blas() {
 }
 
 // The largest fraction of X[b]'s values that may be spikes for the spike products (benchmarks/README.md, "Sparse
-// products": the forward product breaks even at ~30 %, the gradient at ~20 %), and how many environments' products
-// took each path since the library was loaded (spike, dense).
-std::atomic<double> spike_density_limit{0.2};
+// products": at the paper network's 600 -> 64 sizes the forward product breaks even at ~35 % and the gradient at
+// ~45 %), and how many environments' products took each path since the library was loaded (spike, dense).
+std::atomic<double> spike_density_limit{0.3};
 std::atomic<int64_t> spike_products{0}, dense_products{0};
 
 // X[b] (R, I) indexed in s when it is binary and sparse enough (then counted as a spike product, else as dense).

@@ -19,6 +19,7 @@ namespace sb3_spikeplastic_fast {
 struct SpikeIndex {
   std::vector<int32_t> start, index, col_start, rows;
   std::vector<int32_t> fill;  // scratch: the next free position of each input's list
+  std::vector<float> tile;    // scratch: 8 rows of the gradient's transpose
 };
 
 #if defined(__AVX2__)
@@ -77,7 +78,7 @@ inline void transpose_block(const float* src, int64_t lds, float* dst, int64_t l
   _mm256_storeu_ps(dst + 7 * ldd, r7);
 }
 
-// Y[r, o0 : o0 + 8 NV] = the sum of MT's rows (at stride O) of the row's firing inputs, in increasing order.
+// y[0 : 8 NV] = the sum of the rows idx (at stride O) of MT from its column 0, in the order given.
 template <int NV>
 inline void add_rows(const float* MT, int64_t O, const int32_t* idx, int32_t n, float* y) {
   __m256 acc[NV];
@@ -95,13 +96,6 @@ inline void add_rows(const float* MT, int64_t O, const int32_t* idx, int32_t n, 
     for (int k = 0; k < NV; ++k) acc[k] = _mm256_add_ps(acc[k], _mm256_loadu_ps(a + 8 * k));
   }
   for (int k = 0; k < NV; ++k) _mm256_storeu_ps(y + 8 * k, acc[k]);
-}
-
-// The sum of dY's 8 values from column o0 over the given rows (at stride O).
-inline __m256 sum_rows(const float* dY, int64_t O, const int32_t* rows, int32_t n) {
-  __m256 acc = _mm256_setzero_ps();
-  for (int32_t j = 0; j < n; ++j) acc = _mm256_add_ps(acc, _mm256_loadu_ps(dY + static_cast<int64_t>(rows[j]) * O));
-  return acc;
 }
 
 }  // namespace spike_detail
@@ -164,7 +158,8 @@ inline void transpose_rows(const float* M, int64_t O, int64_t I, float* MT) {
 }
 
 // G (O, I) = dY^T X with dY (R, O) and X's spikes indexed in s (its per-input lists filled here); O a multiple
-// of 8. Each 8 x 8 block of G sums dY's rows at its 8 inputs' firing steps, then is transposed into place.
+// of 8. Row i of G^T sums dY's rows at input i's firing steps (add_rows, one loop per input: a loop per input and
+// column block would mispredict its exit far more often); 8 such rows at a time are transposed into place.
 inline void spike_gradient(SpikeIndex& s, int64_t R, int64_t I, const float* dY, int64_t O, float* G) {
   const int32_t count = s.start[R];
   s.col_start.assign(I + 1, 0);
@@ -175,20 +170,25 @@ inline void spike_gradient(SpikeIndex& s, int64_t R, int64_t I, const float* dY,
   for (int64_t r = 0; r < R; ++r) {
     for (int32_t j = s.start[r]; j < s.start[r + 1]; ++j) s.rows[s.fill[s.index[j]]++] = static_cast<int32_t>(r);
   }
-  const int32_t* cs = s.col_start.data();
-  const int32_t* rows = s.rows.data();
-  for (int64_t o = 0; o < O; o += 8) {
-    int64_t i = 0;
-    for (; i + 8 <= I; i += 8) {
-      __m256 c[8];
-      for (int k = 0; k < 8; ++k) c[k] = spike_detail::sum_rows(dY + o, O, rows + cs[i + k], cs[i + k + 1] - cs[i + k]);
-      spike_detail::transpose8(c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]);
-      for (int k = 0; k < 8; ++k) _mm256_storeu_ps(G + (o + k) * I + i, c[k]);
+  s.tile.resize(8 * O);
+  float* tile = s.tile.data();
+  for (int64_t i = 0; i < I; i += 8) {
+    const int64_t n = std::min<int64_t>(8, I - i);
+    for (int64_t k = 0; k < n; ++k) {
+      const int32_t* rows = s.rows.data() + s.col_start[i + k];
+      const int32_t m = s.col_start[i + k + 1] - s.col_start[i + k];
+      int64_t o = 0;
+      for (; o + 64 <= O; o += 64) spike_detail::add_rows<8>(dY + o, O, rows, m, tile + k * O + o);
+      for (; o < O; o += 8) spike_detail::add_rows<1>(dY + o, O, rows, m, tile + k * O + o);
     }
-    for (; i < I; ++i) {
-      float c[8];
-      _mm256_storeu_ps(c, spike_detail::sum_rows(dY + o, O, rows + cs[i], cs[i + 1] - cs[i]));
-      for (int k = 0; k < 8; ++k) G[(o + k) * I + i] = c[k];
+    for (int64_t o = 0; o < O; o += 8) {
+      if (n == 8) {
+        spike_detail::transpose_block(tile + o, O, G + o * I + i, I);
+      } else {
+        for (int64_t k = 0; k < n; ++k) {
+          for (int64_t c = 0; c < 8; ++c) G[(o + c) * I + i + k] = tile[k * O + o + c];
+        }
+      }
     }
   }
 }
