@@ -399,8 +399,9 @@ def spike_density_limit(limit: Optional[float] = None) -> Optional[float]:
 
 
 def spike_product_counts() -> Optional[tuple[int, int]]:
-    """How many environments' products took the spike path and how many the dense one since the compiled ops were
-    loaded (``(spike, dense)``), or ``None`` without them."""
+    """How many environments' products took the spike path and how many were checked and kept the dense one (their
+    input not binary, e.g. a layer's filtered PSPs, or too many spikes) since the compiled ops were loaded
+    (``(spike, dense)``), or ``None`` without them."""
     ops = _enabled_ops()
     if ops is None:
         return None
