@@ -81,8 +81,8 @@ bool has_blas() {
   }
 }
 
-// The largest fraction of X[b]'s values that may be spikes for the spike products (benchmarks/README.md, "Sparse
-// products": at the paper network's 600 -> 64 sizes the forward product breaks even at ~35 % and the gradient at
+// The largest fraction of X[b]'s values that may be spikes for the spike products (benchmarks/README.md, "Products
+// on spikes": at the paper network's 600 -> 64 sizes the forward product breaks even at ~35 % and the gradient at
 // ~45 %), and how many environments' products took each path since the library was loaded (spike, dense).
 std::atomic<double> spike_density_limit{0.3};
 std::atomic<int64_t> spike_products{0}, dense_products{0};

@@ -5,6 +5,7 @@
 // it index_spikes declines and the caller keeps the dense product.
 #pragma once
 
+#include <algorithm>
 #include <cstdint>
 #include <vector>
 
