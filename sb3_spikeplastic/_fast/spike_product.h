@@ -99,6 +99,13 @@ inline void add_rows(const float* MT, int64_t O, const int32_t* idx, int32_t n, 
   for (int k = 0; k < NV; ++k) _mm256_storeu_ps(y + 8 * k, acc[k]);
 }
 
+// y[0 : O] = the sum of the rows idx (at stride O) of MT: 64 columns at a time (8 accumulators), then 8.
+inline void add_full_rows(const float* MT, int64_t O, const int32_t* idx, int32_t n, float* y) {
+  int64_t o = 0;
+  for (; o + 64 <= O; o += 64) add_rows<8>(MT + o, O, idx, n, y + o);
+  for (; o < O; o += 8) add_rows<1>(MT + o, O, idx, n, y + o);
+}
+
 }  // namespace spike_detail
 
 // Fills s with X's (R, I) firing inputs per row when every value is 0 or 1 and at most max_count are 1; returns
@@ -140,10 +147,7 @@ inline bool index_spikes(const float* X, int64_t R, int64_t I, int64_t max_count
 inline void spike_product(const SpikeIndex& s, int64_t R, const float* MT, int64_t O, float* Y) {
   for (int64_t r = 0; r < R; ++r) {
     const int32_t* idx = s.index.data() + s.start[r];
-    const int32_t n = s.start[r + 1] - s.start[r];
-    int64_t o = 0;
-    for (; o + 64 <= O; o += 64) spike_detail::add_rows<8>(MT + o, O, idx, n, Y + r * O + o);
-    for (; o < O; o += 8) spike_detail::add_rows<1>(MT + o, O, idx, n, Y + r * O + o);
+    spike_detail::add_full_rows(MT, O, idx, s.start[r + 1] - s.start[r], Y + r * O);
   }
 }
 
@@ -159,7 +163,7 @@ inline void transpose_rows(const float* M, int64_t O, int64_t I, float* MT) {
 }
 
 // G (O, I) = dY^T X with dY (R, O) and X's spikes indexed in s (its per-input lists filled here); O a multiple
-// of 8. Row i of G^T sums dY's rows at input i's firing steps (add_rows, one loop per input: a loop per input and
+// of 8. Row i of G^T sums dY's rows at input i's firing steps (add_full_rows, one loop per input: a loop per input and
 // column block would mispredict its exit far more often); 8 such rows at a time are transposed into place.
 inline void spike_gradient(SpikeIndex& s, int64_t R, int64_t I, const float* dY, int64_t O, float* G) {
   const int32_t count = s.start[R];
@@ -177,10 +181,7 @@ inline void spike_gradient(SpikeIndex& s, int64_t R, int64_t I, const float* dY,
     const int64_t n = std::min<int64_t>(8, I - i);
     for (int64_t k = 0; k < n; ++k) {
       const int32_t* rows = s.rows.data() + s.col_start[i + k];
-      const int32_t m = s.col_start[i + k + 1] - s.col_start[i + k];
-      int64_t o = 0;
-      for (; o + 64 <= O; o += 64) spike_detail::add_rows<8>(dY + o, O, rows, m, tile + k * O + o);
-      for (; o < O; o += 8) spike_detail::add_rows<1>(dY + o, O, rows, m, tile + k * O + o);
+      spike_detail::add_full_rows(dY, O, rows, s.col_start[i + k + 1] - s.col_start[i + k], tile + k * O);
     }
     for (int64_t o = 0; o < O; o += 8) {
       if (n == 8) {
