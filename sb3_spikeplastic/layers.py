@@ -275,8 +275,10 @@ class _FusedInterval(torch.autograd.Function):
     terms, in one compiled op forward and one backward (``_fast/srm_interval.cpp``, where the backward pass is
     written out; the trace-sized gradients of the product and of the update are summed in one pass).
 
-    The forward op runs the eager layer's and rule's ops and kernels in the same order, so spikes, membrane, rates,
-    states and the new trace are bit-identical; the gradients are those of the eager graph (tested for every
+    The forward op runs the eager layer's and rule's ops and kernels in the same order, except that it filters by
+    the alpha filter's recurrence (``_fast/alpha_filter.cpp``) where the eager layer multiplies by its operator, so
+    membrane, states and the new trace equal the eager layer's to float rounding (spikes then only differ where the
+    membrane lies within rounding of the threshold); the gradients are those of the eager graph (tested for every
     built-in rule) up to the surrogate, which the spike loop computes with an exponential of its own (within 2 ulp
     of :func:`~sb3_spikeplastic.neurons.slayer_surrogate` in float32). Eager autograd builds ~15 nodes per layer
     and interval, whose overhead dominates the small CPU networks' training step.
@@ -372,7 +374,8 @@ class _DeferredInterval(torch.autograd.Function):
     out only with ``write``; otherwise the input trace is passed on (one of the updates stays pending), and the
     interval that writes recomputes the one between in registers, forward and backward: a sequence stores every other
     trace. Outputs as :meth:`_FusedInterval.run_layer`'s, the trace being the one written or the input passed on,
-    then ``p`` and ``q``; the same values bit for bit, gradients equal to float rounding (tested).
+    then ``p`` and ``q``; the same values as :class:`_FusedInterval`'s bit for bit, gradients equal to float rounding
+    (tested).
     """
 
     @staticmethod

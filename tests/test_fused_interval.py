@@ -1,6 +1,7 @@
 """The CPU layer interval, with a built-in rule's trace update, as one compiled op each way
-(``layers._FusedInterval``, ``_fast/srm_interval.cpp``) against the eager layer: the same spikes, membrane and
-states, and the gradients of the eager graph."""
+(``layers._FusedInterval``, ``_fast/srm_interval.cpp``) against the eager layer: the same spikes, the membrane and
+states to float rounding (the op filters by the alpha filter's recurrence, ``_fast/alpha_filter.cpp``), and the
+gradients of the eager graph."""
 
 import pytest
 import torch
@@ -8,7 +9,7 @@ import torch
 from sb3_spikeplastic import _fast, layers
 from sb3_spikeplastic.layers import PlasticSRMLayer, _FusedInterval
 from sb3_spikeplastic.network import tensor_leaves
-from sb3_spikeplastic.neurons import SRMParameters, slayer_surrogate
+from sb3_spikeplastic.neurons import SRMParameters, alpha_filter_operator, slayer_surrogate
 from sb3_spikeplastic.plasticity import DPOjaRule, get_rule_class
 
 pytestmark = pytest.mark.skipif(_fast.load_ops() is None, reason="compiled ops unavailable")
@@ -70,6 +71,43 @@ def run_intervals(layer, fused: bool, monkeypatch, dtype=torch.float64, batch=4,
     return outputs, state, grads
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32"])
+@pytest.mark.parametrize("length", [1, 2, 7, 50])
+@pytest.mark.parametrize("states", [True, False], ids=["states", "no-states"])
+def test_alpha_filter_recurrence_equals_the_operator(dtype, length, states):
+    """The recurrence (``alpha_filter_rows``) and its adjoint against the operator's product ``M [z; a; b]`` and
+    ``M^T [dpsp; d_end]``, computed in float64 from the same inputs; rows as a strided view (a slice of a larger block
+    of rows), widths with a tail after the kernel's 64-column blocks, constants read off the operator as the op
+    reads them."""
+    ops = _fast.load_ops()
+    generator = torch.Generator().manual_seed(length)
+    op = alpha_filter_operator(length, 5.0, 1.0, dtype)
+    d = float(op[length, length - 2] if length >= 2 else op[length, length])
+    g = float(op[0, length + 1])
+    batch, width = 3, 130
+    block = torch.randn(batch, length + 3, width, generator=generator, dtype=torch.float64)
+    z = block[:, 1:length + 1].to(dtype)  # a view: its batch stride is not length * width
+    a, b = (torch.randn(2, batch, width, generator=generator, dtype=torch.float64) if states
+            else torch.zeros(2, batch, width, dtype=torch.float64))
+    psp, end = ops.alpha_filter_rows(z, a.to(dtype) if states else None, b.to(dtype) if states else None, d, g)
+    op64 = op.double()
+    expected = op64 @ torch.cat([z.double(), a.unsqueeze(1), b.unsqueeze(1)], 1)
+    tol = dict(rtol=1e-12, atol=1e-12) if dtype == torch.float64 else dict(rtol=2e-5, atol=2e-5)
+    torch.testing.assert_close(psp.double(), expected[:, :length], **tol)
+    torch.testing.assert_close(end.double(), expected[:, length:], **tol)
+    assert float(torch.cat([psp, end], 1).abs().max()) > 0.5  # (with L = 1 and no state only the end is nonzero)
+
+    d_psp = torch.randn(batch, length, width, generator=generator, dtype=torch.float64)
+    d_end = torch.randn(batch, 2, width, generator=generator, dtype=torch.float64)
+    dz, d_state = ops.alpha_filter_rows_adjoint(d_psp.to(dtype), d_end[:, 0].to(dtype), d_end[:, 1].to(dtype), d, g)
+    expected = op64.t() @ torch.cat([d_psp, d_end], 1)
+    torch.testing.assert_close(dz.double(), expected[:, :length], **tol)
+    torch.testing.assert_close(d_state.double(), expected[:, length:], **tol)
+    dz, d_state = ops.alpha_filter_rows_adjoint(d_psp.to(dtype), None, None, d, g)
+    expected = op64.t() @ torch.cat([d_psp, torch.zeros_like(d_end)], 1)
+    torch.testing.assert_close(torch.cat([dz, d_state], 1).double(), expected, **tol)
+
+
 @pytest.mark.parametrize("rule", ["dp-linear", "dp-oja", "dp-bcm", "ndp-oja", "ndp-oja+tanh", "ndp-bcm",
                                   "ndp-bcm+tanh", "static", "shifted-oja"])
 @pytest.mark.parametrize("n_in, n_out", [(30, 20), (20, 30)], ids=["product-first", "filter-first"])
@@ -88,16 +126,24 @@ def test_fused_interval_equals_eager_layer(rule, n_in, n_out, carry, monkeypatch
     assert fused_update == (rule not in ("static", "shifted-oja"))
     assert type(eager_out[0].spikes.grad_fn).__name__ != "_FusedIntervalBackward"
     assert sum(float(o.spikes.detach().sum()) for o in eager_out) > 0
+    # The op filters by the alpha filter's recurrence, the eager layer by its operator: equal to float rounding, and
+    # the same spikes (no membrane lies within rounding of the threshold here).
+    def close(a, b):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+
     for a, b in zip(fused_out, eager_out):
-        assert torch.equal(a.spikes, b.spikes) and torch.equal(a.membrane, b.membrane)
-        assert torch.equal(a.rate, b.rate) and torch.equal(a.input_rate, b.input_rate)
+        assert torch.equal(a.spikes, b.spikes) and torch.equal(a.rate, b.rate)
+        assert torch.equal(a.input_rate, b.input_rate)
+        close(a.membrane, b.membrane)
     for a, b in zip(fused_state.psp + fused_state.refractory, eager_state.psp + eager_state.refractory):
-        assert torch.equal(a, b)
+        close(a, b)
     for a, b in zip(fused_state.plastic[:2], eager_state.plastic[:2]):  # the trace, and the BCM threshold
         if isinstance(a, tuple):
-            assert len(a) == len(b) and all(torch.equal(x, y) for x, y in zip(a, b))
+            assert len(a) == len(b)
+            for x, y in zip(a, b):
+                close(x, y)
         else:
-            assert torch.equal(a, b)
+            close(a, b)
     for a, b in zip(fused_grads, eager_grads):
         assert (a is None) == (b is None)
         if a is not None:

@@ -18,8 +18,9 @@
 * :func:`interval_ops` (``srm_interval.cpp``), for :class:`sb3_spikeplastic.layers.PlasticSRMLayer`: a whole
   layer interval (filter, product, spike loop, surrogate, rates and, for the built-in rules, the trace update) as
   one op forward and one backward, built from the kernels above; one autograd node per layer and interval where
-  eager autograd records ~15, whose overhead dominated the small CPU networks' training step. Spikes and states
-  are bit-identical to the eager layer on the CPU; gradients equal to float rounding.
+  eager autograd records ~15, whose overhead dominated the small CPU networks' training step. It filters by the
+  alpha filter's recurrence (``alpha_filter.cpp``, ~4 operations per value and step) where the eager layer
+  multiplies by the filter's ``(L + 2, L + 2)`` operator; states and gradients are equal to float rounding.
 * :func:`bernoulli_spikes` (``bernoulli.cpp``), for :meth:`sb3_spikeplastic.coding.CounterBernoulli.sample`:
   the hash sampler in one pass instead of ~12, **bit-identical** (integer hashing, exact comparisons).
 * ``cache_cpu_blocks`` (``block_cache.cpp``), for :func:`sb3_spikeplastic._fast.allocator.cache_freed_blocks`:
@@ -67,8 +68,8 @@ NO_COMPILE_ENV = "SB3_SPIKEPLASTIC_NO_COMPILE"
 BUILD_DIR_ENV = "SB3_SPIKEPLASTIC_BUILD_DIR"
 _EXTENSION = "sb3_spikeplastic_fast"
 _SOURCES = [Path(__file__).with_name(name)
-            for name in ("srm_loop.cpp", "trace_step.cpp", "plastic_linear.cpp", "srm_interval.cpp", "bernoulli.cpp",
-                         "block_cache.cpp")]
+            for name in ("srm_loop.cpp", "trace_step.cpp", "plastic_linear.cpp", "srm_interval.cpp",
+                         "alpha_filter.cpp", "bernoulli.cpp", "block_cache.cpp")]
 
 _CUDA_EXTENSION = "sb3_spikeplastic_fast_cuda"
 _CUDA_SOURCES = [Path(__file__).with_name("srm_loop_cuda.cu")]

@@ -44,6 +44,14 @@ std::vector<at::Tensor> plastic_linear_deferred_backward(
     const at::Tensor& p1, const at::Tensor& q1, const at::Tensor& q, const at::Tensor& dE_t, const at::Tensor& dr,
     bool need_x_grad, double eta, double e_max, bool write);
 
+// alpha_filter.cpp: the alpha filter of rows z (B, L, n) from the state (a, b) (each (B, n), undefined = zero) by its
+// recurrence -> (psp (B, L, n), end state (B, 2, n)), as neurons.alpha_filter_operator's product with [z; a; b];
+// and the adjoint, the operator's transpose: (dpsp, d_end_a, d_end_b) -> (dz (B, L, n), [da; db] (B, 2, n)).
+std::tuple<at::Tensor, at::Tensor> alpha_filter_rows(const at::Tensor& z, const at::Tensor& a, const at::Tensor& b,
+                                                     double d, double g);
+std::tuple<at::Tensor, at::Tensor> alpha_filter_rows_adjoint(const at::Tensor& dpsp, const at::Tensor& da,
+                                                             const at::Tensor& db, double d, double g);
+
 // trace_step.cpp: E' = clamp((1 - eta) E + (eta p) (x) pre), p = post - [E pre] -> (E', p), and its gradients
 // (dE, dpost, dpre, deta).
 std::tuple<at::Tensor, at::Tensor> trace_step_forward(const at::Tensor& E, const at::Tensor& post,

@@ -1,6 +1,6 @@
 // One interval of a plastic SRM layer, forward and backward, each as one op (the CPU fast path of
 // sb3_spikeplastic.layers.PlasticSRMLayer). The forward pass runs the same ATen ops and
-// kernels as the eager layer, in the same order, so its spikes, membrane and states are bit-identical:
+// kernels as the eager layer, in the same order but for the filter (below):
 //
 //     R = [S; H],  H = [h1; h2]                          (B, L + 2, n_in): the spikes and the carried PSP state
 //     filter first (n_in <= n_out):  F = K R,  syn = P(F[:L]),  (h1', h2') = F[L:]
@@ -12,8 +12,9 @@
 //     and r_post = mean_t s),  r_pre = mean_t S
 //
 // with P the product X (W + alpha * E_b)^T (plastic_linear.cpp) or X W^T (a static layer) and K = [Kpsp; Kend]
-// the interval's alpha-filter operator. The backward pass (the refractory path is not differentiated, as in
-// SLAYER) with gs = dL/ds + dL/dr_post / L and G = gs * rho:
+// the interval's alpha-filter operator, whose products with K and Kpsp (and their transposes) run as the filter's
+// recurrence (alpha_filter.cpp: equal to float rounding, and faster than the (L + 2)-term products). The backward
+// pass (the refractory path is not differentiated, as in SLAYER) with gs = dL/ds + dL/dr_post / L and G = gs * rho:
 //
 //     filter first:  dF[:L] = dP(G),  dF[L:] = [dh1'; dh2'],  dR = K^T dF
 //     otherwise:     dR = dP(Kpsp^T G) + Kend^T [dh1'; dh2']
@@ -48,17 +49,14 @@
 
 namespace {
 
-// The plastic product of rows x and, when given, the rows carried beside them: [x W_eff^T; carried W_eff^T].
-at::Tensor plastic_product(const at::Tensor& x, const at::Tensor& carried, const at::Tensor& W,
-                           const at::Tensor& alpha, const at::Tensor& E) {
-  auto [y, yc] = sb3_spikeplastic_fast::plastic_linear_forward(x, W, alpha, E, carried);
-  return carried.defined() ? at::cat({y, yc}, 1) : y;
-}
-
-at::Tensor product(const at::Tensor& x, const at::Tensor& carried, const at::Tensor& W,
-                   const std::optional<at::Tensor>& alpha, const std::optional<at::Tensor>& E) {
-  if (!alpha.has_value()) return at::matmul(x, W.t());  // a static layer's rows come whole (interval_forward)
-  return plastic_product(x, carried, W, *alpha, *E);
+// The product of rows x and, when given, of the rows carried beside them: (x W_eff^T, carried W_eff^T or undefined).
+std::pair<at::Tensor, at::Tensor> product(const at::Tensor& x, const at::Tensor& carried, const at::Tensor& W,
+                                          const std::optional<at::Tensor>& alpha,
+                                          const std::optional<at::Tensor>& E) {
+  // a static layer's rows come whole (interval_forward)
+  if (!alpha.has_value()) return {at::matmul(x, W.t()), at::Tensor()};
+  auto [y, yc] = sb3_spikeplastic_fast::plastic_linear_forward(x, W, *alpha, *E, carried);
+  return {y, carried.defined() ? yc : at::Tensor()};
 }
 
 // (dX or undefined, dW, dalpha or undefined, dE or undefined, dC or undefined)
@@ -130,12 +128,24 @@ at::Tensor synaptic_gradient(const at::Tensor& d_spikes, const at::Tensor& d_r_p
 // -> spikes, membrane, psp h1', psp h2', refractory h1', refractory h2', r_pre, r_post, product input, surrogate,
 // carried rows (below; empty when there are none)
 //
-// The product P of the interval's rows: (rows, carried rows or undefined) -> P of [rows; carried]. With carries
-// (a plastic layer that does not filter first, with many spike rows: layers.PlasticSRMLayer.carries_state), the
-// carried PSP state [h1; h2] is multiplied beside the spikes in the pass that builds the efficacy, so that the
-// spikes are not copied into one block of L + 2 rows with it; the backward pass then takes x as the product's input
-// and the carried rows apart.
-using Projection = std::function<at::Tensor(const at::Tensor&, const at::Tensor&)>;
+// The product P of the interval's rows: (rows, carried rows or undefined) -> (P of rows, P of the carried rows or
+// undefined). With carries (a plastic layer whose product takes its spikes, with many spike rows:
+// layers.PlasticSRMLayer.carries_state), the carried PSP state [h1; h2] is multiplied beside the spikes in the pass
+// that builds the efficacy, so that the spikes are not copied into one block of L + 2 rows with it (and stay binary
+// for the spike products); the backward pass then takes x as the product's input and the carried rows apart.
+using Projection = std::function<std::pair<at::Tensor, at::Tensor>(const at::Tensor&, const at::Tensor&)>;
+
+// The alpha filter's recurrence constants (d, g = c d) as its operator holds them (neurons.alpha_filter_matrices):
+// d is v1[L - 2] (d^L itself for L = 1), g is g2[0].
+std::pair<double, double> filter_constants(const at::Tensor& psp_rows, const at::Tensor& end_rows) {
+  const int64_t L = psp_rows.size(0);
+  const auto entry = [](const at::Tensor& m, int64_t i, int64_t j) {
+    return AT_DISPATCH_FLOATING_TYPES(m.scalar_type(), "filter_constants", [&] {
+      return static_cast<double>(m.const_data_ptr<scalar_t>()[i * m.stride(0) + j * m.stride(1)]);
+    });
+  };
+  return {entry(end_rows, 0, L >= 2 ? L - 2 : L), entry(psp_rows, 0, L + 1)};
+}
 
 std::vector<at::Tensor> interval_forward(const at::Tensor& x, const at::Tensor& h1, const at::Tensor& h2,
                                          const at::Tensor& ref_h1, const at::Tensor& ref_h2, const Projection& project,
@@ -147,21 +157,24 @@ std::vector<at::Tensor> interval_forward(const at::Tensor& x, const at::Tensor& 
               "srm_interval: spikes (B, L, n_in) and a (L + 2, L + 2) filter operator");
   const at::NoGradGuard no_grad;
   const int64_t L = x.size(1);
+  const auto [psp_d, psp_g] = filter_constants(psp_rows, end_rows);
   at::Tensor product_in, synaptic, end, carried = at::empty({0}, x.options());
   if (filter_first) {
-    const at::Tensor filtered = at::matmul(op, at::cat({x, h1.unsqueeze(1), h2.unsqueeze(1)}, 1));
-    product_in = filtered.narrow(1, 0, L);
-    end = filtered.narrow(1, L, 2);
-    synaptic = project(product_in, at::Tensor());
+    std::tie(product_in, end) = sb3_spikeplastic_fast::alpha_filter_rows(x, h1, h2, psp_d, psp_g);
+    synaptic = project(product_in, at::Tensor()).first;
   } else if (carries) {
     // The end state from the spikes and the carried state apart (layers.PlasticSRMLayer.interval does the same).
     carried = at::stack({h1, h2}, 1);
     end = at::matmul(end_rows.narrow(1, 0, L), x) + at::matmul(end_rows.narrow(1, L, 2), carried);
     product_in = x;
-    synaptic = at::matmul(psp_rows, project(x, carried));
+    const auto [y, yc] = project(x, carried);
+    synaptic = std::get<0>(sb3_spikeplastic_fast::alpha_filter_rows(y, yc.select(1, 0), yc.select(1, 1), psp_d,
+                                                                    psp_g));
   } else {
     product_in = at::cat({x, h1.unsqueeze(1), h2.unsqueeze(1)}, 1);
-    synaptic = at::matmul(psp_rows, project(product_in, at::Tensor()));
+    const at::Tensor y = project(product_in, at::Tensor()).first;
+    synaptic = std::get<0>(sb3_spikeplastic_fast::alpha_filter_rows(y.narrow(1, 0, L), y.select(1, L),
+                                                                    y.select(1, L + 1), psp_d, psp_g));
     end = at::matmul(end_rows, product_in);
   }
   // the surrogate (neurons.slayer_surrogate) only for training: in rollouts it would be the layer's largest cost
@@ -187,25 +200,25 @@ std::vector<at::Tensor> interval_backward(const at::Tensor& d_spikes, const at::
   const at::NoGradGuard no_grad;
   const int64_t L = surrogate.size(1);
   const at::Tensor d_synaptic = synaptic_gradient(d_spikes, d_r_post, surrogate);
+  const auto [psp_d, psp_g] = filter_constants(psp_rows, end_rows);
   const at::Tensor like = product_in.select(1, 0);  // (B, n_in), the PSP state's shape
   at::Tensor d_x, d_state;                          // (B, L, n_in) and (B, 2, n_in) when need_rows
   at::Tensor d_in, dW, d_alpha, dE, d_c;
   if (filter_first) {
     std::tie(d_in, dW, d_alpha, dE, d_c) = project_backward(d_synaptic, at::Tensor(), need_rows);
     if (need_rows) {
-      const at::Tensor d_rows = at::matmul(
-          op.t(), at::cat({d_in, or_zeros(d_h1, like).unsqueeze(1), or_zeros(d_h2, like).unsqueeze(1)}, 1));
-      d_x = d_rows.narrow(1, 0, L);
-      d_state = d_rows.narrow(1, L, 2);
+      std::tie(d_x, d_state) = sb3_spikeplastic_fast::alpha_filter_rows_adjoint(d_in, d_h1, d_h2, psp_d, psp_g);
     }
   } else {
-    const at::Tensor d_product = at::matmul(psp_rows.t(), d_synaptic);  // (B, L + 2, n_out)
+    // (B, L, n_out) and (B, 2, n_out)
+    const auto [d_product, d_product_state] =
+        sb3_spikeplastic_fast::alpha_filter_rows_adjoint(d_synaptic, at::Tensor(), at::Tensor(), psp_d, psp_g);
     const bool carries = carried.numel() > 0;
     if (carries) {
-      std::tie(d_in, dW, d_alpha, dE, d_c) =
-          project_backward(d_product.narrow(1, 0, L), d_product.narrow(1, L, 2), need_rows);
+      std::tie(d_in, dW, d_alpha, dE, d_c) = project_backward(d_product, d_product_state, need_rows);
     } else {
-      std::tie(d_in, dW, d_alpha, dE, d_c) = project_backward(d_product, at::Tensor(), need_rows);
+      std::tie(d_in, dW, d_alpha, dE, d_c) =
+          project_backward(at::cat({d_product, d_product_state}, 1), at::Tensor(), need_rows);
     }
     if (need_rows) {
       const at::Tensor d_end = at::stack({or_zeros(d_h1, like), or_zeros(d_h2, like)}, 1);
@@ -392,7 +405,7 @@ std::vector<at::Tensor> srm_interval_deferred_forward(
             oja ? pre : at::Tensor(), eta_value, e_max, write_trace);
         E_t = y[2];
         r = y[3];
-        return carried.defined() ? at::cat({y[0], y[1]}, 1) : y[0];
+        return std::make_pair(y[0], carried.defined() ? y[1] : at::Tensor());
       },
       carry_state, op, psp_rows, end_rows, filter_first, d, kappa, theta, width, scale, need_surrogate, r_pre);
   const at::Tensor carried = out.back();
