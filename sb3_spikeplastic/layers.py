@@ -62,8 +62,8 @@ class _IntervalConstants(NamedTuple):
     """What the fused interval op takes besides the tensors that change from call to call, fixed per layer,
     interval length, dtype and device (computed once, not on every network step).
 
-    :param filters: the alpha-filter operator, its PSP rows and its end-state rows
-        (:meth:`PlasticSRMLayer._psp_filter`).
+    :param filters: the alpha-filter operator's PSP rows and end-state rows (:meth:`PlasticSRMLayer._psp_filter`;
+        the op reads the filter's recurrence constants off them).
     :param filter_first: :attr:`PlasticSRMLayer.filter_first`.
     :param spike: ``(d, kappa, theta, width, scale)`` (:func:`~sb3_spikeplastic.neurons.spike_constants`).
     :param e_max: the rule's trace bound.
@@ -258,7 +258,7 @@ class PlasticSRMLayer(nn.Module):
         key = (length, dtype, device)
         if key not in self._constants:
             form = compiled_form(self.rule) if self.plastic else None
-            self._constants[key] = _IntervalConstants(self._psp_filter(length, dtype, device), self.filter_first,
+            self._constants[key] = _IntervalConstants(self._psp_filter(length, dtype, device)[1:], self.filter_first,
                                                       spike_constants(self.neuron), self.rule.e_max, form,
                                                       self.carries_state(length))
         return self._constants[key]

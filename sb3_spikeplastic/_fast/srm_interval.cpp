@@ -149,12 +149,14 @@ std::pair<double, double> filter_constants(const at::Tensor& psp_rows, const at:
 
 std::vector<at::Tensor> interval_forward(const at::Tensor& x, const at::Tensor& h1, const at::Tensor& h2,
                                          const at::Tensor& ref_h1, const at::Tensor& ref_h2, const Projection& project,
-                                         bool carries, const at::Tensor& op, const at::Tensor& psp_rows,
+                                         bool carries, const at::Tensor& psp_rows,
                                          const at::Tensor& end_rows, bool filter_first, double d, double kappa,
                                          double theta, double width, double scale, bool need_surrogate,
                                          const at::Tensor& r_pre = at::Tensor()) {
-  TORCH_CHECK(x.dim() == 3 && op.dim() == 2 && op.size(0) == x.size(1) + 2,
-              "srm_interval: spikes (B, L, n_in) and a (L + 2, L + 2) filter operator");
+  TORCH_CHECK(x.dim() == 3 && psp_rows.dim() == 2 && psp_rows.size(0) == x.size(1) &&
+                  psp_rows.size(1) == x.size(1) + 2 && end_rows.dim() == 2 && end_rows.size(0) == 2 &&
+                  end_rows.size(1) == x.size(1) + 2,
+              "srm_interval: spikes (B, L, n_in) and the filter operator's (L, L + 2) and (2, L + 2) rows");
   const at::NoGradGuard no_grad;
   const int64_t L = x.size(1);
   const auto [psp_d, psp_g] = filter_constants(psp_rows, end_rows);
@@ -194,7 +196,7 @@ std::vector<at::Tensor> interval_backward(const at::Tensor& d_spikes, const at::
                                           const at::Tensor& d_r_pre, const at::Tensor& d_r_post,
                                           const at::Tensor& product_in, const at::Tensor& carried,
                                           const ProjectionBackward& project_backward, const at::Tensor& W,
-                                          const at::Tensor& surrogate, const at::Tensor& op,
+                                          const at::Tensor& surrogate,
                                           const at::Tensor& psp_rows, const at::Tensor& end_rows, bool filter_first,
                                           bool need_rows) {
   const at::NoGradGuard no_grad;
@@ -301,7 +303,7 @@ std::vector<at::Tensor> srm_interval_forward(
     const at::Tensor& W, const std::optional<at::Tensor>& alpha, const std::optional<at::Tensor>& E,
     const std::optional<at::Tensor>& phi, const std::optional<at::Tensor>& eta,
     const std::optional<at::Tensor>& eta_phi, const std::optional<at::Tensor>& psi,
-    const std::optional<at::Tensor>& w_m, const at::Tensor& op, const at::Tensor& psp_rows,
+    const std::optional<at::Tensor>& w_m, const at::Tensor& psp_rows,
     const at::Tensor& end_rows, bool filter_first, double d, double kappa, double theta, double width, double scale,
     double e_max, bool oja, int64_t modulation, bool need_surrogate, bool carry_state) {
   TORCH_CHECK(!eta.has_value() || E.has_value(), "srm_interval: a trace update needs E");
@@ -314,7 +316,7 @@ std::vector<at::Tensor> srm_interval_forward(
   std::vector<at::Tensor> out = interval_forward(
       x, h1, h2, ref_h1, ref_h2,
       [&](const at::Tensor& rows, const at::Tensor& carried) { return product(rows, carried, W, alpha, E); },
-      carry_state && alpha.has_value(), op, psp_rows, end_rows, filter_first, d, kappa, theta, width, scale,
+      carry_state && alpha.has_value(), psp_rows, end_rows, filter_first, d, kappa, theta, width, scale,
       need_surrogate);
   const at::Tensor carried = out.back();
   out.pop_back();
@@ -343,7 +345,7 @@ std::vector<at::Tensor> srm_interval_backward(
     const std::optional<at::Tensor>& m, const at::Tensor& r_pre, const at::Tensor& r_post,
     const std::optional<at::Tensor>& phi, const std::optional<at::Tensor>& eta,
     const std::optional<at::Tensor>& eta_phi, const std::optional<at::Tensor>& psi,
-    const std::optional<at::Tensor>& w_m, const at::Tensor& op, const at::Tensor& psp_rows,
+    const std::optional<at::Tensor>& w_m, const at::Tensor& psp_rows,
     const at::Tensor& end_rows, bool filter_first, bool need_rows, double e_max, bool oja, int64_t modulation) {
   const at::NoGradGuard no_grad;
   const at::Tensor none = at::empty({0}, W.options());
@@ -363,7 +365,7 @@ std::vector<at::Tensor> srm_interval_backward(
         return product_backward(grad, grad_c, product_in, carried.numel() > 0 ? carried : at::Tensor(), W, alpha, E,
                                 need_x, dE_trace);
       },
-      W, surrogate, op, psp_rows, end_rows, filter_first, need_rows);
+      W, surrogate, psp_rows, end_rows, filter_first, need_rows);
   grads.insert(grads.end(), {d_phi, d_eta_phi, d_psi, d_eta, d_wm});
   return grads;
 }
@@ -384,7 +386,7 @@ std::vector<at::Tensor> srm_interval_deferred_forward(
     const std::optional<at::Tensor>& q_first, const std::optional<at::Tensor>& p_second,
     const std::optional<at::Tensor>& q_second, const std::optional<at::Tensor>& phi, const at::Tensor& eta,
     const std::optional<at::Tensor>& eta_phi, const std::optional<at::Tensor>& psi,
-    const std::optional<at::Tensor>& w_m, const at::Tensor& op, const at::Tensor& psp_rows,
+    const std::optional<at::Tensor>& w_m, const at::Tensor& psp_rows,
     const at::Tensor& end_rows, bool filter_first, double d, double kappa, double theta, double width, double scale,
     double e_max, bool oja, int64_t modulation, bool need_surrogate, bool write_trace, bool carry_state) {
   TORCH_CHECK(phi.has_value() == eta_phi.has_value() && phi.has_value() == psi.has_value(),
@@ -407,7 +409,7 @@ std::vector<at::Tensor> srm_interval_deferred_forward(
         r = y[3];
         return std::make_pair(y[0], carried.defined() ? y[1] : at::Tensor());
       },
-      carry_state, op, psp_rows, end_rows, filter_first, d, kappa, theta, width, scale, need_surrogate, r_pre);
+      carry_state, psp_rows, end_rows, filter_first, d, kappa, theta, width, scale, need_surrogate, r_pre);
   const at::Tensor carried = out.back();
   out.pop_back();
   std::tie(post, m) = postsynaptic_term(out[7], w_m, modulation);
@@ -434,7 +436,7 @@ std::vector<at::Tensor> srm_interval_deferred_backward(
     const at::Tensor& surrogate, const at::Tensor& p, const at::Tensor& pre, const std::optional<at::Tensor>& m,
     const at::Tensor& r_pre, const at::Tensor& r_post, const std::optional<at::Tensor>& phi, const at::Tensor& eta,
     const std::optional<at::Tensor>& eta_phi, const std::optional<at::Tensor>& psi,
-    const std::optional<at::Tensor>& w_m, const at::Tensor& op, const at::Tensor& psp_rows,
+    const std::optional<at::Tensor>& w_m, const at::Tensor& psp_rows,
     const at::Tensor& end_rows, bool filter_first, bool need_rows, double e_max, bool oja, int64_t modulation,
     bool write_trace) {
   const at::NoGradGuard no_grad;
@@ -457,7 +459,7 @@ std::vector<at::Tensor> srm_interval_deferred_backward(
         const std::vector<at::Tensor>& g = product_grads;
         return ProductGradients{g[0], g[1], g[2], g[3], g[10]};
       },
-      W, surrogate, op, psp_rows, end_rows, filter_first, need_rows);
+      W, surrogate, psp_rows, end_rows, filter_first, need_rows);
   // product_grads: dX, dW, dalpha, dE, dq (the Oja row sums'), dq0, dp0, dq1, dp1, deta of the pending updates, dC
   // dL/dpre: from the next interval's update and from the Oja term's row sums; then the rates (only now: the row
   // sums' gradient comes out of the product's pass)
@@ -480,13 +482,13 @@ std::vector<at::Tensor> srm_interval_deferred_backward(
 TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
   m.def(
       "srm_interval_forward(Tensor x, Tensor h1, Tensor h2, Tensor ref_h1, Tensor ref_h2, Tensor W, Tensor? alpha, "
-      "Tensor? E, Tensor? phi, Tensor? eta, Tensor? eta_phi, Tensor? psi, Tensor? w_m, Tensor op, Tensor psp_rows, "
+      "Tensor? E, Tensor? phi, Tensor? eta, Tensor? eta_phi, Tensor? psi, Tensor? w_m, Tensor psp_rows, "
       "Tensor end_rows, bool filter_first, float d, float kappa, float theta, float width, float scale, "
       "float e_max, bool oja, int modulation, bool need_surrogate, bool carry_state) -> Tensor[]");
   m.def(
       "srm_interval_deferred_forward(Tensor x, Tensor h1, Tensor h2, Tensor ref_h1, Tensor ref_h2, Tensor W, "
       "Tensor alpha, Tensor E, Tensor? p_first, Tensor? q_first, Tensor? p_second, Tensor? q_second, Tensor? phi, "
-      "Tensor eta, Tensor? eta_phi, Tensor? psi, Tensor? w_m, Tensor op, Tensor psp_rows, Tensor end_rows, "
+      "Tensor eta, Tensor? eta_phi, Tensor? psi, Tensor? w_m, Tensor psp_rows, Tensor end_rows, "
       "bool filter_first, float d, float kappa, float theta, float width, float scale, float e_max, bool oja, "
       "int modulation, bool need_surrogate, bool write_trace, bool carry_state) -> Tensor[]");
   m.def(
@@ -495,14 +497,14 @@ TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
       "Tensor carried, Tensor W, Tensor alpha, Tensor E, Tensor? p_first, Tensor? q_first, Tensor? p_second, "
       "Tensor? q_second, Tensor surrogate, Tensor p, Tensor pre, Tensor? m, Tensor r_pre, Tensor r_post, "
       "Tensor? phi, Tensor eta, "
-      "Tensor? eta_phi, Tensor? psi, Tensor? w_m, Tensor op, Tensor psp_rows, Tensor end_rows, bool filter_first, "
+      "Tensor? eta_phi, Tensor? psi, Tensor? w_m, Tensor psp_rows, Tensor end_rows, bool filter_first, "
       "bool need_rows, float e_max, bool oja, int modulation, bool write_trace) -> Tensor[]");
   m.def(
       "srm_interval_backward(Tensor? d_spikes, Tensor? d_h1, Tensor? d_h2, Tensor? d_r_pre, Tensor? d_r_post, "
       "Tensor? d_new_E, Tensor? d_new_phi, Tensor product_in, Tensor carried, Tensor W, Tensor? alpha, Tensor? E, "
       "Tensor surrogate, "
       "Tensor p, Tensor pre, Tensor? m, Tensor r_pre, Tensor r_post, Tensor? phi, Tensor? eta, Tensor? eta_phi, "
-      "Tensor? psi, Tensor? w_m, Tensor op, Tensor psp_rows, Tensor end_rows, bool filter_first, bool need_rows, "
+      "Tensor? psi, Tensor? w_m, Tensor psp_rows, Tensor end_rows, bool filter_first, bool need_rows, "
       "float e_max, bool oja, int modulation) -> Tensor[]");
 }
 
