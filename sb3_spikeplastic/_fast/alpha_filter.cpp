@@ -103,48 +103,50 @@ void adjoint_block(const scalar_t* dpsp, int64_t dpsp_row, const scalar_t* da, c
   std::copy(g2, g2 + width, d_b);
 }
 
+// Runs kernel (filter_block or adjoint_block, which take their operands alike) over rows (B, L, n) and a state
+// (a, b) -> (out rows (B, L, n), out state (B, 2, n)).
+template <template <typename> class Kernel>
+std::tuple<at::Tensor, at::Tensor> run_blocks(const at::Tensor& rows_in, const at::Tensor& a_in,
+                                              const at::Tensor& b_in, double d, double g, const char* what) {
+  check_rows(rows_in, a_in, b_in, what);
+  const at::Tensor rows = with_unit_stride(rows_in), a = with_unit_stride(a_in), b = with_unit_stride(b_in);
+  const int64_t B = rows.size(0), L = rows.size(1), n = rows.size(2);
+  at::Tensor out = at::empty({B, L, n}, rows.options());
+  at::Tensor state = at::empty({B, 2, n}, rows.options());
+  AT_DISPATCH_FLOATING_TYPES(rows.scalar_type(), "alpha_filter", [&] {
+    const scalar_t* in = rows.const_data_ptr<scalar_t>();
+    scalar_t* out_p = out.mutable_data_ptr<scalar_t>();
+    scalar_t* state_p = state.mutable_data_ptr<scalar_t>();
+    for_column_blocks(B, n, [&](int64_t e, int64_t j, int64_t width) {
+      Kernel<scalar_t>::run(in + e * rows.stride(0) + j, rows.stride(1), state_at<scalar_t>(a, e, j),
+                            state_at<scalar_t>(b, e, j), out_p + e * L * n + j, n, state_p + e * 2 * n + j,
+                            state_p + (e * 2 + 1) * n + j, L, width, scalar_t(d), scalar_t(g));
+    });
+  });
+  return {out, state};
+}
+
+template <typename scalar_t>
+struct Filter {
+  static constexpr auto run = filter_block<scalar_t>;
+};
+template <typename scalar_t>
+struct Adjoint {
+  static constexpr auto run = adjoint_block<scalar_t>;
+};
+
 }  // namespace
 
 namespace sb3_spikeplastic_fast {
 
 std::tuple<at::Tensor, at::Tensor> alpha_filter_rows(const at::Tensor& rows, const at::Tensor& state_a,
                                                      const at::Tensor& state_b, double d, double g) {
-  check_rows(rows, state_a, state_b, "alpha_filter_rows");
-  const at::Tensor z = with_unit_stride(rows), a = with_unit_stride(state_a), b = with_unit_stride(state_b);
-  const int64_t B = z.size(0), L = z.size(1), n = z.size(2);
-  at::Tensor psp = at::empty({B, L, n}, z.options());
-  at::Tensor end = at::empty({B, 2, n}, z.options());
-  AT_DISPATCH_FLOATING_TYPES(z.scalar_type(), "alpha_filter_rows", [&] {
-    const scalar_t* zp = z.const_data_ptr<scalar_t>();
-    scalar_t* pp = psp.mutable_data_ptr<scalar_t>();
-    scalar_t* ep = end.mutable_data_ptr<scalar_t>();
-    for_column_blocks(B, n, [&](int64_t e, int64_t j, int64_t width) {
-      filter_block<scalar_t>(zp + e * z.stride(0) + j, z.stride(1), state_at<scalar_t>(a, e, j),
-                             state_at<scalar_t>(b, e, j), pp + e * L * n + j, n, ep + e * 2 * n + j,
-                             ep + (e * 2 + 1) * n + j, L, width, scalar_t(d), scalar_t(g));
-    });
-  });
-  return {psp, end};
+  return run_blocks<Filter>(rows, state_a, state_b, d, g, "alpha_filter_rows");
 }
 
 std::tuple<at::Tensor, at::Tensor> alpha_filter_rows_adjoint(const at::Tensor& d_rows, const at::Tensor& d_end_a,
                                                              const at::Tensor& d_end_b, double d, double g) {
-  check_rows(d_rows, d_end_a, d_end_b, "alpha_filter_rows_adjoint");
-  const at::Tensor dpsp = with_unit_stride(d_rows), da = with_unit_stride(d_end_a), db = with_unit_stride(d_end_b);
-  const int64_t B = dpsp.size(0), L = dpsp.size(1), n = dpsp.size(2);
-  at::Tensor dz = at::empty({B, L, n}, dpsp.options());
-  at::Tensor d_state = at::empty({B, 2, n}, dpsp.options());
-  AT_DISPATCH_FLOATING_TYPES(dpsp.scalar_type(), "alpha_filter_rows_adjoint", [&] {
-    const scalar_t* gp = dpsp.const_data_ptr<scalar_t>();
-    scalar_t* out = dz.mutable_data_ptr<scalar_t>();
-    scalar_t* state_out = d_state.mutable_data_ptr<scalar_t>();
-    for_column_blocks(B, n, [&](int64_t e, int64_t j, int64_t width) {
-      adjoint_block<scalar_t>(gp + e * dpsp.stride(0) + j, dpsp.stride(1), state_at<scalar_t>(da, e, j),
-                              state_at<scalar_t>(db, e, j), out + e * L * n + j, n, state_out + e * 2 * n + j,
-                              state_out + (e * 2 + 1) * n + j, L, width, scalar_t(d), scalar_t(g));
-    });
-  });
-  return {dz, d_state};
+  return run_blocks<Adjoint>(d_rows, d_end_a, d_end_b, d, g, "alpha_filter_rows_adjoint");
 }
 
 }  // namespace sb3_spikeplastic_fast
