@@ -74,7 +74,7 @@ _SOURCES = [Path(__file__).with_name(name)
 _CUDA_EXTENSION = "sb3_spikeplastic_fast_cuda"
 _CUDA_SOURCES = [Path(__file__).with_name("srm_loop_cuda.cu")]
 _HEADERS = [Path(__file__).with_name(name)
-            for name in ("srm_loop_checks.h", "denormal_mode.h", "kernels.h", "lanes.h", "spike_product.h")]
+            for name in ("srm_loop_checks.h", "denormal_mode.h", "kernels.h", "lanes.h", "small_gemm.h", "spike_product.h")]
 
 _lock = threading.Lock()
 _tried = False

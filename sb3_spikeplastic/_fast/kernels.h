@@ -3,6 +3,7 @@
 
 #include <ATen/core/Tensor.h>
 
+#include <functional>
 #include <tuple>
 #include <vector>
 
@@ -33,7 +34,8 @@ std::vector<at::Tensor> plastic_linear_backward(const at::Tensor& grad, const at
 // The same product with the previous intervals' trace updates deferred into its pass over the trace: E_t = E with
 // clamp((1 - eta) E + (eta p0) (x) q0) applied, then likewise (p1, q1) (each pair when given), written out when write
 // -> (Y, Yc, E_t, r = E_t q), and its backward pass -> (dX, dW, dalpha, dE, dq, dq0, dp0, dq1, dp1, dL/deta of the
-// pending updates, dC).
+// pending updates, dC), whose fill_grad (if given) writes the rows of grad of environments [b0, b0 + n) just
+// before they are multiplied.
 std::vector<at::Tensor> plastic_linear_deferred_forward(
     const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E, const at::Tensor& C,
     const at::Tensor& p0, const at::Tensor& q0, const at::Tensor& p1, const at::Tensor& q1, const at::Tensor& q,
@@ -42,7 +44,8 @@ std::vector<at::Tensor> plastic_linear_deferred_backward(
     const at::Tensor& grad, const at::Tensor& grad_c, const at::Tensor& X, const at::Tensor& W,
     const at::Tensor& alpha, const at::Tensor& E, const at::Tensor& C, const at::Tensor& p0, const at::Tensor& q0,
     const at::Tensor& p1, const at::Tensor& q1, const at::Tensor& q, const at::Tensor& dE_t, const at::Tensor& dr,
-    bool need_x_grad, double eta, double e_max, bool write);
+    bool need_x_grad, double eta, double e_max, bool write,
+    const std::function<void(int64_t, int64_t)>& fill_grad = {});
 
 // alpha_filter.cpp: the alpha filter of rows z (B, L, n) from the state (a, b) (each (B, n), undefined = zero) by its
 // recurrence -> (psp (B, L, n), end state (B, 2, n)), as neurons.alpha_filter_operator's product with [z; a; b];

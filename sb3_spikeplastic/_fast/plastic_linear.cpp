@@ -8,7 +8,9 @@
 // in a buffer that stays in cache (at most ~256 KB), used by one batched matrix product and overwritten by the next
 // block's; a block, not one environment, because each at::bmm_out call costs microseconds of dispatch, which at
 // the CPU entry's sizes (16 environments, 12 x 170 x 64) was most of the layer's time. Where a block holds one
-// environment (the paper network's 600 x 64 layers), its products call BLAS directly instead (gemm below):
+// environment (the paper network's 600 x 64 layers), its products call BLAS directly instead (gemm below), and its
+// input gradient runs a register-tiled kernel of ours where the CPU has FMA (small_gemm.h: faster than BLAS at
+// these shapes, on one thread):
 //
 //     forward:   eff = W + alpha * E[b];          Y[b] = X[b] eff^T
 //     backward:  G = dY[b]^T X[b]                 (the gradient of W_eff[b], in W's layout)
@@ -45,6 +47,7 @@
 #include "denormal_mode.h"
 #include "kernels.h"
 #include "lanes.h"
+#include "small_gemm.h"
 #include "spike_product.h"
 
 #include <algorithm>
@@ -149,8 +152,9 @@ void gemm(char transa, char transb, int64_t m, int64_t n, int64_t k, const scala
   }
 }
 
-// The three products of a block of n environments from b0 (one gemm for one environment, else at::bmm_out), with
-// buf the block's (n, O, I) efficacy or efficacy gradient:
+// The three products of a block of n environments from b0 (one gemm for one environment, else at::bmm_out; the
+// input gradient of one float32 environment by small_gemm where it applies), with buf the block's (n, O, I)
+// efficacy or efficacy gradient:
 //     forward   Y[b] (R, O) = X[b] (R, I) eff^T
 //     gradient  buf (O, I) = dY[b]^T (O, R) X[b] (R, I)
 //     input     dX[b] (R, I) = dY[b] (R, O) eff (O, I)
@@ -182,6 +186,12 @@ template <typename scalar_t>
 void block_input_gradient(bool blas, const at::Tensor& dY, const at::Tensor& buf, at::Tensor& dX, int64_t b0,
                           int64_t n) {
   const int64_t R = dX.size(1), I = dX.size(2), O = dY.size(2);
+  if constexpr (std::is_same_v<scalar_t, float>) {
+    if (n == 1 && sb3_spikeplastic_fast::small_gemm(dY.data_ptr<float>() + b0 * R * O, buf.data_ptr<float>(),
+                                                    dX.data_ptr<float>() + b0 * R * I, R, I, O)) {
+      return;
+    }
+  }
   if (blas && n == 1) {
     gemm<scalar_t>('N', 'N', I, R, O, buf.data_ptr<scalar_t>(), I, dY.data_ptr<scalar_t>() + b0 * R * O, O,
                    dX.data_ptr<scalar_t>() + b0 * R * I, I);
@@ -667,12 +677,15 @@ std::vector<at::Tensor> plastic_linear_deferred_forward(
 // is dL/dYc (undefined: zero), dE1 the gradient of the trace the interval passes on (may be undefined): of E_t when
 // it was written, else of E itself; dr is dL/dr (undefined without q). Returns (dX (empty unless need_x_grad), dW,
 // dalpha, dE, dq (empty without q), then per pending update dq_k and dp_k (empty where none), then dL/deta of the
-// pending updates (empty without one), then dC (empty unless need_x_grad and C given)).
+// pending updates (empty without one), then dC (empty unless need_x_grad and C given)). fill_grad, when given,
+// writes grad's rows of environments [b0, b0 + n) and is called just before they are multiplied (by the thread that
+// multiplies them), so that they are read from cache rather than from wherever a pass over the whole batch left them.
 std::vector<at::Tensor> plastic_linear_deferred_backward(
     const at::Tensor& grad_in, const at::Tensor& grad_c_in, const at::Tensor& X_in, const at::Tensor& W_in,
     const at::Tensor& alpha_in, const at::Tensor& E_in, const at::Tensor& C_in, const at::Tensor& p0_in,
     const at::Tensor& q0_in, const at::Tensor& p1_in, const at::Tensor& q1_in, const at::Tensor& q_in,
-    const at::Tensor& dE1_in, const at::Tensor& dr_in, bool need_x_grad, double eta, double e_max, bool write) {
+    const at::Tensor& dE1_in, const at::Tensor& dr_in, bool need_x_grad, double eta, double e_max, bool write,
+    const std::function<void(int64_t, int64_t)>& fill_grad) {
   check_operands(X_in, W_in, alpha_in, E_in);
   const Pending u = pending_updates(p0_in, q0_in, p1_in, q1_in);
   write = write && u.count > 0;
@@ -718,6 +731,7 @@ std::vector<at::Tensor> plastic_linear_deferred_backward(
     const bool blas = has_blas<scalar_t>();
     backward_blocks<scalar_t>(B, nb, W, acc, used, [&](int64_t b0, int64_t n, at::Tensor& G, scalar_t* dw_t,
                                                         scalar_t* da_t, bool& first) {
+      if (fill_grad) fill_grad(b0, n);
       if (!spike_block_gradient<scalar_t>(g, X, G, b0, n)) block_gradient<scalar_t>(blas, g, X, G, b0, n);
       scalar_t* G_p = G.data_ptr<scalar_t>();
       for (int64_t b = b0; b < b0 + n; ++b) {

@@ -62,10 +62,23 @@ std::pair<at::Tensor, at::Tensor> product(const at::Tensor& x, const at::Tensor&
 // (dX or undefined, dW, dalpha or undefined, dE or undefined, dC or undefined)
 using ProductGradients = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>;
 
+// Fills the rows of environments [b0, b0 + n) of a gradient before a product reads them (plastic_linear's
+// fill_grad); a product that cannot take it per environment fills them all first.
+using RowFill = std::function<void(int64_t, int64_t)>;
+
+void fill_rows_in_parallel(const RowFill& fill, int64_t B) {
+  const CallerDenormalMode mode;
+  at::parallel_for(0, B, 1, [&](int64_t begin, int64_t end) {
+    const DenormalModeScope denormals(mode);
+    fill(begin, end - begin);
+  });
+}
+
 ProductGradients product_backward(const at::Tensor& grad, const at::Tensor& grad_c, const at::Tensor& x,
                                   const at::Tensor& carried, const at::Tensor& W,
                                   const std::optional<at::Tensor>& alpha, const std::optional<at::Tensor>& E,
-                                  bool need_x, const at::Tensor& dE_init) {
+                                  bool need_x, const at::Tensor& dE_init, const RowFill& fill) {
+  if (fill) fill_rows_in_parallel(fill, grad.size(0));
   if (!alpha.has_value()) {
     const at::Tensor dW = at::mm(grad.reshape({-1, grad.size(-1)}).t(), x.reshape({-1, x.size(-1)}));
     return {need_x ? at::matmul(grad, W) : at::Tensor(), dW, at::Tensor(), at::Tensor(), at::Tensor()};
@@ -88,42 +101,57 @@ at::Tensor or_zeros(const at::Tensor& t, const at::Tensor& like) { return t.defi
 // dL/dsyn = (dL/ds + dL/dr_post / L) * rho in one pass over the interval, where the ATen expression
 // (d_spikes + (d_r_post / L).unsqueeze(1)) * surrogate makes two and a broadcast: the same operations in the
 // same order, so the same values. An undefined d_spikes or d_r_post is zero; d_spikes may be a view with gaps
-// between its rows (the next layer's input gradient, a slice of its filter rows).
-at::Tensor synaptic_gradient(const at::Tensor& d_spikes, const at::Tensor& d_r_post, const at::Tensor& surrogate) {
-  if (!d_spikes.defined() && !d_r_post.defined()) return at::zeros_like(surrogate);
-  const at::Tensor rho = surrogate.contiguous();
-  const int64_t B = rho.size(0), L = rho.size(1), n = rho.size(2);
-  const at::Tensor ds = !d_spikes.defined() || d_spikes.stride(2) == 1 ? d_spikes : d_spikes.contiguous();
-  const at::Tensor dr = d_r_post.defined() ? (d_r_post / L).contiguous() : at::Tensor();
-  at::Tensor out = at::empty_like(rho, at::MemoryFormat::Contiguous);
-  AT_DISPATCH_FLOATING_TYPES(rho.scalar_type(), "synaptic_gradient", [&] {
-    const scalar_t* rho_p = rho.data_ptr<scalar_t>();
-    const scalar_t* ds_p = ds.defined() ? ds.data_ptr<scalar_t>() : nullptr;
-    const scalar_t* dr_p = dr.defined() ? dr.data_ptr<scalar_t>() : nullptr;
-    const int64_t ds_b = ds.defined() ? ds.stride(0) : 0, ds_t = ds.defined() ? ds.stride(1) : 0;
-    scalar_t* out_p = out.data_ptr<scalar_t>();
-    const CallerDenormalMode mode;
-    at::parallel_for(0, B, 1, [&](int64_t begin, int64_t end) {
-      const DenormalModeScope denormals(mode);
-      for (int64_t b = begin; b < end; ++b) {
+// between its rows (the next layer's input gradient, a slice of its filter rows). The output is allocated first and
+// its rows filled per environment (fill), so that a plastic product can fill each environment's rows just before it
+// multiplies them, while they are in cache (RowFill below).
+class SynapticGradient {
+ public:
+  SynapticGradient(const at::Tensor& d_spikes, const at::Tensor& d_r_post, const at::Tensor& surrogate)
+      : rho_(surrogate.contiguous()),
+        ds_(!d_spikes.defined() || d_spikes.stride(2) == 1 ? d_spikes : d_spikes.contiguous()),
+        dr_(d_r_post.defined() ? (d_r_post / surrogate.size(1)).contiguous() : at::Tensor()),
+        out_(ds_.defined() || dr_.defined() ? at::empty_like(rho_, at::MemoryFormat::Contiguous)
+                                            : at::zeros_like(rho_, at::MemoryFormat::Contiguous)) {}
+
+  const at::Tensor& output() const { return out_; }
+
+  // The rows of environments [b0, b0 + n).
+  void fill(int64_t b0, int64_t n) const {
+    if (!ds_.defined() && !dr_.defined()) return;  // zeros
+    const int64_t L = rho_.size(1), width = rho_.size(2);
+    AT_DISPATCH_FLOATING_TYPES(rho_.scalar_type(), "synaptic_gradient", [&] {
+      const scalar_t* rho_p = rho_.const_data_ptr<scalar_t>();
+      const scalar_t* ds_p = ds_.defined() ? ds_.const_data_ptr<scalar_t>() : nullptr;
+      const scalar_t* dr_p = dr_.defined() ? dr_.const_data_ptr<scalar_t>() : nullptr;
+      const int64_t ds_b = ds_.defined() ? ds_.stride(0) : 0, ds_t = ds_.defined() ? ds_.stride(1) : 0;
+      scalar_t* out_p = out_.data_ptr<scalar_t>();
+      for (int64_t b = b0; b < b0 + n; ++b) {
         for (int64_t t = 0; t < L; ++t) {
-          const scalar_t* __restrict r = rho_p + (b * L + t) * n;
-          scalar_t* __restrict o = out_p + (b * L + t) * n;
+          const scalar_t* __restrict r = rho_p + (b * L + t) * width;
+          scalar_t* __restrict o = out_p + (b * L + t) * width;
           const scalar_t* __restrict s = ds_p != nullptr ? ds_p + b * ds_b + t * ds_t : nullptr;
-          const scalar_t* __restrict q = dr_p != nullptr ? dr_p + b * n : nullptr;
+          const scalar_t* __restrict q = dr_p != nullptr ? dr_p + b * width : nullptr;
           if (s != nullptr && q != nullptr) {
-            for (int64_t j = 0; j < n; ++j) o[j] = (s[j] + q[j]) * r[j];
+            for (int64_t j = 0; j < width; ++j) o[j] = (s[j] + q[j]) * r[j];
           } else if (s != nullptr) {
-            for (int64_t j = 0; j < n; ++j) o[j] = s[j] * r[j];
+            for (int64_t j = 0; j < width; ++j) o[j] = s[j] * r[j];
           } else {
-            for (int64_t j = 0; j < n; ++j) o[j] = q[j] * r[j];
+            for (int64_t j = 0; j < width; ++j) o[j] = q[j] * r[j];
           }
         }
       }
     });
-  });
-  return out;
-}
+  }
+
+  // Every row, split between threads.
+  const at::Tensor& fill_all() const {
+    fill_rows_in_parallel([this](int64_t b0, int64_t n) { fill(b0, n); }, out_.size(0));
+    return out_;
+  }
+
+ private:
+  at::Tensor rho_, ds_, dr_, out_;
+};
 
 // -> spikes, membrane, psp h1', psp h2', refractory h1', refractory h2', r_pre, r_post, product input, surrogate,
 // carried rows (below; empty when there are none)
@@ -190,7 +218,8 @@ std::vector<at::Tensor> interval_forward(const at::Tensor& x, const at::Tensor& 
 // from elsewhere, added to the product's. Undefined output gradients are zero.
 // The product's backward pass: (dL/dP of the rows, of the carried rows (undefined without), need_rows) -> (dX or
 // undefined, dW, dalpha or undefined, dE or undefined, dC or undefined)
-using ProjectionBackward = std::function<ProductGradients(const at::Tensor&, const at::Tensor&, bool)>;
+using ProjectionBackward =
+    std::function<ProductGradients(const at::Tensor&, const at::Tensor&, bool, const RowFill&)>;
 
 std::vector<at::Tensor> interval_backward(const at::Tensor& d_spikes, const at::Tensor& d_h1, const at::Tensor& d_h2,
                                           const at::Tensor& d_r_pre, const at::Tensor& d_r_post,
@@ -201,26 +230,28 @@ std::vector<at::Tensor> interval_backward(const at::Tensor& d_spikes, const at::
                                           bool need_rows) {
   const at::NoGradGuard no_grad;
   const int64_t L = surrogate.size(1);
-  const at::Tensor d_synaptic = synaptic_gradient(d_spikes, d_r_post, surrogate);
+  const SynapticGradient synaptic(d_spikes, d_r_post, surrogate);
   const auto [psp_d, psp_g] = filter_constants(psp_rows, end_rows);
   const at::Tensor like = product_in.select(1, 0);  // (B, n_in), the PSP state's shape
   at::Tensor d_x, d_state;                          // (B, L, n_in) and (B, 2, n_in) when need_rows
   at::Tensor d_in, dW, d_alpha, dE, d_c;
   if (filter_first) {
-    std::tie(d_in, dW, d_alpha, dE, d_c) = project_backward(d_synaptic, at::Tensor(), need_rows);
+    // each environment's dL/dsyn written just before its product reads it
+    std::tie(d_in, dW, d_alpha, dE, d_c) = project_backward(
+        synaptic.output(), at::Tensor(), need_rows, [&](int64_t b0, int64_t n) { synaptic.fill(b0, n); });
     if (need_rows) {
       std::tie(d_x, d_state) = sb3_spikeplastic_fast::alpha_filter_rows_adjoint(d_in, d_h1, d_h2, psp_d, psp_g);
     }
   } else {
     // (B, L, n_out) and (B, 2, n_out)
-    const auto [d_product, d_product_state] =
-        sb3_spikeplastic_fast::alpha_filter_rows_adjoint(d_synaptic, at::Tensor(), at::Tensor(), psp_d, psp_g);
+    const auto [d_product, d_product_state] = sb3_spikeplastic_fast::alpha_filter_rows_adjoint(
+        synaptic.fill_all(), at::Tensor(), at::Tensor(), psp_d, psp_g);
     const bool carries = carried.numel() > 0;
     if (carries) {
-      std::tie(d_in, dW, d_alpha, dE, d_c) = project_backward(d_product, d_product_state, need_rows);
+      std::tie(d_in, dW, d_alpha, dE, d_c) = project_backward(d_product, d_product_state, need_rows, {});
     } else {
       std::tie(d_in, dW, d_alpha, dE, d_c) =
-          project_backward(at::cat({d_product, d_product_state}, 1), at::Tensor(), need_rows);
+          project_backward(at::cat({d_product, d_product_state}, 1), at::Tensor(), need_rows, {});
     }
     if (need_rows) {
       const at::Tensor d_end = at::stack({or_zeros(d_h1, like), or_zeros(d_h2, like)}, 1);
@@ -361,9 +392,9 @@ std::vector<at::Tensor> srm_interval_backward(
   }
   std::vector<at::Tensor> grads = interval_backward(
       given(d_spikes), given(d_h1), given(d_h2), d_rpre, d_rpost, product_in, carried,
-      [&](const at::Tensor& grad, const at::Tensor& grad_c, bool need_x) {
+      [&](const at::Tensor& grad, const at::Tensor& grad_c, bool need_x, const RowFill& fill) {
         return product_backward(grad, grad_c, product_in, carried.numel() > 0 ? carried : at::Tensor(), W, alpha, E,
-                                need_x, dE_trace);
+                                need_x, dE_trace, fill);
       },
       W, surrogate, psp_rows, end_rows, filter_first, need_rows);
   grads.insert(grads.end(), {d_phi, d_eta_phi, d_psi, d_eta, d_wm});
@@ -451,11 +482,11 @@ std::vector<at::Tensor> srm_interval_deferred_backward(
   std::vector<at::Tensor> product_grads;
   std::vector<at::Tensor> grads = interval_backward(
       given(d_spikes), given(d_h1), given(d_h2), at::Tensor(), d_rpost, product_in, carried,
-      [&](const at::Tensor& grad, const at::Tensor& grad_c, bool need_x) {
+      [&](const at::Tensor& grad, const at::Tensor& grad_c, bool need_x, const RowFill& fill) {
         product_grads = sb3_spikeplastic_fast::plastic_linear_deferred_backward(
             grad, grad_c, product_in, W, alpha, E, carried.numel() > 0 ? carried : at::Tensor(), given(p_first),
             given(q_first), given(p_second), given(q_second), oja ? pre : at::Tensor(), given(d_E_t),
-            oja ? -d_p : at::Tensor(), need_x, eta_value, e_max, write_trace);
+            oja ? -d_p : at::Tensor(), need_x, eta_value, e_max, write_trace, fill);
         const std::vector<at::Tensor>& g = product_grads;
         return ProductGradients{g[0], g[1], g[2], g[3], g[10]};
       },
