@@ -108,6 +108,32 @@ def test_alpha_filter_recurrence_equals_the_operator(dtype, length, states):
     torch.testing.assert_close(torch.cat([dz, d_state], 1).double(), expected, **tol)
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32"])
+@pytest.mark.parametrize("length", [1, 7, 50])
+def test_alpha_filter_end_state_and_mean_in_one_pass(dtype, length):
+    """``alpha_filter_end_and_mean`` (a layer that multiplies its spikes before filtering: its next PSP state and
+    ``r_pre``): the end state of the full recurrence bit for bit, and ``z.mean(1)``, exactly for binary spikes (their
+    sums are exact) and to rounding otherwise; rows as a strided view, a column tail after 64-column blocks."""
+    ops = _fast.load_ops()
+    generator = torch.Generator().manual_seed(100 + length)
+    op = alpha_filter_operator(length, 5.0, 1.0, dtype)
+    d = float(op[length, length - 2] if length >= 2 else op[length, length])
+    g = float(op[0, length + 1])
+    batch, width = 3, 130
+    a, b = torch.randn(2, batch, width, generator=generator, dtype=dtype)
+    for binary in (True, False):
+        block = torch.rand(batch, length + 3, width, generator=generator, dtype=dtype)
+        z = (block < 0.1).to(dtype)[:, 1:length + 1] if binary else block[:, 1:length + 1]
+        end, mean = ops.alpha_filter_end_and_mean(z, a, b, d)
+        assert torch.equal(end, ops.alpha_filter_rows(z, a, b, d, g)[1])
+        if binary:
+            assert torch.equal(mean, z.mean(1))
+        else:
+            torch.testing.assert_close(mean, z.mean(1), rtol=1e-6 if dtype == torch.float32 else 1e-14, atol=0)
+    end, _ = ops.alpha_filter_end_and_mean(z, None, None, d)
+    assert torch.equal(end, ops.alpha_filter_rows(z, None, None, d, g)[1])
+
+
 @pytest.mark.parametrize("rule", ["dp-linear", "dp-oja", "dp-bcm", "ndp-oja", "ndp-oja+tanh", "ndp-bcm",
                                   "ndp-bcm+tanh", "static", "shifted-oja"])
 @pytest.mark.parametrize("n_in, n_out", [(30, 20), (20, 30)], ids=["product-first", "filter-first"])

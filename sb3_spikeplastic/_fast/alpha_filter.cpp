@@ -103,6 +103,33 @@ void adjoint_block(const scalar_t* dpsp, int64_t dpsp_row, const scalar_t* da, c
   std::copy(g2, g2 + width, d_b);
 }
 
+// The filter's end state alone (filter_block without the PSP rows), and the rows' sum over the interval, in one pass
+// over z: a layer that multiplies its spikes before filtering needs only these of its input (its state for the next
+// interval and r_pre).
+template <typename scalar_t>
+void end_block(const scalar_t* z, int64_t z_row, const scalar_t* a, const scalar_t* b, scalar_t* end_a,
+               scalar_t* end_b, scalar_t* sum, int64_t L, int64_t width, scalar_t d) {
+  scalar_t h1[kColumns], h2[kColumns], s[kColumns];
+  for (int64_t j = 0; j < width; ++j) {
+    h1[j] = a ? a[j] : scalar_t(0);
+    h2[j] = b ? b[j] : scalar_t(0);
+    s[j] = scalar_t(0);
+  }
+  for (int64_t t = 0; t < L; ++t) {
+    const scalar_t* zt = z + t * z_row;
+#pragma omp simd
+    for (int64_t j = 0; j < width; ++j) {
+      const scalar_t k = h2[j] + h1[j];
+      h2[j] = d * k;
+      h1[j] = d * h1[j] + zt[j];
+      s[j] += zt[j];
+    }
+  }
+  std::copy(h1, h1 + width, end_a);
+  std::copy(h2, h2 + width, end_b);
+  std::copy(s, s + width, sum);
+}
+
 // Runs kernel (filter_block or adjoint_block, which take their operands alike) over rows (B, L, n) and a state
 // (a, b) -> (out rows (B, L, n), out state (B, 2, n)).
 template <template <typename> class Kernel>
@@ -149,11 +176,33 @@ std::tuple<at::Tensor, at::Tensor> alpha_filter_rows_adjoint(const at::Tensor& d
   return run_blocks<Adjoint>(d_rows, d_end_a, d_end_b, d, g, "alpha_filter_rows_adjoint");
 }
 
+std::tuple<at::Tensor, at::Tensor> alpha_filter_end_and_mean(const at::Tensor& rows_in, const at::Tensor& a_in,
+                                                             const at::Tensor& b_in, double d) {
+  check_rows(rows_in, a_in, b_in, "alpha_filter_end_and_mean");
+  const at::Tensor rows = with_unit_stride(rows_in), a = with_unit_stride(a_in), b = with_unit_stride(b_in);
+  const int64_t B = rows.size(0), L = rows.size(1), n = rows.size(2);
+  at::Tensor state = at::empty({B, 2, n}, rows.options());
+  at::Tensor sum = at::empty({B, n}, rows.options());
+  AT_DISPATCH_FLOATING_TYPES(rows.scalar_type(), "alpha_filter_end_and_mean", [&] {
+    const scalar_t* in = rows.const_data_ptr<scalar_t>();
+    scalar_t* state_p = state.mutable_data_ptr<scalar_t>();
+    scalar_t* sum_p = sum.mutable_data_ptr<scalar_t>();
+    for_column_blocks(B, n, [&](int64_t e, int64_t j, int64_t width) {
+      end_block<scalar_t>(in + e * rows.stride(0) + j, rows.stride(1), state_at<scalar_t>(a, e, j),
+                          state_at<scalar_t>(b, e, j), state_p + e * 2 * n + j, state_p + (e * 2 + 1) * n + j,
+                          sum_p + e * n + j, L, width, scalar_t(d));
+    });
+  });
+  // the mean as ATen's mean computes it from the sum: divided by the length
+  return {state, sum.div_(L)};
+}
+
 }  // namespace sb3_spikeplastic_fast
 
 TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
   m.def("alpha_filter_rows(Tensor z, Tensor? a, Tensor? b, float d, float g) -> (Tensor, Tensor)");
   m.def("alpha_filter_rows_adjoint(Tensor dpsp, Tensor? da, Tensor? db, float d, float g) -> (Tensor, Tensor)");
+  m.def("alpha_filter_end_and_mean(Tensor z, Tensor? a, Tensor? b, float d) -> (Tensor, Tensor)");
 }
 
 TORCH_LIBRARY_IMPL(sb3_spikeplastic_fast, CPU, m) {
@@ -165,5 +214,9 @@ TORCH_LIBRARY_IMPL(sb3_spikeplastic_fast, CPU, m) {
                                          const std::optional<at::Tensor>& db, double d, double g) {
     return sb3_spikeplastic_fast::alpha_filter_rows_adjoint(dpsp, da.value_or(at::Tensor()),
                                                             db.value_or(at::Tensor()), d, g);
+  });
+  m.impl("alpha_filter_end_and_mean", [](const at::Tensor& z, const std::optional<at::Tensor>& a,
+                                         const std::optional<at::Tensor>& b, double d) {
+    return sb3_spikeplastic_fast::alpha_filter_end_and_mean(z, a.value_or(at::Tensor()), b.value_or(at::Tensor()), d);
   });
 }

@@ -54,6 +54,10 @@ std::tuple<at::Tensor, at::Tensor> alpha_filter_rows(const at::Tensor& z, const 
                                                      double d, double g);
 std::tuple<at::Tensor, at::Tensor> alpha_filter_rows_adjoint(const at::Tensor& dpsp, const at::Tensor& da,
                                                              const at::Tensor& db, double d, double g);
+// The same filter's end state alone and the rows' mean over the interval, in one pass over z -> (end state (B, 2, n),
+// mean (B, n)).
+std::tuple<at::Tensor, at::Tensor> alpha_filter_end_and_mean(const at::Tensor& z, const at::Tensor& a,
+                                                             const at::Tensor& b, double d);
 
 // trace_step.cpp: E' = clamp((1 - eta) E + (eta p) (x) pre), p = post - [E pre] -> (E', p), and its gradients
 // (dE, dpost, dpre, deta).

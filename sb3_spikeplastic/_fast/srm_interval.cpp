@@ -7,7 +7,7 @@
 //     otherwise:                     syn = Kpsp P(R),   (h1', h2') = Kend[:, :L] S + Kend[:, L:] H
 //
 // (a plastic layer that does not filter first multiplies H in the pass that builds its efficacy, beside S, instead
-// of copying S and H into R)
+// of copying S and H into R; its end state (h1', h2') and r_pre come from one pass of the filter's recurrence over S)
 //     (s, u, refractory', rho, r_post) = srm_loop(syn)  (in the same loop: rho, the SLAYER surrogate of u,
 //     and r_post = mean_t s),  r_pre = mean_t S
 //
@@ -175,27 +175,41 @@ std::pair<double, double> filter_constants(const at::Tensor& psp_rows, const at:
   return {entry(end_rows, 0, L >= 2 ? L - 2 : L), entry(psp_rows, 0, L + 1)};
 }
 
-std::vector<at::Tensor> interval_forward(const at::Tensor& x, const at::Tensor& h1, const at::Tensor& h2,
-                                         const at::Tensor& ref_h1, const at::Tensor& ref_h2, const Projection& project,
-                                         bool carries, const at::Tensor& psp_rows,
-                                         const at::Tensor& end_rows, bool filter_first, double d, double kappa,
-                                         double theta, double width, double scale, bool need_surrogate,
-                                         const at::Tensor& r_pre = at::Tensor()) {
+// The interval's input rates r_pre = mean_t x and, for a layer that multiplies its spikes before it filters, the
+// PSP state at the interval's end (the filter's recurrence over x from (h1, h2)), both from one pass over x; end is
+// undefined for a layer that filters first (its filter's pass gives it).
+struct IntervalInputs {
+  at::Tensor r_pre, end;
+};
+
+IntervalInputs interval_inputs(const at::Tensor& x, const at::Tensor& h1, const at::Tensor& h2,
+                               const at::Tensor& psp_rows, const at::Tensor& end_rows, bool filter_first) {
   TORCH_CHECK(x.dim() == 3 && psp_rows.dim() == 2 && psp_rows.size(0) == x.size(1) &&
                   psp_rows.size(1) == x.size(1) + 2 && end_rows.dim() == 2 && end_rows.size(0) == 2 &&
                   end_rows.size(1) == x.size(1) + 2,
               "srm_interval: spikes (B, L, n_in) and the filter operator's (L, L + 2) and (2, L + 2) rows");
   const at::NoGradGuard no_grad;
+  if (filter_first) return {x.mean(1), at::Tensor()};
+  auto [end, r_pre] = sb3_spikeplastic_fast::alpha_filter_end_and_mean(
+      x, h1, h2, filter_constants(psp_rows, end_rows).first);
+  return {r_pre, end};
+}
+
+std::vector<at::Tensor> interval_forward(const at::Tensor& x, const at::Tensor& h1, const at::Tensor& h2,
+                                         const at::Tensor& ref_h1, const at::Tensor& ref_h2, const Projection& project,
+                                         bool carries, const at::Tensor& psp_rows,
+                                         const at::Tensor& end_rows, bool filter_first, double d, double kappa,
+                                         double theta, double width, double scale, bool need_surrogate,
+                                         const IntervalInputs& inputs) {
+  const at::NoGradGuard no_grad;
   const int64_t L = x.size(1);
   const auto [psp_d, psp_g] = filter_constants(psp_rows, end_rows);
-  at::Tensor product_in, synaptic, end, carried = at::empty({0}, x.options());
+  at::Tensor product_in, synaptic, end = inputs.end, carried = at::empty({0}, x.options());
   if (filter_first) {
     std::tie(product_in, end) = sb3_spikeplastic_fast::alpha_filter_rows(x, h1, h2, psp_d, psp_g);
     synaptic = project(product_in, at::Tensor()).first;
   } else if (carries) {
-    // The end state from the spikes and the carried state apart (layers.PlasticSRMLayer.interval does the same).
     carried = at::stack({h1, h2}, 1);
-    end = at::matmul(end_rows.narrow(1, 0, L), x) + at::matmul(end_rows.narrow(1, L, 2), carried);
     product_in = x;
     const auto [y, yc] = project(x, carried);
     synaptic = std::get<0>(sb3_spikeplastic_fast::alpha_filter_rows(y, yc.select(1, 0), yc.select(1, 1), psp_d,
@@ -205,12 +219,11 @@ std::vector<at::Tensor> interval_forward(const at::Tensor& x, const at::Tensor& 
     const at::Tensor y = project(product_in, at::Tensor()).first;
     synaptic = std::get<0>(sb3_spikeplastic_fast::alpha_filter_rows(y.narrow(1, 0, L), y.select(1, L),
                                                                     y.select(1, L + 1), psp_d, psp_g));
-    end = at::matmul(end_rows, product_in);
   }
   // the surrogate (neurons.slayer_surrogate) only for training: in rollouts it would be the layer's largest cost
   auto [spikes, membrane, rh1, rh2, surrogate, r_post] = sb3_spikeplastic_fast::srm_loop_interval_cpu(
       synaptic, ref_h1, ref_h2, d, kappa, theta, width, scale, need_surrogate);
-  return {spikes, membrane, end.select(1, 0), end.select(1, 1), rh1, rh2, r_pre.defined() ? r_pre : x.mean(1), r_post,
+  return {spikes, membrane, end.select(1, 0), end.select(1, 1), rh1, rh2, inputs.r_pre, r_post,
           product_in, surrogate, carried};
 }
 
@@ -348,7 +361,7 @@ std::vector<at::Tensor> srm_interval_forward(
       x, h1, h2, ref_h1, ref_h2,
       [&](const at::Tensor& rows, const at::Tensor& carried) { return product(rows, carried, W, alpha, E); },
       carry_state && alpha.has_value(), psp_rows, end_rows, filter_first, d, kappa, theta, width, scale,
-      need_surrogate);
+      need_surrogate, interval_inputs(x, h1, h2, psp_rows, end_rows, filter_first));
   const at::Tensor carried = out.back();
   out.pop_back();
   const at::Tensor none = at::empty({0}, W.options());
@@ -426,9 +439,9 @@ std::vector<at::Tensor> srm_interval_deferred_forward(
               "srm_interval: W_m with a modulation form 1 (linear) or 2 (tanh), or neither");
   const at::NoGradGuard no_grad;
   const double eta_value = eta.item<double>();
-  const at::Tensor r_pre = x.mean(1);
+  const IntervalInputs inputs = interval_inputs(x, h1, h2, psp_rows, end_rows, filter_first);
   at::Tensor pre, new_phi, post, m;  // not structured bindings: the lambda below captures pre (C++17)
-  std::tie(pre, new_phi) = presynaptic_term(r_pre, phi, eta_phi, psi);
+  std::tie(pre, new_phi) = presynaptic_term(inputs.r_pre, phi, eta_phi, psi);
   at::Tensor E_t, r;
   std::vector<at::Tensor> out = interval_forward(
       x, h1, h2, ref_h1, ref_h2,
@@ -440,7 +453,7 @@ std::vector<at::Tensor> srm_interval_deferred_forward(
         r = y[3];
         return std::make_pair(y[0], carried.defined() ? y[1] : at::Tensor());
       },
-      carry_state, psp_rows, end_rows, filter_first, d, kappa, theta, width, scale, need_surrogate, r_pre);
+      carry_state, psp_rows, end_rows, filter_first, d, kappa, theta, width, scale, need_surrogate, inputs);
   const at::Tensor carried = out.back();
   out.pop_back();
   std::tie(post, m) = postsynaptic_term(out[7], w_m, modulation);
