@@ -14,7 +14,8 @@
   (eager: four extra passes over trace-sized arrays); equal to the eager ops to float rounding. Where an
   environment's ``x`` is binary spikes at most :func:`spike_density_limit` of which fire (the input layer's place
   cells), its forward and gradient products add up the firing inputs' columns instead of multiplying through the
-  zeros (``spike_product.h``, AVX2 builds).
+  zeros (``spike_product.h``, AVX2 builds); a one-environment block's float32 input gradient runs register tiles of
+  broadcast-FMA (``small_gemm.h``, where the CPU has FMA) instead of BLAS.
 * :func:`interval_ops` (``srm_interval.cpp``), for :class:`sb3_spikeplastic.layers.PlasticSRMLayer`: a whole
   layer interval (filter, product, spike loop, surrogate, rates and, for the built-in rules, the trace update) as
   one op forward and one backward, built from the kernels above; one autograd node per layer and interval where
