@@ -687,6 +687,7 @@ std::vector<at::Tensor> plastic_linear_deferred_backward(
     const at::Tensor& dE1_in, const at::Tensor& dr_in, bool need_x_grad, double eta, double e_max, bool write,
     const std::function<void(int64_t, int64_t)>& fill_grad) {
   check_operands(X_in, W_in, alpha_in, E_in);
+  TORCH_CHECK(!fill_grad || grad_in.is_contiguous(), "plastic_linear: a gradient filled per environment is contiguous");
   const Pending u = pending_updates(p0_in, q0_in, p1_in, q1_in);
   write = write && u.count > 0;
   const at::Tensor g = grad_in.contiguous(), X = X_in.contiguous(), W = W_in.contiguous(),

@@ -103,7 +103,7 @@ at::Tensor or_zeros(const at::Tensor& t, const at::Tensor& like) { return t.defi
 // same order, so the same values. An undefined d_spikes or d_r_post is zero; d_spikes may be a view with gaps
 // between its rows (the next layer's input gradient, a slice of its filter rows). The output is allocated first and
 // its rows filled per environment (fill), so that a plastic product can fill each environment's rows just before it
-// multiplies them, while they are in cache (RowFill below).
+// multiplies them, while they are in cache (RowFill).
 class SynapticGradient {
  public:
   SynapticGradient(const at::Tensor& d_spikes, const at::Tensor& d_r_post, const at::Tensor& surrogate)
