@@ -57,37 +57,51 @@ const scalar_t* state_at(const at::Tensor& state, int64_t e, int64_t j) {
   return state.defined() ? state.const_data_ptr<scalar_t>() + e * state.stride(0) + j : nullptr;
 }
 
+// A state row (undefined: zero) of a block of width columns, into h.
 template <typename scalar_t>
-void filter_block(const scalar_t* z, int64_t z_row, const scalar_t* a, const scalar_t* b, scalar_t* psp,
-                  int64_t psp_row, scalar_t* end_a, scalar_t* end_b, int64_t L, int64_t width, scalar_t d, scalar_t g) {
-  scalar_t h1[kColumns], h2[kColumns];
-  for (int64_t j = 0; j < width; ++j) {
-    h1[j] = a ? a[j] : scalar_t(0);
-    h2[j] = b ? b[j] : scalar_t(0);
-  }
+void load_state(const scalar_t* state, scalar_t* h, int64_t width) {
+  for (int64_t j = 0; j < width; ++j) h[j] = state ? state[j] : scalar_t(0);
+}
+
+// The recurrence over a block of columns: the PSP rows into psp when kRows, the rows' sum over the interval into sum
+// when kSum, and the end state.
+template <typename scalar_t, bool kRows, bool kSum>
+void recurrence_block(const scalar_t* z, int64_t z_row, const scalar_t* a, const scalar_t* b, scalar_t* psp,
+                      int64_t psp_row, scalar_t* sum, scalar_t* end_a, scalar_t* end_b, int64_t L, int64_t width,
+                      scalar_t d, scalar_t g) {
+  scalar_t h1[kColumns], h2[kColumns], s[kColumns];
+  load_state(a, h1, width);
+  load_state(b, h2, width);
+  if constexpr (kSum) std::fill(s, s + width, scalar_t(0));
   for (int64_t t = 0; t < L; ++t) {
     const scalar_t* zt = z + t * z_row;
-    scalar_t* pt = psp + t * psp_row;
+    scalar_t* pt = kRows ? psp + t * psp_row : nullptr;
 #pragma omp simd
     for (int64_t j = 0; j < width; ++j) {
       const scalar_t k = h2[j] + h1[j];
       h2[j] = d * k;
       h1[j] = d * h1[j] + zt[j];
-      pt[j] = g * k;
+      if constexpr (kRows) pt[j] = g * k;
+      if constexpr (kSum) s[j] += zt[j];
     }
   }
   std::copy(h1, h1 + width, end_a);
   std::copy(h2, h2 + width, end_b);
+  if constexpr (kSum) std::copy(s, s + width, sum);
+}
+
+template <typename scalar_t>
+void filter_block(const scalar_t* z, int64_t z_row, const scalar_t* a, const scalar_t* b, scalar_t* psp,
+                  int64_t psp_row, scalar_t* end_a, scalar_t* end_b, int64_t L, int64_t width, scalar_t d, scalar_t g) {
+  recurrence_block<scalar_t, true, false>(z, z_row, a, b, psp, psp_row, nullptr, end_a, end_b, L, width, d, g);
 }
 
 template <typename scalar_t>
 void adjoint_block(const scalar_t* dpsp, int64_t dpsp_row, const scalar_t* da, const scalar_t* db, scalar_t* dz,
                    int64_t dz_row, scalar_t* d_a, scalar_t* d_b, int64_t L, int64_t width, scalar_t d, scalar_t g) {
   scalar_t g1[kColumns], g2[kColumns];
-  for (int64_t j = 0; j < width; ++j) {
-    g1[j] = da ? da[j] : scalar_t(0);
-    g2[j] = db ? db[j] : scalar_t(0);
-  }
+  load_state(da, g1, width);
+  load_state(db, g2, width);
   for (int64_t t = L - 1; t >= 0; --t) {
     const scalar_t* gt = dpsp + t * dpsp_row;
     scalar_t* out = dz + t * dz_row;
@@ -101,33 +115,6 @@ void adjoint_block(const scalar_t* dpsp, int64_t dpsp_row, const scalar_t* da, c
   }
   std::copy(g1, g1 + width, d_a);
   std::copy(g2, g2 + width, d_b);
-}
-
-// The filter's end state alone (filter_block without the PSP rows), and the rows' sum over the interval, in one pass
-// over z: a layer that multiplies its spikes before filtering needs only these of its input (its state for the next
-// interval and r_pre).
-template <typename scalar_t>
-void end_block(const scalar_t* z, int64_t z_row, const scalar_t* a, const scalar_t* b, scalar_t* end_a,
-               scalar_t* end_b, scalar_t* sum, int64_t L, int64_t width, scalar_t d) {
-  scalar_t h1[kColumns], h2[kColumns], s[kColumns];
-  for (int64_t j = 0; j < width; ++j) {
-    h1[j] = a ? a[j] : scalar_t(0);
-    h2[j] = b ? b[j] : scalar_t(0);
-    s[j] = scalar_t(0);
-  }
-  for (int64_t t = 0; t < L; ++t) {
-    const scalar_t* zt = z + t * z_row;
-#pragma omp simd
-    for (int64_t j = 0; j < width; ++j) {
-      const scalar_t k = h2[j] + h1[j];
-      h2[j] = d * k;
-      h1[j] = d * h1[j] + zt[j];
-      s[j] += zt[j];
-    }
-  }
-  std::copy(h1, h1 + width, end_a);
-  std::copy(h2, h2 + width, end_b);
-  std::copy(s, s + width, sum);
 }
 
 // Runs kernel (filter_block or adjoint_block, which take their operands alike) over rows (B, L, n) and a state
@@ -188,9 +175,12 @@ std::tuple<at::Tensor, at::Tensor> alpha_filter_end_and_mean(const at::Tensor& r
     scalar_t* state_p = state.mutable_data_ptr<scalar_t>();
     scalar_t* sum_p = sum.mutable_data_ptr<scalar_t>();
     for_column_blocks(B, n, [&](int64_t e, int64_t j, int64_t width) {
-      end_block<scalar_t>(in + e * rows.stride(0) + j, rows.stride(1), state_at<scalar_t>(a, e, j),
-                          state_at<scalar_t>(b, e, j), state_p + e * 2 * n + j, state_p + (e * 2 + 1) * n + j,
-                          sum_p + e * n + j, L, width, scalar_t(d));
+      // the end state alone (no PSP rows), and the spikes' sum, in the same pass: a layer that multiplies its
+      // spikes before filtering needs only these of its input (its next state and r_pre)
+      recurrence_block<scalar_t, false, true>(in + e * rows.stride(0) + j, rows.stride(1),
+                                              state_at<scalar_t>(a, e, j), state_at<scalar_t>(b, e, j), nullptr, 0,
+                                              sum_p + e * n + j, state_p + e * 2 * n + j,
+                                              state_p + (e * 2 + 1) * n + j, L, width, scalar_t(d), scalar_t(0));
     });
   });
   // the mean as ATen's mean computes it from the sum: divided by the length
