@@ -2,6 +2,8 @@
 
 * :class:`PopulationEncoder` — place-cell encoding of real observations (SpikePropamine appendix 5.2).
 * :class:`RasterInput` — observations that already are spike rasters ``(T, n)`` pass straight through.
+* :class:`ObservationStandardizer` — running standardisation of unbounded observation dimensions, so that they
+  reach the encoder's range.
 * :class:`ContinuousDecoder` / :class:`DiscreteDecoder` — output populations to actions (appendix 5.3, §3.1).
 
 Randomness is replayable: Bernoulli spikes come from a counter-based hash of a per-environment 32-bit key and
@@ -177,6 +179,65 @@ class PopulationEncoder(nn.Module):
     def forward(self, x: Tensor, keys: Tensor, steps: int) -> Tensor:
         """Input spikes ``(batch, steps, P * pop_size)`` for observations ``x`` and per-environment ``keys``."""
         return self.sampler.sample(self.probabilities(x), keys, steps)
+
+
+class ObservationStandardizer(nn.Module):
+    """Running standardisation ``clip((x - mean) / sqrt(var + eps), -clip, clip)`` of the observation dimensions
+    selected by ``mask`` (the others pass unchanged), as ``VecNormalize`` does for observations.
+
+    ``mean``, ``var`` and ``count`` are buffers: they are part of the policy's ``state_dict`` and so are saved and
+    loaded with the model. They change only through :meth:`update` (the algorithm calls it with each rollout's
+    observations once the rollout has been trained on), never in ``forward``: a rollout and its re-evaluation
+    see the same statistics, and evaluation or ``predict`` leave them as they are. At the start (mean 0,
+    variance 1) it is the identity, up to the clip.
+
+    :param mask: ``True`` for each observation dimension to standardise (flattened observation).
+    :param clip: bound of the standardised values (``VecNormalize``'s default ``clip_obs``).
+    :param eps: added to the variance.
+    """
+
+    def __init__(self, mask: Sequence[bool], clip: float = 10.0, eps: float = 1e-8):
+        super().__init__()
+        mask_t = torch.as_tensor(np.asarray(mask, dtype=bool).reshape(-1))
+        self.register_buffer("mask", mask_t, persistent=False)
+        self.register_buffer("mean", torch.zeros(mask_t.shape, dtype=torch.float64))
+        self.register_buffer("var", torch.ones(mask_t.shape, dtype=torch.float64))
+        # As SB3's RunningMeanStd: a tiny prior count, so that the first update replaces the initial values.
+        self.register_buffer("count", torch.tensor(1e-4, dtype=torch.float64))
+        self.clip, self.eps = float(clip), float(eps)
+
+    @property
+    def active(self) -> bool:
+        """Whether any dimension is standardised."""
+        return bool(self.mask.any())
+
+    def forward(self, obs: Tensor) -> Tensor:
+        flat = obs.flatten(1)
+        z = ((flat - self.mean.to(flat.dtype)) / torch.sqrt(self.var.to(flat.dtype) + self.eps)).clamp(-self.clip, self.clip)
+        return torch.where(self.mask, z, flat).view(obs.shape)
+
+    @torch.no_grad()
+    def update(self, observations: Tensor) -> None:
+        """Add a batch of observations ``(..., *obs_shape)`` to the running mean and variance (Chan et al.'s
+        parallel update, as SB3's ``RunningMeanStd``)."""
+        x = observations.reshape(-1, self.mask.numel()).to(self.mean.device, torch.float64)
+        batch_mean, batch_var, n = x.mean(0), x.var(0, unbiased=False), x.shape[0]
+        delta, total = batch_mean - self.mean, self.count + n
+        m2 = self.var * self.count + batch_var * n + delta.square() * self.count * n / total
+        self.mean.add_(delta * n / total)
+        self.var.copy_(m2 / total)
+        self.count.copy_(total)
+
+    def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
+                              error_msgs):
+        # Models saved before the standardiser existed have no statistics: they load with the identity ones.
+        for name in ("mean", "var", "count"):
+            state_dict.setdefault(prefix + name, getattr(self, name).clone())
+        super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
+                                      error_msgs)
+
+    def extra_repr(self) -> str:
+        return f"dims={int(self.mask.sum())}/{self.mask.numel()}, clip={self.clip}, count={float(self.count):.0f}"
 
 
 class RasterInput(nn.Module):

@@ -548,7 +548,7 @@ def validate_entry(entry: Mapping[str, Any]) -> dict:
             out[key] = value
         else:
             out[key] = _check_value(key, value, ppo_hints[key])
-            if ppo_hints[key] is int and key in ("n_steps", "batch_size", "n_epochs", "bptt_steps") and out[key] < 1:
+            if key in ("n_steps", "batch_size", "n_epochs", "bptt_steps") and out[key] is not None and out[key] < 1:
                 raise ValueError(f"{key}={value!r} must be >= 1")
     return dict(sorted(out.items()))
 

@@ -114,7 +114,14 @@ def _suggest(trial, key: str, form: str, values: list) -> Any:
 
 def _algorithm_default(entry: dict, key: str) -> Any:
     parameter = inspect.signature(cfg.algorithm_class(entry.get("algo", "ppo")).__init__).parameters.get(key)
-    return None if parameter is None else parameter.default
+    if parameter is None:
+        return None
+    if parameter.default is None and entry.get("algo", "ppo") == "ppo":
+        from .ppo import POLICY_DEPENDENT_DEFAULTS
+
+        if key in POLICY_DEPENDENT_DEFAULTS:  # the value PPO resolves None to for the entry's policy
+            return POLICY_DEPENDENT_DEFAULTS[key][entry.get("policy", "SpikePlasticPolicy") == "SpikePlasticPolicy"]
+    return parameter.default
 
 
 def sample_overrides(trial, space: dict, entry: dict, fixed: Sequence[str] = ()) -> list[str]:

@@ -140,11 +140,12 @@ def ndp_bcm_update(E: Tensor, r_beta: Tensor, r_post: Tensor, modulation: Tensor
 MODULATION_FORMS = ("linear", "tanh")
 
 
-def modulatory_signal(w_m: Tensor, r_post: Tensor, form: str = "linear") -> Tensor:
-    """Neuromodulatory signal of a layer, :math:`M = W_m r_{post}` (paper eq. 12).
+def modulatory_signal(w_m: Tensor, r_post: Tensor, form: str = "tanh") -> Tensor:
+    """Neuromodulatory signal of a layer: :math:`M = \\tanh(W_m r_{post})` (``form="tanh"``, the default) or the
+    paper's eq. 12 as written, :math:`M = W_m r_{post}` (``form="linear"``).
 
-    ``form="tanh"`` bounds it, :math:`M = \\tanh(W_m r_{post})`: an explicit stabiliser option, not the paper's
-    equation (unbounded ``M`` lets Hebbian positive feedback drive gradients through the trace to 1e11+).
+    The bound is a stabiliser, not the paper's equation: unbounded, ``M`` lets Hebbian positive feedback drive
+    gradients through the trace to 1e11+ and the HalfCheetah policy does not learn (``docs/halfcheetah.md``).
     """
     m = r_post @ w_m.T
     return torch.tanh(m) if form == "tanh" else m
@@ -362,10 +363,11 @@ class NDPOjaRule(_ModulatedMixin, PlasticityRule):
 
     :param wm_init_gain: ``W_m`` starts at ``wm_init_gain * I + N(0, wm_init_std^2)``.
     :param wm_init_std: see ``wm_init_gain``.
-    :param modulation: ``"linear"`` (paper, :math:`M = W_m r_{post}`) or ``"tanh"`` (bounded, a stabiliser).
+    :param modulation: ``"tanh"`` (the default: :math:`M = \\tanh(W_m r_{post})`, bounded, a stabiliser) or
+        ``"linear"`` (the paper as written, :math:`M = W_m r_{post}`; its gradients explode on HalfCheetah).
     """
 
-    def __init__(self, n_in, n_out, e_max=1.0, eta_init=0.05, wm_init_gain=1.0, wm_init_std=0.1, modulation="linear"):
+    def __init__(self, n_in, n_out, e_max=1.0, eta_init=0.05, wm_init_gain=1.0, wm_init_std=0.1, modulation="tanh"):
         super().__init__(n_in, n_out, e_max, eta_init)
         self._init_modulation(n_out, wm_init_gain, wm_init_std, modulation)
 
@@ -381,7 +383,7 @@ class NDPBCMRule(_ModulatedMixin, _BCMRule):
     """
 
     def __init__(self, n_in, n_out, e_max=1.0, eta_init=0.05, eta_phi_init=0.05, wm_init_gain=1.0, wm_init_std=0.1,
-                 modulation="linear"):
+                 modulation="tanh"):
         super().__init__(n_in, n_out, e_max, eta_init, eta_phi_init)
         self._init_modulation(n_out, wm_init_gain, wm_init_std, modulation)
 

@@ -19,7 +19,7 @@ from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.type_aliases import Schedule
 from torch import Tensor, nn
 
-from .coding import ContinuousDecoder, DiscreteDecoder, PopulationEncoder, RasterInput
+from .coding import ContinuousDecoder, DiscreteDecoder, ObservationStandardizer, PopulationEncoder, RasterInput
 from .network import NetworkOutput, NetworkState, SpikingPlasticNetwork
 from .neurons import SRMParameters
 
@@ -42,8 +42,18 @@ class SpikePlasticPolicy(ActorCriticPolicy):
     is a spike raster and passes straight through (then ``T`` is the raster length). Actions: ``Box`` through the
     paper's ±1 half-population decoder and a Gaussian with a learned state-independent ``log_std``;
     ``Discrete`` through one output population per action, rates times a learned scale as logits.
-    The critic reads the spike rates of every layer (so it sees the plastic memory) through a small MLP;
-    ``critic="mlp"`` gives a separate memoryless MLP on the observation instead.
+    The critic is a small MLP on the spike rates of every layer (``critic="snn"``: it sees the plastic memory) or
+    on the observation (``critic="mlp"``: memoryless).
+
+    The defaults for vector observations are the CPU-sized network that learns HalfCheetah
+    (``PPO("SpikePlasticPolicy", "HalfCheetah-v5")``; measurements in ``docs/halfcheetah.md``), not the paper's
+    50 ms / 50-cell network (``hyperparams/paper.yml``): ``steps=10``, 10 place cells per dimension with
+    ``encoder_beta=0.5`` (the paper's overlap of neighbouring cells at that spacing), 20 output neurons per action
+    dimension, ``tau_s = T / 5`` ms, zero-mean ``alpha`` (a positive mean makes the trace's Hebbian loop
+    self-exciting on place-cell inputs and BPTT gradients overflow), the memoryless critic, ``log_std_init=-2``
+    (SB3: 0) and a running standardisation of unbounded observation dimensions into the encoder's range.
+    Spike-raster observations keep the paper's neuron constants, the rules' positive ``alpha`` and the spiking
+    critic (the cue T-maze needs its memory).
 
     :param observation_space: observation space.
     :param action_space: action space (``Box`` or ``Discrete``).
@@ -52,38 +62,53 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         ``ndp-bcm`` or any registered with :func:`~sb3_spikeplastic.plasticity.register_rule`).
     :param hidden_sizes: neurons per hidden layer (paper: ``(64, 64)``).
     :param steps: network steps ``T`` per environment step (1 ms each; paper HalfCheetah: 50). ``None``: the
-        raster length for spike observations, else 50.
+        raster length for spike observations, else 10.
     :param plastic_layers: indices of the plastic layers (0 is input->first hidden, the last is the output
         layer) or ``"all"``.
     :param neuron: SRM constants as a dict of :class:`~sb3_spikeplastic.neurons.SRMParameters` fields
-        (``theta``, ``tau_s``, ``tau_ref``, ``scale_ref``, ``tau_rho``, ``scale_rho``, ``dt``).
+        (``theta``, ``tau_s``, ``tau_ref``, ``scale_ref``, ``tau_rho``, ``scale_rho``, ``dt``). With
+        population-encoded observations ``tau_s`` defaults to ``T / 5`` ms (the paper's 10 ms at T = 50, 2 ms at
+        the default T = 10), so that an input's PSP peaks within the environment step; otherwise 10 ms.
     :param e_max: trace clip bound :math:`E_{max}`.
     :param plasticity_interval: :math:`\\Delta\\tau` in network steps (must divide ``steps``; default ``steps``).
-    :param rule_kwargs: extra arguments of the rule (e.g. ``eta_init``, ``modulation="tanh"``).
-    :param encoder_pop_size: place cells per observation dimension (paper: 50).
-    :param encoder_beta: place-cell sharpness (paper: 15).
+    :param rule_kwargs: extra arguments of the rule (e.g. ``eta_init``; ``modulation="linear"`` for the NDP rules'
+        unbounded modulation as the paper writes it, instead of their default ``tanh``).
+    :param encoder_pop_size: place cells per observation dimension (paper: 50; default 10).
+    :param encoder_beta: place-cell sharpness (paper: 15 for 50 cells over [-3, 3]; default 0.5 keeps the
+        paper's overlap ``beta * spacing^2 = 0.22`` for 10 cells: with 15, values between two centres fire
+        neither cell above the floor).
     :param encoder_p_min: floor spike probability (paper: 0.05).
     :param obs_bounds: ``(low, high)`` for the encoder where the observation space is unbounded (scalars or
-        arrays; with ``VecNormalize`` use the normalised range). Finite space bounds are used as they are.
+        arrays): the range of the standardised values. Finite space bounds are used as they are.
     :param obs_indices: the observation dimensions the encoder encodes (``None``: all). The paper's HalfCheetah
         network encodes the 6 joint angles and 6 joint velocities, indices ``[2..7, 11..16]`` of HalfCheetah-v5.
     :param input_rms_rate: expected rms firing probability of spike-raster inputs (weight init only).
     :param action_pop_size: output neurons per action dimension (continuous, even; paper: 100) or per action
-        (discrete). ``None``: 100 for ``Box``, 1 for ``Discrete``.
+        (discrete). ``None``: 20 for ``Box``, 1 for ``Discrete``.
     :param logit_scale_init: initial scale of the discrete decoder's logits.
     :param w_init_gain: initial weight spread per layer (see :class:`~sb3_spikeplastic.network.SpikingPlasticNetwork`).
     :param w_init_mean: initial weight mean per layer.
-    :param alpha_init_mean: initial plasticity-coefficient mean per layer (``None``: the rule's default).
-    :param alpha_init_std: initial plasticity-coefficient std per layer (``None``: 10% of the mean).
-    :param critic: ``"snn"`` (value from the spiking layers' rates) or ``"mlp"`` (memoryless MLP on the observation).
+    :param alpha_init_mean: initial plasticity-coefficient mean per layer (``None``: 0 for population-encoded
+        observations, the rule's default for spike rasters).
+    :param alpha_init_std: initial plasticity-coefficient std per layer (``None``: 1 for population-encoded
+        observations, 10% of the mean for spike rasters).
+    :param critic: ``"snn"`` (value from the spiking layers' rates) or ``"mlp"`` (memoryless MLP on the
+        standardised observation). ``None``: ``"snn"`` for spike rasters, ``"mlp"`` for vectors.
     :param critic_hidden: hidden units of the critic's MLP.
-    :param log_std_init: initial log standard deviation of the Gaussian actions.
+    :param log_std_init: initial log standard deviation of the Gaussian actions (SB3: 0). -2 (std 0.14): with
+        std 1 HalfCheetah's control cost alone is about -0.6 per step and swamps the first rollouts' returns.
     :param alpha_lr_scale: learning-rate multiplier of the plasticity coefficients ``alpha`` (an optimizer
         parameter group; :class:`sb3_spikeplastic.PPO` keeps the ratio when the learning rate changes). Adam moves
         every parameter by about the learning rate per update whatever its size, and ``alpha`` starts about ten
         times larger than ``W``: with one shared rate it barely leaves its initial values, so the network cannot
         learn which synapses' traces to read. 1 is the plain shared rate (the T-maze entry's value and its
         measurements: ``docs/reproducing-tmaze.md``).
+    :param standardize_obs: standardise the observation dimensions whose space bounds are infinite with running
+        statistics (:class:`~sb3_spikeplastic.coding.ObservationStandardizer`, ``policy.obs_standardizer``),
+        updated by :class:`sb3_spikeplastic.PPO` after each rollout's update and saved with the model; the
+        encoder then clips them to ``obs_bounds``. Dimensions with finite bounds and spike rasters are never
+        changed. Composes with ``VecNormalize`` (its output is then standardised again, close to the identity);
+        ``False`` leaves observations as they come.
     :param kwargs: passed to :class:`~stable_baselines3.common.policies.ActorCriticPolicy` (optimizer etc.).
     """
 
@@ -102,8 +127,8 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         e_max: float = 1.0,
         plasticity_interval: Optional[int] = None,
         rule_kwargs: Optional[dict] = None,
-        encoder_pop_size: int = 50,
-        encoder_beta: float = 15.0,
+        encoder_pop_size: int = 10,
+        encoder_beta: float = 0.5,
         encoder_p_min: float = 0.05,
         obs_bounds: tuple = (-3.0, 3.0),
         obs_indices: Optional[Sequence[int]] = None,
@@ -114,10 +139,11 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         w_init_mean: Union[float, Sequence[float]] = 0.0,
         alpha_init_mean: Optional[Union[float, Sequence[float]]] = None,
         alpha_init_std: Optional[Union[float, Sequence[float]]] = None,
-        critic: str = "snn",
+        critic: Optional[str] = None,
         critic_hidden: int = 64,
-        log_std_init: float = 0.0,
+        log_std_init: float = -2.0,
         alpha_lr_scale: float = 1.0,
+        standardize_obs: bool = True,
         **kwargs: Any,
     ):
         if kwargs.pop("use_sde", False):
@@ -125,7 +151,7 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         if isinstance(alpha_lr_scale, bool) or not isinstance(alpha_lr_scale, (int, float)) or not (
                 0 < alpha_lr_scale < float("inf")):
             raise ValueError(f"alpha_lr_scale={alpha_lr_scale!r} must be a positive finite number (1: no scaling)")
-        if critic not in ("snn", "mlp"):
+        if critic not in (None, "snn", "mlp"):
             raise ValueError(f"unknown critic {critic!r}; accepted: snn, mlp")
         if not isinstance(action_space, (spaces.Box, spaces.Discrete)):
             raise ValueError(f"SpikePlasticPolicy supports Box and Discrete actions, got {action_space}")
@@ -144,16 +170,25 @@ class SpikePlasticPolicy(ActorCriticPolicy):
                              "observations pass through whole")
         if raster and steps is not None and steps != observation_space.shape[0]:
             raise ValueError(f"steps={steps} does not match the spike-raster length {observation_space.shape[0]}")
+        steps = int(observation_space.shape[0] if raster else (steps or 10))
+        neuron = dict(neuron or {})
+        if not raster:
+            neuron.setdefault("tau_s", steps / 5.0)
+            if alpha_init_mean is None:
+                alpha_init_mean = 0.0
+                alpha_init_std = 1.0 if alpha_init_std is None else alpha_init_std
+        # Defaults are resolved here, so that a saved model records the values it was built with.
         self.snn_config = dict(
             rule=rule, hidden_sizes=tuple(int(h) for h in hidden_sizes),
-            steps=int(observation_space.shape[0] if raster else (steps or 50)), plastic_layers=plastic_layers,
-            neuron=dict(neuron or {}), e_max=e_max, plasticity_interval=plasticity_interval,
+            steps=steps, plastic_layers=plastic_layers,
+            neuron=neuron, e_max=e_max, plasticity_interval=plasticity_interval,
             rule_kwargs=dict(rule_kwargs or {}), encoder_pop_size=encoder_pop_size, encoder_beta=encoder_beta,
             encoder_p_min=encoder_p_min, obs_bounds=obs_bounds,
             obs_indices=None if obs_indices is None else [int(i) for i in obs_indices], input_rms_rate=input_rms_rate,
             action_pop_size=action_pop_size, logit_scale_init=logit_scale_init, w_init_gain=w_init_gain,
             w_init_mean=w_init_mean, alpha_init_mean=alpha_init_mean, alpha_init_std=alpha_init_std,
-            critic=critic, critic_hidden=critic_hidden, alpha_lr_scale=float(alpha_lr_scale),
+            critic=critic or ("snn" if raster else "mlp"), critic_hidden=critic_hidden,
+            alpha_lr_scale=float(alpha_lr_scale), standardize_obs=bool(standardize_obs),
         )
         super().__init__(observation_space, action_space, lr_schedule, log_std_init=log_std_init, **kwargs)
 
@@ -174,7 +209,7 @@ class SpikePlasticPolicy(ActorCriticPolicy):
     def _make_decoder(self) -> nn.Module:
         cfg, space = self.snn_config, self.action_space
         if isinstance(space, spaces.Box):
-            return ContinuousDecoder(space.low, space.high, cfg["action_pop_size"] or 100)
+            return ContinuousDecoder(space.low, space.high, cfg["action_pop_size"] or 20)
         return DiscreteDecoder(int(space.n), cfg["action_pop_size"] or 1, cfg["logit_scale_init"])
 
     def _build(self, lr_schedule: Schedule) -> None:
@@ -188,6 +223,10 @@ class SpikePlasticPolicy(ActorCriticPolicy):
             cfg["plastic_layers"], neuron, cfg["e_max"], cfg["plasticity_interval"], cfg["rule_kwargs"],
             cfg["w_init_gain"], cfg["w_init_mean"], cfg["alpha_init_mean"], cfg["alpha_init_std"],
         )
+        space = self.observation_space
+        unbounded = ~(np.isfinite(space.low) & np.isfinite(space.high)).reshape(-1)
+        self.obs_standardizer = ObservationStandardizer(
+            unbounded & bool(cfg.get("standardize_obs", True)) & (not is_spike_raster_space(space)))
         if isinstance(self.action_dist, DiagGaussianDistribution):
             self.log_std = nn.Parameter(torch.full((get_action_dim(self.action_space),), float(self.log_std_init)))
         elif not isinstance(self.action_dist, CategoricalDistribution):
@@ -300,7 +339,14 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         obs = obs.float()
         if not torch.isfinite(obs).all():
             raise ValueError("non-finite observation passed to SpikePlasticPolicy (NaN or inf); check the env or VecNormalize")
-        return obs
+        return self.obs_standardizer(obs) if self.obs_standardizer.active else obs
+
+    def update_observation_statistics(self, observations: Union[np.ndarray, Tensor]) -> None:
+        """Add raw observations ``(..., *obs_shape)`` to the running statistics of ``standardize_obs`` (a no-op
+        where nothing is standardised). :class:`sb3_spikeplastic.PPO` calls it with each rollout's observations
+        after training on them."""
+        if self.obs_standardizer.active:
+            self.obs_standardizer.update(torch.as_tensor(observations))
 
     # ----------------------------------------------------------------------------------------------------------
     # SB3 API

@@ -40,6 +40,14 @@ from .policy import SpikePlasticPolicy
 #: Accepted values of ``PPO(grad_clip=...)``.
 GRAD_CLIP_MODES = ("global", "per-parameter")
 
+#: The arguments whose default (``None``) depends on the policy: ``(SB3's value, the value for recurrent spiking
+#: policies)``. ``PPO`` docstring: why.
+POLICY_DEPENDENT_DEFAULTS = {
+    "learning_rate": (3e-4, 1e-3),
+    "batch_size": (64, 256),
+    "grad_clip": ("global", "per-parameter"),
+}
+
 #: ``chunks_per_pass="auto"`` on the CPU: the most chunks per pass whose backpropagation graph (estimated by
 #: ``SpikingPlasticNetwork.backward_bytes_per_step``) stays within this many bytes.
 AUTO_PASS_GRAPH_BYTES = 2**30
@@ -48,17 +56,28 @@ AUTO_PASS_GRAPH_BYTES = 2**30
 class PPO(SB3PPO):
     """Proximal Policy Optimization (``stable_baselines3.PPO``) extended to recurrent spiking plastic policies.
 
-    A drop-in for SB3's PPO: with ``MlpPolicy`` and friends it behaves exactly like it. With
-    ``"SpikePlasticPolicy"`` it trains with truncated backpropagation through time over chunks of
-    ``bptt_steps`` environment steps (see the module docstring).
+    A drop-in for SB3's PPO: with ``MlpPolicy`` and friends it behaves exactly like it, SB3's defaults included.
+    With ``"SpikePlasticPolicy"`` it trains with truncated backpropagation through time over chunks of
+    ``bptt_steps`` environment steps (see the module docstring), and three defaults differ from SB3's
+    (:data:`POLICY_DEPENDENT_DEFAULTS`; an explicit value always wins):
 
+    * ``grad_clip="per-parameter"`` (SB3 clips globally): backpropagation through the plastic traces makes the
+      plastic layers' gradients orders of magnitude larger than the readout's and the critic's, which a global
+      clip would shrink below Adam's ``eps`` until they stop learning.
+    * ``batch_size=256`` (SB3: 64), eight whole chunks of ``bptt_steps=32``: a minibatch of two chunks spends
+      its time in per-operation overhead and gives a noisier gradient.
+    * ``learning_rate=1e-3`` (SB3: 3e-4): with per-parameter clipping and Adam, 3e-4 left the HalfCheetah policy
+      near its initial return after 100k steps (``docs/halfcheetah.md``, runs C and D).
+
+    :param learning_rate: as SB3; ``None``: 3e-4, or 1e-3 for recurrent spiking policies.
+    :param batch_size: transitions per minibatch, as SB3; ``None``: 64, or 256 for recurrent spiking policies
+        (a multiple of ``bptt_steps``).
     :param bptt_steps: environment steps per training chunk (truncated-BPTT length) for recurrent policies;
         must divide ``n_steps`` and ``batch_size``.
     :param grad_clip: how ``max_grad_norm`` applies: ``"global"`` (SB3: one norm over all parameters) or
         ``"per-parameter"`` (each parameter tensor's gradient clipped to ``max_grad_norm`` on its own, as the
-        unit-wise clipping of Brock et al. 2021). Backpropagation through plastic traces makes the input layers'
-        gradients orders of magnitude larger than the readout's and the critic's, which a global clip would shrink
-        until they stop learning. ``train/grad_norm`` logs the global pre-clip norm either way.
+        unit-wise clipping of Brock et al. 2021). ``None``: ``"per-parameter"`` for recurrent spiking policies,
+        ``"global"`` otherwise. ``train/grad_norm`` logs the global pre-clip norm either way.
     :param use_action_masks: ask the environments for ``action_masks()`` (sb3-contrib ``MaskablePPO``'s
         convention: a boolean array of open actions) before every rollout step; a recurrent policy with
         ``Discrete`` actions then samples only open actions and is trained with the same masks. Where one action
@@ -101,9 +120,9 @@ class PPO(SB3PPO):
         self,
         policy: Union[str, type[BasePolicy]],
         env: Union[GymEnv, str],
-        learning_rate: Union[float, Schedule] = 3e-4,
+        learning_rate: Union[float, Schedule, None] = None,
         n_steps: int = 2048,
-        batch_size: int = 64,
+        batch_size: Optional[int] = None,
         n_epochs: int = 10,
         gamma: float = 0.99,
         gae_lambda: float = 0.95,
@@ -125,7 +144,7 @@ class PPO(SB3PPO):
         seed: Optional[int] = None,
         device: Union[torch.device, str] = "auto",
         bptt_steps: int = 32,
-        grad_clip: str = "global",
+        grad_clip: Optional[str] = None,
         use_action_masks: bool = False,
         cuda_graphs: bool = True,
         chunks_per_pass: Union[int, str, None] = "auto",
@@ -137,11 +156,16 @@ class PPO(SB3PPO):
         self.cuda_graphs = bool(cuda_graphs)
         self.flush_denormal = bool(flush_denormal)
         self.keep_freed_memory = bool(keep_freed_memory)
+        policy_class = self.policy_aliases.get(policy, policy) if isinstance(policy, str) else policy
+        spiking = bool(getattr(policy_class, "recurrent", False))
+        defaults = {k: v[spiking] for k, v in POLICY_DEPENDENT_DEFAULTS.items()}
+        learning_rate = defaults["learning_rate"] if learning_rate is None else learning_rate
+        batch_size = defaults["batch_size"] if batch_size is None else batch_size
+        grad_clip = defaults["grad_clip"] if grad_clip is None else grad_clip
         if grad_clip not in GRAD_CLIP_MODES:
             raise ValueError(f"unknown grad_clip {grad_clip!r}; accepted: {', '.join(GRAD_CLIP_MODES)}")
         self.grad_clip = grad_clip
-        policy_class = self.policy_aliases.get(policy, policy) if isinstance(policy, str) else policy
-        if getattr(policy_class, "recurrent", False):
+        if spiking:
             # Before SB3's own checks, whose warnings about mini-batches do not apply to chunks.
             check_chunking(self.bptt_steps, n_steps, batch_size)
             n_chunks = batch_size // self.bptt_steps
@@ -461,6 +485,8 @@ class PPO(SB3PPO):
         if history["grad_norm"]:
             self.logger.record("train/grad_norm", float(np.median(history["grad_norm"])))
         self.logger.record("train/skipped_steps", self._skipped_steps)
+        # After the update: the rollout and its re-evaluation saw the same statistics.
+        self.policy.update_observation_statistics(self.rollout_buffer.observations)
         if hasattr(self.policy, "log_std"):
             self.logger.record("train/std", torch.exp(self.policy.log_std).mean().item())
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
