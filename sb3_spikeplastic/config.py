@@ -646,8 +646,9 @@ def normalize_arguments(config: Mapping[str, Any]) -> Optional[dict]:
     if normalize is False:
         return None
     kwargs = {} if normalize is True else dict(normalize)
-    if "gamma" in config:
-        kwargs.setdefault("gamma", config["gamma"])
+    gamma = config.get("gamma", inspect.signature(algorithm_class(config.get("algo", "ppo")).__init__).parameters[
+        "gamma"].default)  # the algorithm's default where the entry does not state it
+    kwargs.setdefault("gamma", gamma)
     return kwargs
 
 

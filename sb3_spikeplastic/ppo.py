@@ -287,6 +287,10 @@ class PPO(SB3PPO):
         assert self._last_obs is not None, "No previous observation was provided"
         self.policy.set_training_mode(False)
         n_steps = 0
+        if rollout_buffer.full:
+            # The previous rollout, now trained on, joins the observation statistics; a rollout and its
+            # re-evaluation in training always see the same ones.
+            self.policy.update_observation_statistics(rollout_buffer.observations)
         rollout_buffer.reset()
         callback.on_rollout_start()
         state = self._last_network_state
@@ -485,8 +489,6 @@ class PPO(SB3PPO):
         if history["grad_norm"]:
             self.logger.record("train/grad_norm", float(np.median(history["grad_norm"])))
         self.logger.record("train/skipped_steps", self._skipped_steps)
-        # After the update: the rollout and its re-evaluation saw the same statistics.
-        self.policy.update_observation_statistics(self.rollout_buffer.observations)
         if hasattr(self.policy, "log_std"):
             self.logger.record("train/std", torch.exp(self.policy.log_std).mean().item())
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")

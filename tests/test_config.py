@@ -1,12 +1,14 @@
 """Hyperparameter files: the packaged ppo.yml, overrides, validation, the safe string parser, model construction."""
 
+import inspect
+
 import gymnasium as gym
 import pytest
 import torch
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
 import sb3_spikeplastic
-from sb3_spikeplastic import PPO, config
+from sb3_spikeplastic import PPO, SpikePlasticPolicy, config
 from sb3_spikeplastic.config import (
     default_hyperparams_path,
     load_hyperparams,
@@ -28,11 +30,30 @@ def test_packaged_file_is_found_and_has_the_entries():
     data = load_hyperparams_file()
     assert {"default", *ENTRIES} <= set(data)
     for env_id in ENTRIES:
-        entry = data[env_id]
-        for key in ("n_timesteps", "n_envs", "policy", "policy_kwargs", "normalize", "n_steps", "batch_size",
-                    "bptt_steps", "learning_rate", "n_epochs", "gamma", "gae_lambda", "ent_coef", "max_grad_norm"):
-            assert key in entry, (env_id, key)
-        assert entry["policy"] == "SpikePlasticPolicy"
+        resolved = resolve_hyperparams(env_id)
+        assert resolved["policy"] == "SpikePlasticPolicy" and {"n_timesteps", "n_envs", "n_steps"} <= set(resolved)
+
+
+def _default(fn, key):
+    default = inspect.signature(fn).parameters[key].default
+    return list(default) if isinstance(default, tuple) else default
+
+
+@pytest.mark.parametrize("conf", ["ppo", "paper"])
+def test_spiking_entries_state_only_what_differs_from_the_defaults(conf):
+    """No value of a spiking entry (or of ``default``) repeats the default of PPO or SpikePlasticPolicy."""
+    from sb3_spikeplastic.ppo import POLICY_DEPENDENT_DEFAULTS
+
+    for env_id, entry in load_hyperparams_file(conf).items():
+        if entry.get("policy", "SpikePlasticPolicy") != "SpikePlasticPolicy":
+            continue
+        for key, value in entry.items():
+            if key in config.META_KEYS:
+                continue
+            default = POLICY_DEPENDENT_DEFAULTS[key][1] if key in POLICY_DEPENDENT_DEFAULTS else _default(PPO, key)
+            assert value != default, (conf, env_id, key, value)
+        for key, value in (entry.get("policy_kwargs") or {}).items():
+            assert value != _default(SpikePlasticPolicy.__init__, key), (conf, env_id, "policy_kwargs", key, value)
 
 
 @pytest.mark.parametrize("env_id", ["CartPole-v1", *ENTRIES])
@@ -41,17 +62,17 @@ def test_entries_are_consistent(env_id):
     trace loop explode, tests/test_halfcheetah.py), and the packaged paper file has the paper's network and GAE
     lambda (appendix 5.2-5.5)."""
     entry = resolve_hyperparams(env_id)
-    assert entry["n_steps"] % entry["bptt_steps"] == 0 and entry["batch_size"] % entry["bptt_steps"] == 0
-    assert entry["batch_size"] <= entry["n_steps"] * entry["n_envs"]
+    bptt, batch = entry.get("bptt_steps", _default(PPO, "bptt_steps")), entry.get("batch_size", 256)
+    assert entry["n_steps"] % bptt == 0 and batch % bptt == 0
+    assert batch <= entry["n_steps"] * entry["n_envs"]
     if "HalfCheetah" in env_id:
-        assert entry["normalize"] is True and entry["policy_kwargs"]["alpha_init_mean"] == 0.0
+        assert entry["normalize"] is True and "alpha_init_mean" not in entry["policy_kwargs"]  # the default: 0
         paper = resolve_hyperparams(env_id, "paper")
         kwargs = paper["policy_kwargs"]
-        assert (kwargs["hidden_sizes"], kwargs["steps"], kwargs["encoder_pop_size"], kwargs["action_pop_size"]) == (
-            [64, 64], 50, 50, 100)
+        assert (kwargs["steps"], kwargs["encoder_pop_size"], kwargs["action_pop_size"]) == (50, 50, 100)
         assert paper["normalize"] is True and paper["gae_lambda"] == 0.97 and len(kwargs["obs_indices"]) == 12
     # an id without an entry trains with `default`
-    assert resolve_hyperparams("CartPole-v1")["policy_kwargs"] == {"rule": "dp-oja"}
+    assert resolve_hyperparams("CartPole-v1")["policy_kwargs"] == {}
 
 
 def _env_for(env_id, n_envs):
@@ -70,7 +91,8 @@ def test_every_entry_constructs_a_model(env_id, conf):
     if norm is not None:
         env = VecNormalize(env, **norm)
     model = PPO(policy, env, **ppo_kwargs, policy_kwargs=policy_kwargs, device="cpu")
-    assert model.n_steps == resolved["n_steps"] and model.bptt_steps == resolved["bptt_steps"]
+    assert model.n_steps == resolved["n_steps"]
+    assert model.bptt_steps == resolved.get("bptt_steps", _default(PPO, "bptt_steps"))
     if env_id.endswith("HalfCheetah-v5"):
         assert model.policy.snn.sizes == ([12 * 50, 64, 64, 6 * 100] if conf == "paper" else [17 * 10, 64, 64, 6 * 20])
     env.close()
@@ -208,11 +230,10 @@ def test_load_hyperparams_returns_the_packaged_tmaze_entry():
     raw = load_hyperparams_file("ppo")["TMazeCue-v0"]
     h = load_hyperparams("TMazeCue-v0")
     assert h.policy == "SpikePlasticPolicy" and h.algo == "ppo"
-    assert (h.n_envs, h.n_timesteps, h.normalize, h.env_kwargs) == (raw["n_envs"], raw["n_timesteps"], None, {})
+    assert (h.n_envs, h.n_timesteps, h.normalize, h.env_kwargs) == (8, raw["n_timesteps"], None, {})
     kwargs = h.model_kwargs
-    assert kwargs["policy_kwargs"]["rule"] == raw["policy_kwargs"]["rule"] == "dp-oja"
     assert kwargs["policy_kwargs"]["alpha_lr_scale"] == raw["policy_kwargs"]["alpha_lr_scale"]
-    for key in ("n_steps", "batch_size", "bptt_steps", "n_epochs", "learning_rate", "grad_clip", "use_action_masks"):
+    for key in ("n_steps", "bptt_steps", "n_epochs", "learning_rate", "use_action_masks"):
         assert kwargs[key] == raw[key], key
     assert not set(kwargs) & {"n_envs", "n_timesteps", "normalize", "env_kwargs", "policy", "algo"}
 
@@ -224,7 +245,7 @@ def test_load_hyperparams_rule_and_other_files():
     lstm = load_hyperparams("HalfCheetah-v5", "ppo_lstm")
     assert (lstm.algo, lstm.policy) == ("ppo_lstm", "MlpLstmPolicy") and "algo" not in lstm.model_kwargs
     # a registered id without an entry gets `default`, as on the command line
-    assert load_hyperparams("CartPole-v1").model_kwargs["policy_kwargs"] == {"rule": "dp-oja"}
+    assert load_hyperparams("CartPole-v1").model_kwargs["policy_kwargs"] == {}
     # fresh copies: changing one result leaves the next alone
     load_hyperparams("TMazeCue-v0").model_kwargs["policy_kwargs"]["hidden_sizes"].append(3)
     assert load_hyperparams("TMazeCue-v0").model_kwargs["policy_kwargs"]["hidden_sizes"] == [64]

@@ -27,7 +27,7 @@ def make_layer(rule: str, n_in: int, n_out: int, dtype=torch.float64) -> Plastic
     torch.manual_seed(0)
     name, _, form = rule.partition("+")
     cls = ShiftedOja if name == "shifted-oja" else get_rule_class(name)
-    kwargs = {"modulation": form} if form else {}
+    kwargs = {"modulation": form or "linear"} if name.startswith("ndp-") else {}  # "ndp-oja": the paper's form
     layer_rule = cls(n_in, n_out, **kwargs) if cls.has_trace else cls(n_in, n_out)
     if hasattr(layer_rule, "psi"):  # a nonzero BCM offset, so that its gradient path is exercised
         layer_rule.psi.data.normal_(0.0, 0.1)

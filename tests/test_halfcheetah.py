@@ -13,6 +13,8 @@ from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_spikeplastic import PPO, SpikePlasticPolicy
 from sb3_spikeplastic.config import model_arguments, normalize_arguments, resolve_hyperparams
+from sb3_spikeplastic.network import ALPHA_REFERENCE_FAN_IN
+from sb3_spikeplastic.plasticity import DPOjaRule
 
 ENV_ID = "HalfCheetah-v5"
 
@@ -91,9 +93,12 @@ def test_positive_mean_alpha_makes_the_trace_loop_explode_and_the_shipped_init_d
     # loop E -> firing -> E gains ~7x per environment step, so the gradient grows geometrically with BPTT length.
     # With zero-mean alpha (the HalfCheetah entries) it stays at the static network's scale.
     space, action_space = gym.make(ENV_ID).observation_space, gym.make(ENV_ID).action_space
-    small = dict(hidden_sizes=(32, 32), steps=10, encoder_pop_size=10, action_pop_size=20, rule="dp-oja")
+    small = dict(hidden_sizes=(32, 32), steps=10, encoder_pop_size=10, action_pop_size=20, rule="dp-oja",
+                 encoder_beta=15.0, neuron=dict(tau_s=10.0))
+    positive = [DPOjaRule.alpha_init_mean * ALPHA_REFERENCE_FAN_IN / n for n in (170, 32, 32)]  # the rule's scaling
     torch.manual_seed(0)
-    exploding = SpikePlasticPolicy(space, action_space, lambda _: 1e-3, **small)
+    exploding = SpikePlasticPolicy(space, action_space, lambda _: 1e-3, alpha_init_mean=positive,
+                                   alpha_init_std=[0.1 * a for a in positive], **small)
     torch.manual_seed(0)
     bounded = SpikePlasticPolicy(space, action_space, lambda _: 1e-3, alpha_init_mean=0.0, alpha_init_std=1.0, **small)
     growth = last_action_gradient(exploding, cheetah_observations, 12) / last_action_gradient(

@@ -26,6 +26,8 @@ def sigmoid(x):
 def make_rule(name, n_in=N_IN, n_out=N_OUT, e_max=1.0, seed=0, scale=1.0, dtype=torch.float64, **kw):
     """A rule with random (non-default) parameters, so that every parameter enters the comparison."""
     cls = get_rule_class(name)
+    if name in NDP_RULES:
+        kw.setdefault("modulation", "linear")  # the paper's form, as numpy_step's default
     rule = cls(n_in, n_out, e_max=e_max, **kw) if cls.has_trace else cls(n_in, n_out)
     g = torch.Generator().manual_seed(seed)
     with torch.no_grad():
