@@ -385,10 +385,10 @@ def test_packaged_paper_configuration():
     config = load_hyperparams_file("paper")["HalfCheetah-v5"]
     kwargs = config["policy_kwargs"]
     assert kwargs["obs_indices"] == [2, 3, 4, 5, 6, 7, 11, 12, 13, 14, 15, 16]
-    assert (kwargs["encoder_pop_size"], kwargs["hidden_sizes"], kwargs["action_pop_size"], kwargs["steps"]) == (
-        50, [64, 64], 100, 50)
+    assert (kwargs["encoder_pop_size"], kwargs["action_pop_size"], kwargs["steps"]) == (50, 100, 50)
+    assert "hidden_sizes" not in kwargs and "n_epochs" not in config  # the defaults, 64-64 and 10, are the paper's
     assert config["n_steps"] * config["n_envs"] == 3000 and config["gae_lambda"] == 0.97
-    assert config["learning_rate"] == "lin_5e-4" and config["n_epochs"] == 10
+    assert config["learning_rate"] == "lin_5e-4"
 
 
 @pytest.mark.parametrize("conf, policy_class", [("mlp", "ActorCriticPolicy"), ("ppo_lstm", "RecurrentActorCriticPolicy")])
