@@ -12,13 +12,15 @@ generator offsets), from the same distribution. Capture needs code that never wa
 network's resets multiply unconditionally (``sync_free``), observations are checked before the graph, and
 ``torch.distributions``' argument validation (a host-side check) is off while capturing.
 
-If a capture fails anyway, PyTorch can leave its CUDA random generator in capture mode, and later sampling in the
-process raises "Offset increment outside graph capture": the warning says so; train with ``cuda_graphs=False``.
+If a capture fails anyway, the pass runs eagerly from then on, and the device's random generator is put back as it
+was before the capture (PyTorch would otherwise leave it marked as capturing, and every later random op in the
+process would raise "Offset increment outside graph capture").
 """
 
 from __future__ import annotations
 
 import contextlib
+import gc
 import warnings
 from typing import Callable, Iterator, Optional
 
@@ -47,23 +49,48 @@ def _release_last_distribution(policy: nn.Module) -> None:
 
 @contextlib.contextmanager
 def _capturable(policy: nn.Module) -> Iterator[None]:
-    """Around a capture: no stale autograd graph from the policy's last distribution, and no argument validation
-    in ``torch.distributions`` (it asks the device whether the arguments are valid: a synchronisation)."""
+    """Around a capture: no stale autograd graph from the policy's last distribution, no argument validation in
+    ``torch.distributions`` (it asks the device whether the arguments are valid: a synchronisation), and no
+    garbage collection (collecting another model's CUDA graphs destroys them, which invalidates a capture under
+    way: seen with several models in one process)."""
     _release_last_distribution(policy)
     validate = torch.distributions.Distribution._validate_args
     torch.distributions.Distribution.set_default_validate_args(False)
+    collecting = gc.isenabled()
+    gc.collect()
+    gc.disable()
     try:
         yield
     finally:
+        if collecting:
+            gc.enable()
         torch.distributions.Distribution.set_default_validate_args(validate)
+
+
+@contextlib.contextmanager
+def _generator_released_on_failure(device: torch.device) -> Iterator[None]:
+    """If the capture inside fails, take ``device``'s default CUDA generator out of capture mode.
+
+    A capture marks the generator's state as capturing and a successful end unmarks it; a capture that is
+    invalidated (an op that cannot be captured) raises when it ends, before the unmarking, and every later random
+    op on the device, a replay of an earlier graph included, would raise "Offset increment outside graph
+    capture". A one-op capture that ends well unmarks the same state (keeping its seed and offset).
+    """
+    try:
+        yield
+    except BaseException:
+        if device.type == "cuda":
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(graph):
+                torch.rand(1, device=device)
+        raise
 
 
 def _capture_failed(exc: Exception, what: str) -> str:
     """Warn once that a capture failed and ``what`` runs eagerly; returns the error's one-line description."""
     error = f"{type(exc).__name__}: {' '.join(str(exc).split())[:300]}"
     warnings.warn(f"sb3_spikeplastic: CUDA-graph capture failed ({error}); {what} runs eagerly, with the same "
-                  "results, slower (if sampling then fails with 'Offset increment outside graph capture', train "
-                  "with cuda_graphs=False).", RuntimeWarning, stacklevel=3)
+                  "results, slower.", RuntimeWarning, stacklevel=3)
     return error
 
 
@@ -118,7 +145,7 @@ class GraphedSequenceEvaluation:
 
     def _capture(self, args: tuple, rebuild, n_leaves: int, masked: bool) -> Callable:
         module = _SequenceEvaluation(self.policy, rebuild, n_leaves, masked)
-        with _capturable(self.policy):
+        with _capturable(self.policy), _generator_released_on_failure(args[0].device):
             return torch.cuda.make_graphed_callables(module, tuple(a.detach() for a in args),
                                                      allow_unused_input=True)
 
@@ -171,7 +198,7 @@ class GraphedRolloutStep:
 
     def _capture(self, inputs: list[Tensor], rebuild, n_leaves: int, masked: bool, deterministic: bool) -> tuple:
         static_inputs = [t.clone() for t in inputs]
-        with _capturable(self.policy):
+        with _capturable(self.policy), _generator_released_on_failure(inputs[0].device):
             # Warm-up on a side stream (lazy allocations, cached filter matrices, cuBLAS handles), as PyTorch
             # requires before capturing.
             side = torch.cuda.Stream()

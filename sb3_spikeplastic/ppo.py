@@ -429,6 +429,12 @@ class PPO(SB3PPO):
             if self.target_kl is not None and len(parts) == 1 and stats["approx_kl"] > 1.5 * self.target_kl:
                 return stats, False  # known before any backward pass
             (loss * weight).backward()  # weight 1.0 for a single part: exact
+            if part is not parts[-1] and evaluate is self._graphed_evaluation:
+                # A replayed backward graph hands autograd its static gradient buffers, and a parameter's first
+                # gradient takes its buffer over without a copy: the next part's replay would overwrite it.
+                for p in self.policy.parameters():
+                    if p.grad is not None:
+                        p.grad = p.grad.clone()
         if self.target_kl is not None and stats["approx_kl"] > 1.5 * self.target_kl:
             self.policy.optimizer.zero_grad()
             return stats, False

@@ -22,10 +22,10 @@ def cuda_tmaze_model(device, **kw):
     return tmaze_model(n_envs=4, batch_size=64, n_epochs=2, use_action_masks=True, device=device, **kw)
 
 
-def pendulum_model(device, **kw):
+def pendulum_model(device, rule="dp-bcm", **kw):
     env = DummyVecEnv([lambda: gym.make("Pendulum-v1", max_episode_steps=20)] * 2)
     return PPO("SpikePlasticPolicy", env, n_steps=32, batch_size=32, bptt_steps=16, n_epochs=2, seed=0,
-               device=device, policy_kwargs=dict(rule="dp-bcm", hidden_sizes=(16,), steps=10, encoder_pop_size=8,
+               device=device, policy_kwargs=dict(rule=rule, hidden_sizes=(16,), steps=10, encoder_pop_size=8,
                                                  action_pop_size=4), **kw)
 
 
@@ -78,7 +78,7 @@ def outputs_and_gradients(model, evaluate):
 
 
 @needs_cuda
-@pytest.mark.parametrize("make_model", [tmaze_model, pendulum_model], ids=["tmaze-masks", "pendulum"])
+@pytest.mark.parametrize("make_model", [cuda_tmaze_model, pendulum_model], ids=["tmaze-masks", "pendulum"])
 def test_graph_replay_equals_eager_values_and_gradients(make_model):
     """Two different minibatches through one captured graph (the second is a pure replay with new inputs)."""
     model = make_model("cuda", cuda_graphs=False)
@@ -160,7 +160,7 @@ def test_rollout_capture_failure_warns_once_and_falls_back(monkeypatch):
 
 
 @needs_cuda
-@pytest.mark.parametrize("make_model", [tmaze_model, pendulum_model], ids=["tmaze-masks", "pendulum"])
+@pytest.mark.parametrize("make_model", [cuda_tmaze_model, pendulum_model], ids=["tmaze-masks", "pendulum"])
 def test_graphed_rollout_step_equals_eager_when_deterministic(make_model):
     model = make_model("cuda")
     graphed = GraphedRolloutStep(model.policy)
@@ -198,3 +198,41 @@ def test_learning_with_graphs_replays_and_trains():
     assert any(not torch.equal(after[k], before[k]) for k in after)
     for key, value in after.items():
         assert torch.isfinite(value.float()).all(), key
+
+
+@needs_cuda
+@pytest.mark.parametrize("graphed", ["rollout", "training"])
+def test_failed_capture_leaves_the_generator_usable_and_learning_goes_on(monkeypatch, graphed):
+    """A real capture failure (a host synchronisation inside the captured pass, after its random sampling): one
+    warning, the pass runs eagerly from then on, random ops on the device keep working, and the model trains."""
+    model = cuda_tmaze_model("cuda")
+    name = "_step" if graphed == "rollout" else "_evaluate_sequence"
+    original = getattr(model.policy, name)
+
+    def synchronising(*args, **kwargs):
+        out = original(*args, **kwargs)
+        if torch.cuda.is_current_stream_capturing():
+            out[1].sum().item()  # waits for the device: not capturable, invalidates the capture
+        return out
+
+    monkeypatch.setattr(model.policy, name, synchronising)
+    before = [p.detach().clone() for p in model.policy.parameters()]
+    with pytest.warns(RuntimeWarning, match="capture failed"):
+        model.learn(3 * model.n_steps * model.n_envs)
+    broken = model._graphed_step if graphed == "rollout" else model._graphed_evaluation
+    assert broken.error is not None
+    torch.randn(8, device="cuda").sum().item()  # the generator is not left in capture mode
+    model.learn(model.n_steps * model.n_envs, reset_num_timesteps=False)
+    after = list(model.policy.parameters())
+    assert any(not torch.equal(a, b) for a, b in zip(after, before))
+    assert all(torch.isfinite(p).all() for p in after)
+
+
+@needs_cuda
+def test_models_built_one_after_another_capture_their_graphs():
+    """Several models trained in one process: an earlier model, garbage by then, must not be collected during a
+    later model's capture (destroying its graphs would invalidate the capture)."""
+    for rule in ("static", "dp-oja", "ndp-oja", "ndp-bcm"):
+        model = pendulum_model("cuda", rule)
+        model.learn(2 * model.n_steps * model.n_envs)
+        assert model._graphed_step.error is None and model._graphed_evaluation.error is None, rule

@@ -1,6 +1,7 @@
 """``sb3-spikeplastic enjoy``: episodes played with the recurrent state carried, videos (one frame per reset and per
 step), the choice of MuJoCo's OpenGL backend, and bad input."""
 
+import importlib.util
 import os
 import re
 
@@ -12,6 +13,11 @@ from test_cli import TINY_TMAZE, run_cli
 
 from sb3_spikeplastic import cli, enjoy
 from sb3_spikeplastic.envs.tmaze import TMazeCueEnv
+
+
+#: .mp4 videos need the ffmpeg binary of imageio-ffmpeg (the test extras install it; a GIF needs only Pillow)
+needs_ffmpeg = pytest.mark.skipif(importlib.util.find_spec("imageio_ffmpeg") is None,
+                                  reason="imageio-ffmpeg is not installed")
 
 
 @pytest.fixture(scope="module")
@@ -28,6 +34,7 @@ def episode_lengths(out: str) -> list[int]:
     return [int(n) for n in re.findall(r"^episode \d+: return \S+, (\d+) steps", out, flags=re.M)]
 
 
+@needs_ffmpeg
 def test_tmaze_video_has_one_frame_per_reset_and_per_step(tmaze_run, tmp_path, capsys):
     video = tmp_path / "videos" / "tmaze.mp4"
     code, out, err = run_cli(capsys, "enjoy", "--run", tmaze_run, "--n-episodes", "2", "--video", video,
@@ -54,6 +61,7 @@ def test_tmaze_gif_with_fps_and_size(tmaze_run, tmp_path, capsys):
     assert imageio.v3.immeta(video)["duration"] == 200  # ms per frame at 5 fps
 
 
+@needs_ffmpeg
 def test_raster_beside_the_frames_while_the_network_records(tmaze_run, tmp_path, capsys):
     from sb3_spikeplastic import PPO
 
@@ -170,7 +178,7 @@ BAD_ENJOY = [
     (["--video", "x.mp4", "--fps", "0"], "--fps 0.0 must be a finite number > 0"),
     (["--video", "x.mp4", "--size", "8", "600"], "--size 8 600: width and height must be >= 16 pixels"),
     (["--fps", "10", "--raster"], "--fps, --raster: only with a video; give --video FILE too"),
-    (["--env", "HalfCheetah-v5", "--video", "x.mp4"], "does not fit HalfCheetah-v5 (observations"),
+    (["--env", "HalfCheetah-v5", "--video", "x.gif"], "does not fit HalfCheetah-v5 (observations"),
 ]
 
 
@@ -196,6 +204,7 @@ def test_missing_video_packages_name_the_extra(tmaze_run, tmp_path, capsys, monk
     assert not list(tmp_path.iterdir())
 
 
+@needs_ffmpeg
 def test_halfcheetah_video(tmp_path, capsys, monkeypatch):
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 

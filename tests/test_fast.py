@@ -384,7 +384,7 @@ torch.set_num_threads(1)
 cache = sys.argv[1] == "cache"
 model = PPO("SpikePlasticPolicy", "TMazeCue-v0", n_steps=64, batch_size=64, bptt_steps=16, n_epochs=2, seed=3,
             policy_kwargs=dict(rule="ndp-oja", hidden_sizes=(128, 128)),  # traces of 64 KB per environment
-            keep_freed_memory=cache)
+            keep_freed_memory=cache, device="cpu")  # the block cache is the CPU allocator's
 model.learn(128)
 digest = hashlib.sha256()
 for tensor in model.policy.state_dict().values():

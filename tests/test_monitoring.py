@@ -94,7 +94,7 @@ def test_rollout_statistics_are_the_means_of_every_steps():
     generator = torch.Generator().manual_seed(0)
 
     def rates(n):  # about a third silent
-        r = torch.rand(3, n, generator=generator, dtype=torch.float64).float()
+        r = torch.rand(3, n, generator=generator, dtype=torch.float64).float().to(model.device)
         return torch.where(r < 0.3, torch.zeros_like(r), r)
 
     n_steps = RolloutActivity.BATCH_STEPS + 37
@@ -216,7 +216,7 @@ def test_energy_meter_counts_every_spike_of_an_evaluation():
     model = tmaze_model("ndp-oja")
     net = model.policy.snn
     obs = torch.as_tensor(np.stack([TMazeCueEnv(neurons_per_population=4).observation_space.sample()
-                                    for _ in range(3)]), dtype=torch.float32)
+                                    for _ in range(3)]), dtype=torch.float32, device=model.device)
     state = net.initial_state(3)
     recorded = []
     with EnergyMeter(net) as meter:

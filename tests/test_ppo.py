@@ -320,7 +320,7 @@ from sb3_spikeplastic._fast import allocator
 from stable_baselines3.common.env_util import make_vec_env
 PPO("MlpPolicy", make_vec_env("CartPole-v1", n_envs=1), n_steps=16, batch_size=16)
 mlp_installed = allocator._cache_installed
-model = tmaze_model(keep_freed_memory={keep})
+model = tmaze_model(keep_freed_memory={keep}, device="cpu")
 print(mlp_installed, allocator._cache_installed, model.keep_freed_memory)
 """
     env = {k: v for k, v in os.environ.items() if k != _fast.NO_COMPILE_ENV}
@@ -364,7 +364,8 @@ def test_auto_chunks_per_pass_keeps_the_graph_within_the_budget(monkeypatch):
     divisor of its chunk count whose estimated graph fits the budget; the choice is logged."""
     import sb3_spikeplastic.ppo as ppo_module
 
-    model = tmaze_model(n_envs=2, n_steps=32, batch_size=64, bptt_steps=8)  # 8 chunks per minibatch
+    # 8 chunks per minibatch; on the CPU (elsewhere "auto" is always one pass: no compiled ops' graph to size)
+    model = tmaze_model(n_envs=2, n_steps=32, batch_size=64, bptt_steps=8, device="cpu")
     assert model.chunks_per_pass == "auto" and model._pass_size() is None
     per_chunk = model.bptt_steps * model.policy.snn.backward_bytes_per_step()
     for budget_chunks, expected in ((8, None), (7, 4), (3, 2), (1, 1), (0.5, 1)):
