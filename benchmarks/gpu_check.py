@@ -143,6 +143,21 @@ def latest_run(folder: Path, env_id: str) -> Path:
     return runs[-1] if runs else folder / "ppo" / f"{env_id}_missing"
 
 
+def write_verdict(rows: list[dict], output: Path, argv) -> int:
+    """Write the verdict table (Markdown) and its rows (JSON) beside it; returns the number of checks passed."""
+    passed = sum(row["ok"] for row in rows)
+    command = " ".join(["python", "benchmarks/gpu_check.py", *(argv if argv is not None else sys.argv[1:])])
+    lines = ["# GPU check", "", f"`{command}`, {time.strftime('%Y-%m-%d')}, on {machine()}.", "",
+             f"**{passed} of {len(rows)} checks passed.**", "",
+             "| check | verdict | seconds | measured |", "|---|---|---|---|"]
+    lines += [f"| {r['check']} | {'PASS' if r['ok'] else 'FAIL'} | {r['seconds']} | {r['note'].replace('|', '/')} |"
+              for r in rows]
+    output.parent.mkdir(parents=True, exist_ok=True)
+    output.write_text("\n".join(lines) + "\n")
+    output.with_suffix(".json").write_text(json.dumps({"machine": machine(), "rows": rows}, indent=1) + "\n")
+    return passed
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--output", type=Path, default=ROOT / "benchmarks" / "results" / "gpu_check.md")
@@ -161,9 +176,10 @@ def main(argv=None) -> int:
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
     rows: list[dict] = []
 
-    def check(name, argv, timeout=300, cwd=work):
-        row = run(name, argv, logs, timeout, cwd, env)
+    def check(name, command, timeout=300, cwd=work):
+        row = run(name, command, logs, timeout, cwd, env)
         rows.append(row)
+        write_verdict(rows, args.output, argv)  # after every check: a run cut short keeps its verdicts
         print(f"{'PASS' if row['ok'] else 'FAIL'}  {name:<34} {row['seconds']:7.1f} s  {row['note']}", flush=True)
         return row
 
@@ -213,17 +229,7 @@ def main(argv=None) -> int:
         check("learn_throughput --device cuda", [sys.executable, "benchmarks/learn_throughput.py", "--device", "cuda",
                                                  *args.benchmark_args.split()], timeout=1800, cwd=ROOT)
 
-    passed = sum(row["ok"] for row in rows)
-    lines = ["# GPU check", "",
-             f"`{' '.join(['python', 'benchmarks/gpu_check.py', *(argv if argv is not None else sys.argv[1:])])}`, "
-             f"{time.strftime('%Y-%m-%d')}, on {machine()}.", "",
-             f"**{passed} of {len(rows)} checks passed.**", "",
-             "| check | verdict | seconds | measured |", "|---|---|---|---|"]
-    lines += [f"| {r['check']} | {'PASS' if r['ok'] else 'FAIL'} | {r['seconds']} | {r['note'].replace('|', '/')} |"
-              for r in rows]
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text("\n".join(lines) + "\n")
-    (args.output.with_suffix(".json")).write_text(json.dumps({"machine": machine(), "rows": rows}, indent=1) + "\n")
+    passed = write_verdict(rows, args.output, argv)
     print(f"\n{passed} of {len(rows)} checks passed; logs in {logs}; verdict in {args.output}")
     return 0 if passed == len(rows) else 1
 
