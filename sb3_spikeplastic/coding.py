@@ -213,7 +213,8 @@ class ObservationStandardizer(nn.Module):
 
     def forward(self, obs: Tensor) -> Tensor:
         flat = obs.flatten(1)
-        z = ((flat - self.mean.to(flat.dtype)) / torch.sqrt(self.var.to(flat.dtype) + self.eps)).clamp(-self.clip, self.clip)
+        z = (flat - self.mean.to(flat.dtype)) / torch.sqrt(self.var.to(flat.dtype) + self.eps)
+        z = z.clamp(-self.clip, self.clip)
         return torch.where(self.mask, z, flat).view(obs.shape)
 
     @torch.no_grad()
