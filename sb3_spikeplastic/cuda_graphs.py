@@ -42,7 +42,7 @@ def flatten_state(state: NetworkState) -> tuple[list[Tensor], Callable[[list[Ten
 
 def _release_last_distribution(policy: nn.Module) -> None:
     """Drop the distribution SB3's ``action_dist`` keeps from its last use: after an eager training pass it holds
-    that pass's autograd graph alive, which can make the next capture fail (``benchmarks/results/cuda_tests.md``)."""
+    that pass's autograd graph alive, which can make the next capture fail."""
     if hasattr(policy.action_dist, "distribution"):
         policy.action_dist.distribution = None
 
