@@ -8,6 +8,8 @@ is carried across environment steps by :class:`sb3_spikeplastic.PPO` during roll
 
 from __future__ import annotations
 
+import copy
+import inspect
 from typing import Any, Optional, Sequence, Union
 
 import numpy as np
@@ -22,6 +24,7 @@ from torch import Tensor, nn
 from .coding import ContinuousDecoder, DiscreteDecoder, ObservationStandardizer, PopulationEncoder, RasterInput
 from .network import NetworkOutput, NetworkState, SpikingPlasticNetwork
 from .neurons import SRMParameters
+from .plasticity import get_rule_class
 
 MISUSE_MESSAGE = (
     "SpikePlasticPolicy is recurrent (its synapses and neurons carry state across environment steps) and needs "
@@ -33,6 +36,28 @@ def is_spike_raster_space(space: spaces.Space) -> bool:
     """A ``Box`` of shape ``(T, n)`` with bounds ``[0, 1]`` is taken as a spike raster (e.g. ``TMazeCue``)."""
     return (isinstance(space, spaces.Box) and len(space.shape) == 2 and bool(np.all(space.low == 0))
             and bool(np.all(space.high == 1)))
+
+
+#: Defaults of :class:`SpikePlasticPolicy` before the current ones. A model saved then records only the arguments
+#: its user gave, so :meth:`sb3_spikeplastic.PPO.load` rebuilds it with these (:func:`previous_defaults_filled`).
+PREVIOUS_DEFAULTS = dict(encoder_pop_size=50, encoder_beta=15.0, critic="snn", log_std_init=0.0,
+                         standardize_obs=False)
+
+
+def previous_defaults_filled(policy_kwargs: dict, observation_space: spaces.Space, action_space: spaces.Space) -> dict:
+    """``policy_kwargs`` of a model saved before the current defaults, with the defaults it was built with (T =
+    50, 50 place cells with beta 15, 100 output neurons per action dimension, tau_s 10 ms, the spiking critic,
+    ``log_std_init`` 0, no standardisation, the NDP rules' linear modulation). ``alpha``'s initialisation is
+    left out: the saved parameters replace it."""
+    kwargs = {**PREVIOUS_DEFAULTS, **policy_kwargs}
+    if not is_spike_raster_space(observation_space):
+        kwargs["steps"] = kwargs.get("steps") or 50
+        kwargs["neuron"] = {"tau_s": 10.0, **(kwargs.get("neuron") or {})}
+    if isinstance(action_space, spaces.Box):
+        kwargs["action_pop_size"] = kwargs.get("action_pop_size") or 100
+    if "modulation" in inspect.signature(get_rule_class(kwargs.get("rule", "dp-oja")).__init__).parameters:
+        kwargs["rule_kwargs"] = {"modulation": "linear", **(kwargs.get("rule_kwargs") or {})}
+    return kwargs
 
 
 class SpikePlasticPolicy(ActorCriticPolicy):
@@ -172,6 +197,10 @@ class SpikePlasticPolicy(ActorCriticPolicy):
             raise ValueError(f"steps={steps} does not match the spike-raster length {observation_space.shape[0]}")
         steps = int(observation_space.shape[0] if raster else (steps or 10))
         neuron = dict(neuron or {})
+        rule_kwargs = dict(rule_kwargs or {})
+        modulation = inspect.signature(get_rule_class(rule).__init__).parameters.get("modulation")
+        if modulation is not None and modulation.default is not inspect.Parameter.empty:
+            rule_kwargs.setdefault("modulation", modulation.default)  # recorded: a saved model keeps its form
         if not raster:
             neuron.setdefault("tau_s", steps / 5.0)
             if alpha_init_mean is None:
@@ -182,10 +211,11 @@ class SpikePlasticPolicy(ActorCriticPolicy):
             rule=rule, hidden_sizes=tuple(int(h) for h in hidden_sizes),
             steps=steps, plastic_layers=plastic_layers,
             neuron=neuron, e_max=e_max, plasticity_interval=plasticity_interval,
-            rule_kwargs=dict(rule_kwargs or {}), encoder_pop_size=encoder_pop_size, encoder_beta=encoder_beta,
-            encoder_p_min=encoder_p_min, obs_bounds=obs_bounds,
+            rule_kwargs=rule_kwargs, encoder_pop_size=encoder_pop_size, encoder_beta=encoder_beta,
+            encoder_p_min=encoder_p_min, obs_bounds=tuple(obs_bounds),
             obs_indices=None if obs_indices is None else [int(i) for i in obs_indices], input_rms_rate=input_rms_rate,
-            action_pop_size=action_pop_size, logit_scale_init=logit_scale_init, w_init_gain=w_init_gain,
+            action_pop_size=action_pop_size or (20 if isinstance(action_space, spaces.Box) else 1),
+            logit_scale_init=logit_scale_init, w_init_gain=w_init_gain,
             w_init_mean=w_init_mean, alpha_init_mean=alpha_init_mean, alpha_init_std=alpha_init_std,
             critic=critic or ("snn" if raster else "mlp"), critic_hidden=critic_hidden,
             alpha_lr_scale=float(alpha_lr_scale), standardize_obs=bool(standardize_obs),
@@ -209,8 +239,8 @@ class SpikePlasticPolicy(ActorCriticPolicy):
     def _make_decoder(self) -> nn.Module:
         cfg, space = self.snn_config, self.action_space
         if isinstance(space, spaces.Box):
-            return ContinuousDecoder(space.low, space.high, cfg["action_pop_size"] or 20)
-        return DiscreteDecoder(int(space.n), cfg["action_pop_size"] or 1, cfg["logit_scale_init"])
+            return ContinuousDecoder(space.low, space.high, cfg["action_pop_size"])
+        return DiscreteDecoder(int(space.n), cfg["action_pop_size"], cfg["logit_scale_init"])
 
     def _build(self, lr_schedule: Schedule) -> None:
         cfg = self.snn_config
@@ -251,6 +281,11 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         ids = {id(a) for a in alphas}
         return [{"params": [p for p in self.parameters() if id(p) not in ids], "lr_scale": 1.0},
                 {"params": alphas, "lr": lr * scale, "lr_scale": scale}]
+
+    def resolved_arguments(self) -> dict[str, Any]:
+        """The policy's own constructor arguments with the values its defaults resolved to: given back to the
+        constructor, they build the same network whatever the defaults are then."""
+        return {**copy.deepcopy(self.snn_config), "log_std_init": float(self.log_std_init)}
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()

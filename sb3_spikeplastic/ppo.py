@@ -24,6 +24,7 @@ from stable_baselines3 import PPO as SB3PPO
 from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.type_aliases import GymEnv, Schedule
 from stable_baselines3.common.utils import explained_variance, obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv
@@ -34,7 +35,7 @@ from ._fast import allocator
 from .buffers import ChunkRolloutBuffer, ChunkSamples, check_chunking
 from .cuda_graphs import GraphedRolloutStep, GraphedSequenceEvaluation
 from .network import NetworkState
-from .policy import SpikePlasticPolicy
+from .policy import SpikePlasticPolicy, previous_defaults_filled
 
 
 #: Accepted values of ``PPO(grad_clip=...)``.
@@ -194,6 +195,26 @@ class PPO(SB3PPO):
         if _init_setup_model:
             self._setup_model()
 
+    @classmethod
+    def load(cls, path, env=None, device="auto", custom_objects=None, print_system_info=False, force_reset=True,
+             **kwargs):
+        """SB3's ``load``; a spiking model saved before its ``policy_kwargs`` recorded every resolved argument
+        is rebuilt with the defaults of its time (:func:`~sb3_spikeplastic.policy.previous_defaults_filled`)."""
+        custom_objects = dict(custom_objects or {})
+        if "policy_kwargs" not in custom_objects:
+            start = path.tell() if hasattr(path, "tell") else None
+            data, _, _ = load_from_zip_file(path, device="cpu", custom_objects=custom_objects)
+            if start is not None:
+                path.seek(start)
+            policy_class = (data or {}).get("policy_class")
+            saved = (data or {}).get("policy_kwargs") or {}
+            if isinstance(policy_class, type) and issubclass(policy_class, SpikePlasticPolicy) and (
+                    "standardize_obs" not in saved):
+                custom_objects["policy_kwargs"] = previous_defaults_filled(saved, data["observation_space"],
+                                                                           data["action_space"])
+        return super().load(path, env=env, device=device, custom_objects=custom_objects,
+                            print_system_info=print_system_info, force_reset=force_reset, **kwargs)
+
     @property
     def network_state(self) -> Optional[NetworkState]:
         """The per-environment network state (filters, traces, noise keys) that the next rollout continues from;
@@ -224,6 +245,9 @@ class PPO(SB3PPO):
             allocator.keep_freed_memory()
             allocator.cache_freed_blocks()
         super()._setup_model()
+        if isinstance(self.policy, SpikePlasticPolicy):
+            # What the defaults resolved to, so that a saved model rebuilds the same policy under later defaults.
+            self.policy_kwargs = {**self.policy_kwargs, **self.policy.resolved_arguments()}
         self._last_network_state: Optional[NetworkState] = None
         self._graphed_evaluation: Optional[GraphedSequenceEvaluation] = None
         self._graphed_step: Optional[GraphedRolloutStep] = None

@@ -15,6 +15,7 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_spikeplastic import PPO
+from sb3_spikeplastic.policy import previous_defaults_filled
 from sb3_spikeplastic.ppo import POLICY_DEPENDENT_DEFAULTS
 
 CHEETAH = "HalfCheetah-v5"
@@ -128,6 +129,23 @@ def test_observation_standardisation_is_saved_and_loaded_and_frozen_outside_trai
     raw.policy.load_state_dict(model.policy.state_dict())
     assert not raw.policy.obs_standardizer.active
     assert not np.allclose(raw.predict(obs, deterministic=True)[0], actions)
+
+
+def test_a_model_saved_under_the_previous_defaults_loads_as_it_was_built(tmp_path):
+    env = make_vec_env(CHEETAH, n_envs=1, seed=0)
+    given = {"rule": "ndp-oja", "hidden_sizes": (16,)}
+    old = PPO("SpikePlasticPolicy", env, n_steps=64, batch_size=64, seed=0,
+              policy_kwargs=previous_defaults_filled(given, env.observation_space, env.action_space))
+    assert old.policy.snn.sizes == [17 * 50, 16, 6 * 100] and old.policy.snn.steps == 50
+    assert old.policy.snn.layers[0].rule.modulation_form == "linear" and not old.policy.obs_standardizer.active
+    old.policy_kwargs = dict(given)  # what the model recorded then: only its user's arguments
+    old.save(tmp_path / "old")
+    loaded = PPO.load(tmp_path / "old")
+    assert loaded.policy.snn_config == old.policy.snn_config
+    obs = env.reset()
+    np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], old.predict(obs, deterministic=True)[0])
+    # A model saved now records what its defaults resolved to.
+    assert PPO("SpikePlasticPolicy", env).policy_kwargs["encoder_pop_size"] == 10
 
 
 def test_the_standardisation_composes_with_vecnormalize():
