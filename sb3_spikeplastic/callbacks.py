@@ -1,9 +1,12 @@
 """Training callbacks of ``sb3-spikeplastic train``: atomic checkpoints with pruning, the best model written
-atomically, and a progress bar that counts wall time."""
+atomically, a progress bar that counts wall time and a one-line summary every tenth of the run."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
+
+import numpy as np
 
 from stable_baselines3.common.callbacks import BaseCallback
 
@@ -70,3 +73,50 @@ class WallClockProgress(BaseCallback):
 
     def _on_training_end(self) -> None:
         self.bar.close()
+
+
+class TrainingSummary(BaseCallback):
+    """One line at the first rollout end past every ``every`` environment steps, and at the end: the mean return
+    and success rate of the last 100 episodes (SB3's episode buffers: the Monitor's raw returns) and the
+    environment steps per second of wall time since the start, updates included.
+
+    :param every: environment steps between lines
+    """
+
+    def __init__(self, every: int):
+        super().__init__()
+        self.every = max(int(every), 1)
+
+    def _on_training_start(self) -> None:
+        self.start_steps, self.start_time = self.model.num_timesteps, time.perf_counter()
+        self.next_line, self.written_at = self.start_steps + self.every, None
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _on_rollout_end(self) -> None:
+        if self.model.num_timesteps >= self.next_line:
+            self._write()
+            while self.next_line <= self.model.num_timesteps:
+                self.next_line += self.every
+
+    def _on_training_end(self) -> None:
+        if self.written_at != self.model.num_timesteps:
+            self._write()
+
+    def summary(self) -> str:
+        steps = self.model.num_timesteps
+        parts = [f"{steps:>11,} steps"]
+        if self.model.ep_info_buffer:
+            parts.append(f"return {np.mean([info['r'] for info in self.model.ep_info_buffer]):.4g}")
+        if self.model.ep_success_buffer:
+            parts.append(f"success {np.mean(self.model.ep_success_buffer):.2f}")
+        rate = (steps - self.start_steps) / max(time.perf_counter() - self.start_time, 1e-9)
+        parts.append(f"{rate:,.0f} steps/s")
+        return " | ".join(parts)
+
+    def _write(self) -> None:
+        from tqdm.auto import tqdm
+
+        tqdm.write(self.summary())  # above a progress bar, if one is shown
+        self.written_at = self.model.num_timesteps

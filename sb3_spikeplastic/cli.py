@@ -260,7 +260,11 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
     if args.torch_threads != "auto":
         torch.set_num_threads(args.torch_threads)
     keep_freed_memory()
-    seed = args.seed if args.seed is not None else random.SystemRandom().randrange(2**31 - 1)
+    seed = args.seed
+    if seed is None and source is not None and source.run_dir is not None:  # a continued run keeps its seed
+        seed = read_run_args(source.run_dir, source.env_id or env_id).get("seed")
+    if seed is None:
+        seed = random.SystemRandom().randrange(2**31 - 1)
     experiment = Experiment(
         env_id, config, seed, Path(args.log_folder), args.tensorboard_log, device=args.device, verbose=args.verbose,
         eval_freq=args.eval_freq, eval_episodes=args.eval_episodes, save_freq=save_freq,
@@ -723,7 +727,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--env", required=True, help="Gymnasium id, e.g. TMazeCue-v0, HalfCheetah-v5")
     t.add_argument("--rule", help="plasticity rule (sets policy_kwargs.rule)")
     t.add_argument("-n", "--n-timesteps", type=_count, help="total environment steps (default: the file's)")
-    t.add_argument("--seed", type=int, help="random seed (default: random, recorded in <EnvId>/args.yml)")
+    t.add_argument("--seed", type=int, help="random seed (default: with -i the continued run's, else random; "
+                                            "recorded in <EnvId>/args.yml)")
     t.add_argument("-f", "--log-folder", default="logs", help="log folder (default: logs); runs go to "
                    "<folder>/ppo/<EnvId>_<n>")
     t.add_argument("--tensorboard-log", help="TensorBoard root (default: events in the run folder)")
@@ -747,7 +752,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("-i", "--trained-agent", help="continue training this model (a run folder, its final .zip or "
                    "a --save-freq checkpoint) with its VecNormalize statistics, step counter, schedules and "
                    "TensorBoard run, up to -n total steps (default: the run's n_timesteps); writes a new run folder")
-    t.add_argument("-v", "--verbose", type=int, default=1, help="0: quiet, 1: SB3's table every rollout (default)")
+    t.add_argument("-v", "--verbose", type=int, default=1, help="0: quiet, 1: a summary line (return, success, "
+                   "steps/s) every tenth of the run (default), 2: SB3's table every rollout")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     common(t, auto_threads=True)
     t.set_defaults(func=cmd_train)
@@ -866,14 +872,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _route_mujoco_warnings() -> None:
-    """MuJoCo's warnings as Python ``RuntimeWarning`` objects: shown once per kind, not once per environment built
-    (HalfCheetah's model prints a deprecation at every build), and no ``MUJOCO_LOG.TXT`` in the working folder."""
+    """MuJoCo's warnings as Python ``RuntimeWarning`` objects: shown once per kind, not once per environment built,
+    and no ``MUJOCO_LOG.TXT`` in the working folder; the deprecation of ``settotalmass`` that gymnasium's HalfCheetah
+    model triggers at every build is dropped."""
     try:
         import mujoco
     except ImportError:
         return
 
     def warn(message: str) -> None:
+        if "settotalmass" in message:  # gymnasium's HalfCheetah model uses it: nothing a user can change
+            return
         warnings.warn(f"MuJoCo: {message.strip()}", RuntimeWarning, stacklevel=2)
 
     mujoco.set_mju_user_warning(warn)

@@ -28,6 +28,7 @@ from __future__ import annotations
 import ast
 import collections.abc
 import copy
+import difflib
 import importlib.resources
 import inspect
 import math
@@ -348,7 +349,10 @@ def _check_value(name: str, value: Any, hint: Any) -> Any:
 def _check_keys(what: str, values: Mapping, accepted: Sequence[str], context: str = "") -> None:
     unknown = [k for k in values if k not in accepted]
     if unknown:
-        raise ValueError(f"unknown {what} {unknown[0]!r}{context}; accepted: {', '.join(sorted(accepted)) or 'none'}")
+        close = difflib.get_close_matches(str(unknown[0]), sorted(accepted), n=1, cutoff=0.6)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise ValueError(f"unknown {what} {unknown[0]!r}{context}{hint}; accepted: "
+                         f"{', '.join(sorted(accepted)) or 'none'}")
 
 
 def _signature_hints(fn) -> dict[str, Any]:
@@ -685,8 +689,6 @@ def check_env_id(env_id: str, entries: Sequence[str] = ()) -> str:
 
     :raises ValueError: one line naming ``env_id``, the closest registered ids and what is accepted.
     """
-    import difflib
-
     import gymnasium
 
     from . import envs  # noqa: F401  (registers TMazeCue-v0, TMazeCueNoisy-v0, NoisyHalfCheetah-v5)

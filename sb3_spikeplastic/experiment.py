@@ -117,7 +117,8 @@ class Experiment:
     :param tensorboard_log: TensorBoard root (``<root>/<env_id>/ppo_<rule>_<n>``); ``None``: events in the run
         folder, or the continued run's TensorBoard folder
     :param device: torch device of the model
-    :param verbose: 0 quiet, 1 SB3's table every rollout
+    :param verbose: 0 quiet, 1 a summary line every tenth of the run (:class:`~sb3_spikeplastic.callbacks.
+        TrainingSummary`), 2 SB3's table every rollout and SB3's own messages
     :param eval_freq: deterministic evaluation every this many environment steps (0: never)
     :param eval_episodes: episodes per evaluation
     :param save_freq: checkpoint every this many environment steps (0: never)
@@ -145,6 +146,11 @@ class Experiment:
         self.model = None
         self.run_dir: Optional[Path] = None
         self.tb_dir: Optional[Path] = None
+
+    @property
+    def sb3_verbose(self) -> int:
+        """SB3's own verbosity (its tables, its messages): on from ``verbose=2``."""
+        return 1 if self.verbose >= 2 else 0
 
     @property
     def n_envs(self) -> int:
@@ -178,12 +184,14 @@ class Experiment:
             if self.source is None:
                 policy, ppo_kwargs, policy_kwargs = cfg.model_arguments(self.config)
                 algorithm = cfg.algorithm_class(self.config.get("algo", "ppo"))
+                # Quiet while built (SB3 says "Using cpu device"): bad hyperparameters must fail on one line.
                 self.model = algorithm(policy, probe, **ppo_kwargs, policy_kwargs=policy_kwargs, seed=self.seed,
-                                       device=self.device, verbose=self.verbose)
+                                       device=self.device, verbose=0)
+                self.model.verbose = self.sb3_verbose
             else:
                 self.model = load_model(self.source, device=self.device)
                 check_spaces(self.model, probe, self.env_id, self.source.model_path)
-                self.model.verbose = self.verbose
+                self.model.verbose = self.sb3_verbose
                 if self.model.num_timesteps >= self.config["n_timesteps"]:
                     raise ValueError(f"{str(self.source.model_path)!r} has trained {self.model.num_timesteps:,} of "
                                      f"n_timesteps={self.config['n_timesteps']:,} steps already; pass a larger -n "
@@ -222,15 +230,17 @@ class Experiment:
     def _callbacks(self, eval_env) -> list:
         from stable_baselines3.common.callbacks import EvalCallback
 
-        from .callbacks import AtomicCheckpoint, SaveBest, WallClockProgress
+        from .callbacks import AtomicCheckpoint, SaveBest, TrainingSummary, WallClockProgress
         from .monitoring import ActivityFigureCallback
 
         callbacks = [WallClockProgress()] if self.progress else []
+        if self.verbose == 1:
+            callbacks.append(TrainingSummary(self.config["n_timesteps"] // 10))
         if eval_env is not None:
             callbacks.append(EvalCallback(
                 eval_env, callback_on_new_best=SaveBest(self.run_dir / "best_model.zip"),
                 n_eval_episodes=self.eval_episodes, eval_freq=max(self.eval_freq // self.n_envs, 1),
-                log_path=str(self.run_dir), best_model_save_path=None, deterministic=True, verbose=self.verbose,
+                log_path=str(self.run_dir), best_model_save_path=None, deterministic=True, verbose=self.sb3_verbose,
                 callback_after_eval=self.after_eval))
         if self.save_freq:
             callbacks.append(AtomicCheckpoint(max(self.save_freq // self.n_envs, 1), self.run_dir,
@@ -283,7 +293,7 @@ class Experiment:
             env, eval_env = self._environments()
             model.set_random_seed(self.seed)
             model.set_env(env)
-            formats = ["stdout"] if self.verbose >= 1 else []
+            formats = ["stdout"] if self.verbose >= 2 else []
             outputs = [make_output_format(f, str(self.run_dir)) for f in formats + ["csv"]]
             outputs.append(make_output_format("tensorboard", str(self.tb_dir)))
             model.set_logger(Logger(str(self.run_dir), outputs))

@@ -3,6 +3,7 @@
 import io
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -10,6 +11,7 @@ from pathlib import Path
 import matplotlib.image
 import numpy as np
 import pytest
+import yaml
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from sb3_spikeplastic import PPO, cli
@@ -180,7 +182,7 @@ def test_inspect(tmaze_run, workdir, capsys):
 BAD_TRAIN = [
     (["--env", "TMazeCue-v9"], r"unknown environment id 'TMazeCue-v9'; did you mean TMazeCue-v0"),
     (["--env", "TMazeCue-v0", "--rule", "hebb"], r"unknown rule 'hebb'; accepted: static, dp-linear, dp-oja"),
-    (["--env", "TMazeCue-v0", "--hyperparams", "n_stepz=64"], r"unknown hyperparameter 'n_stepz'; accepted: .*n_steps"),
+    (["--env", "TMazeCue-v0", "--hyperparams", "n_stepz=64"], r"unknown hyperparameter 'n_stepz' \(did you mean 'n_steps'\?\); accepted: .*n_steps"),
     (["--env", "TMazeCue-v0", "--hyperparams", "n_steps"], r"malformed hyperparameter override 'n_steps'; expected key=value"),
     (["--env", "TMazeCue-v0", "--hyperparams", "n_steps=many"], r"n_steps='many' must be an integer"),
     (["--env", "TMazeCue-v0", "--hyperparams", "learning_rate=fast"], r"learning_rate='fast' must be a number"),
@@ -344,7 +346,7 @@ def test_train_continues_a_checkpoint_with_its_statistics_counter_and_tensorboar
 
     # A --save-freq checkpoint of the T-maze run: its step counter and checkpoint names continue.
     code, out, err = run_cli(capsys, "train", "--env", "TMazeCue-v0", "--trained-agent",
-                             tmaze_run / "rl_model_64_steps.zip", "-n", "192", "--seed", "4", "-f",
+                             tmaze_run / "rl_model_64_steps.zip", "-n", "192", "-f",
                              workdir / "continued", "--save-freq", "64", "-v", "0", "--no-progress")
     assert code == 0, err
     run = workdir / "continued" / "ppo" / "TMazeCue-v0_1"
@@ -353,6 +355,7 @@ def test_train_continues_a_checkpoint_with_its_statistics_counter_and_tensorboar
     assert {"rl_model_128_steps.zip", "rl_model_192_steps.zip"} <= {p.name for p in run.iterdir()}
     args = (run / "TMazeCue-v0" / "args.yml").read_text()
     assert "start_timesteps: 64" in args and "rl_model_64_steps.zip" in args
+    assert yaml.safe_load(args)["seed"] == 3  # the continued run's seed, without --seed
     assert f"tensorboard_dir: {workdir / 'tb' / 'TMazeCue-v0' / 'ppo_ndp-oja_1'}" in args  # the source's TB run
     # The final model of a normalised run: its VecNormalize statistics go on accumulating.
     code, _, err = run_cli(capsys, "train", "--env", "HalfCheetah-v5", "-i", cheetah_run, "-n", "96", "--seed", "1",
@@ -365,6 +368,28 @@ def test_train_continues_a_checkpoint_with_its_statistics_counter_and_tensorboar
     with open(new / "HalfCheetah-v5" / "vecnormalize.pkl", "rb") as f:
         after = pickle.load(f)
     assert isinstance(after, VecNormalize) and after.obs_rms.count > before
+    assert yaml.safe_load((new / "HalfCheetah-v5" / "args.yml").read_text())["seed"] == 1  # --seed wins
+
+
+def test_default_output_is_a_summary_line_per_tenth_and_tables_at_v2(tmp_path, capsys):
+    """``train`` prints a summary line (steps, return, success, steps/s) every tenth of the run; SB3's tables
+    (and its "Using cpu device") only with ``-v 2``."""
+    argv = ["train", "--env", "TMazeCue-v0", "-n", "320", "--seed", "0", "--hyperparams", *TINY_TMAZE, "--no-progress"]
+    code, out, err = run_cli(capsys, *argv, "-f", tmp_path / "quiet")
+    assert code == 0, err
+    lines = [line for line in out.splitlines() if line.rstrip().endswith("steps/s")]
+    assert len(lines) >= 5 and "rollout/" not in out and "Using cpu device" not in out
+    assert re.match(r"\s+320 steps \| return -?[\d.]+ \| success [\d.]+ \| [\d,]+ steps/s", lines[-1]), lines[-1]
+    code, out, err = run_cli(capsys, *argv, "-f", tmp_path / "tables", "-v", "2")
+    assert code == 0, err
+    assert "rollout/" in out and "ep_rew_mean" in out and not out.rstrip().endswith("steps/s")
+
+
+def test_bad_hyperparameter_value_prints_nothing_before_its_error(tmp_path, capsys):
+    code, out, err = run_cli(capsys, "train", "--env", "TMazeCue-v0", "--hyperparams", "learning_rate=-0.001",
+                             "-f", tmp_path / "logs")
+    assert code == 2 and out == "" and err.count("\n") == 1 and "learning rate" in err.lower(), (out, err)
+    assert not (tmp_path / "logs").exists()
 
 
 @pytest.mark.parametrize("extra, message", [

@@ -139,17 +139,17 @@ def test_parse_override():
 
 
 @pytest.mark.parametrize("override, message", [
-    ("n_stepz=3", r"unknown hyperparameter 'n_stepz'; accepted: .*bptt_steps.*n_steps"),
+    ("n_stepz=3", r"unknown hyperparameter 'n_stepz' \(did you mean 'n_steps'\?\); accepted: .*bptt_steps.*n_steps"),
     ("n_steps=abc", r"n_steps='abc' must be an integer"),
     ("gamma=high", r"gamma='high' must be a number"),
     ("n_timesteps=1.5", r"n_timesteps=1.5 must be an integer"),
-    ("policy_kwargs.hidden_sizez=[3]", r"unknown policy_kwargs key 'hidden_sizez'; accepted: .*hidden_sizes"),
+    ("policy_kwargs.hidden_sizez=[3]", r"unknown policy_kwargs key 'hidden_sizez' \(did you mean 'hidden_sizes'\?\); accepted: .*hidden_sizes"),
     ("policy_kwargs.hidden_sizes=16", r"policy_kwargs.hidden_sizes=16 must be a list of integers"),
     ("policy_kwargs.rule=hebb", r"unknown rule 'hebb'; accepted: static, .*dp-oja"),
     ("policy_kwargs.rule_kwargs.foo=1", r"unknown policy_kwargs.rule_kwargs key 'foo' for rule 'dp-oja'; accepted: eta_init"),
-    ("policy_kwargs.neuron.thet=1", r"unknown policy_kwargs.neuron key 'thet'; accepted: .*theta"),
+    ("policy_kwargs.neuron.thet=1", r"unknown policy_kwargs.neuron key 'thet' \(did you mean 'theta'\?\); accepted: .*theta"),
     ("normalize.clip_obs=5", r"normalize is False, not a mapping \(set normalize=true first\)"),
-    ("normalize={clip_obz: 5}", r"unknown normalize \(VecNormalize\) key 'clip_obz'; accepted: clip_obs"),
+    ("normalize={clip_obz: 5}", r"unknown normalize \(VecNormalize\) key 'clip_obz' \(did you mean 'clip_obs'\?\); accepted: clip_obs"),
     ("learning_rate=lin_x", r"learning_rate='lin_x' must be a number or lin_<number>"),
     ("grad_clip=layer", r"grad_clip='layer' is not accepted; accepted: global, per-parameter"),
     ("policy=TransformerPolicy", r"unknown policy 'TransformerPolicy'; accepted: .*SpikePlasticPolicy"),

@@ -428,3 +428,37 @@ def test_build_directory_depends_on_the_sources(monkeypatch, tmp_path):
     assert _fast.build_directory() != first
     monkeypatch.setenv(_fast.BUILD_DIR_ENV, str(tmp_path / "explicit"))
     assert _fast.build_directory() == tmp_path / "explicit"
+
+
+def test_checkouts_of_the_same_sources_share_one_build(monkeypatch, tmp_path):
+    """The build compiles copies of the sources kept in its folder: two checkouts of one version hand the build
+    the same paths (a changed path would make ninja rebuild), and an unchanged copy is not rewritten."""
+    monkeypatch.setattr(_fast, "_HEADERS", [])
+    build = tmp_path / "build"
+    checkouts = []
+    for name in ("a", "b"):
+        (tmp_path / name).mkdir()
+        checkouts.append(tmp_path / name / "srm_loop.cpp")
+        checkouts[-1].write_text("// one version\n")
+    first = _fast._sources_in(build, [checkouts[0]])
+    stamp = first[0].stat().st_mtime_ns
+    second = _fast._sources_in(build, [checkouts[1]])
+    assert first == second == [build / "src" / "srm_loop.cpp"]
+    assert second[0].stat().st_mtime_ns == stamp
+    checkouts[1].write_text("// edited\n")
+    assert _fast._sources_in(build, [checkouts[1]])[0].read_text() == "// edited\n"
+
+
+def test_compiling_says_so_once_on_stderr(monkeypatch, tmp_path, capsys):
+    from torch.utils import cpp_extension
+
+    monkeypatch.setattr(_fast, "_HEADERS", [])
+    monkeypatch.setattr(cpp_extension, "load", lambda **kwargs: None)
+    source = tmp_path / "srm_loop.cpp"
+    source.write_text("// a version\n")
+    _fast._compile("ext", [source], tmp_path / "build")
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("sb3_spikeplastic: compiling ext once into")
+    (tmp_path / "build" / "ext.so").write_bytes(b"")  # built: later processes load it quietly
+    _fast._compile("ext", [source], tmp_path / "build")
+    assert capsys.readouterr().err == ""

@@ -37,9 +37,10 @@ at import) and cached on disk; the CUDA op likewise, the first time a CUDA tenso
 
 * Build directory: ``$SB3_SPIKEPLASTIC_BUILD_DIR`` if set, else
   ``${XDG_CACHE_HOME:-~/.cache}/sb3_spikeplastic/<python>_<torch>_<cpu-flags>_<sources hash>`` (the CUDA op in its
-  ``cuda<version>_sm<arch>`` subfolder). Building needs a C++ compiler and ``ninja`` and takes ~10-30 s once;
-  later processes only load the cached library (~0.3 s). Folders of other source versions are never used again
-  and may be deleted.
+  ``cuda<version>_sm<arch>`` subfolder). It compiles copies of the sources kept in the folder's ``src/``, so every
+  checkout or install of the same sources reuses one build. Building needs a C++ compiler and ``ninja``, says one
+  line on stderr and takes a minute or two once on two cores; later processes only load the cached library
+  (~0.3 s). Folders of other source versions are never used again and may be deleted.
 * ``SB3_SPIKEPLASTIC_NO_COMPILE=1`` disables the compiled path (read at every call), for tests and debugging.
 * If a build fails, a single :class:`RuntimeWarning` is issued and the pure-PyTorch code is used instead; it
   gives the same results, only slower.
@@ -67,6 +68,8 @@ __all__ = ["NO_COMPILE_ENV", "bernoulli_spikes", "build_directory", "compiled_di
 
 NO_COMPILE_ENV = "SB3_SPIKEPLASTIC_NO_COMPILE"
 BUILD_DIR_ENV = "SB3_SPIKEPLASTIC_BUILD_DIR"
+#: the first build's time, as said while compiling (measured: ``benchmarks/README.md``)
+COMPILE_TIME = "a minute or two on two cores"
 _EXTENSION = "sb3_spikeplastic_fast"
 _SOURCES = [Path(__file__).with_name(name)
             for name in ("srm_loop.cpp", "trace_step.cpp", "plastic_linear.cpp", "srm_interval.cpp",
@@ -167,12 +170,34 @@ def _clear_stale_lock(directory: Path, max_age_s: float = 600.0) -> None:
             pass
 
 
+def _sources_in(directory: Path, sources: list[Path]) -> list[Path]:
+    """Copies of ``sources`` and the headers in ``directory / "src"``, written only where they differ.
+
+    The build records the paths of its sources and rebuilds when they change: compiling copies kept beside the
+    build lets every checkout or install of the same sources (the directory is keyed by their digest) reuse it.
+    """
+    copies = directory / "src"
+    copies.mkdir(parents=True, exist_ok=True)
+    for source in [*sources, *_HEADERS]:
+        target, text = copies / source.name, source.read_bytes()
+        if not target.exists() or target.read_bytes() != text:
+            partial = target.with_name(f".{target.name}.{os.getpid()}")
+            partial.write_bytes(text)
+            partial.replace(target)  # atomic: a concurrent build reads the old or the new file, never half of one
+    return [copies / source.name for source in sources]
+
+
 def _compile(name: str, sources: list[Path], directory: Path, **options: Any) -> None:
-    """:func:`torch.utils.cpp_extension.load` into ``directory``, with ``ninja`` found where pip puts it."""
+    """:func:`torch.utils.cpp_extension.load` into ``directory``, with ``ninja`` found where pip puts it; says so
+    on stderr when it has to compile (the first use of a version of the sources)."""
     from torch.utils import cpp_extension
 
     directory.mkdir(parents=True, exist_ok=True)
     _clear_stale_lock(directory)
+    sources = _sources_in(directory, sources)
+    if not (directory / f"{name}.so").exists():
+        print(f"sb3_spikeplastic: compiling {name} once into {directory} (about {COMPILE_TIME}) ...",
+              file=sys.stderr, flush=True)
     path = os.environ.get("PATH", "")
     extra = None if shutil.which("ninja") else _ninja_directory()
     if extra:  # torch runs `ninja` from PATH
