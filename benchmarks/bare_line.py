@@ -8,6 +8,11 @@ last rollout return. Writes ``bare_line.json`` and ``bare_line.md`` into ``--out
 machine's load from ``uptime`` before and after) and prints the table.
 
     python benchmarks/bare_line.py --env HalfCheetah-v5 --steps 150000 --seeds 0 1 2 --out results/bare_line
+
+``--checks`` instead trains the bare line briefly (``--steps``, seed 0) with every built-in rule on HalfCheetah-v5
+(and ndp-oja's linear modulation), and bare on NoisyHalfCheetah-v5, Pendulum-v1 and TMazeCue-v0: gradient norms,
+action std before and after, rollout return (and the T-maze's deterministic success over 100 episodes), written
+to ``checks.json`` / ``checks.md``.
 """
 
 from __future__ import annotations
@@ -106,6 +111,59 @@ def run(policy: str, env_id: str, steps: int, seed: int, eval_every: int, episod
     )
 
 
+CHECKS = [("HalfCheetah-v5", dict(rule=rule)) for rule in ("static", "dp-linear", "dp-oja", "dp-bcm", "ndp-oja",
+                                                              "ndp-bcm")] + [
+    ("HalfCheetah-v5", dict(rule="ndp-oja", rule_kwargs=dict(modulation="linear"))),
+    ("NoisyHalfCheetah-v5", {}), ("Pendulum-v1", {}), ("TMazeCue-v0", {})]
+
+
+def tmaze_success(model, episodes: int = 100) -> float:
+    """Deterministic success over the first ``episodes`` episodes that end in 20 seeded T-mazes."""
+    env = make_vec_env("TMazeCue-v0", n_envs=20, seed=123)
+    obs, state, starts, successes = env.reset(), None, np.ones(env.num_envs, bool), []
+    while len(successes) < episodes:
+        actions, state = model.predict(obs, state=state, episode_start=starts, deterministic=True)
+        obs, _, starts, infos = env.step(actions)
+        successes += [infos[i]["is_success"] for i in np.flatnonzero(starts)]
+    return float(np.mean(successes[:episodes]))
+
+
+def check(env_id: str, policy_kwargs: dict, steps: int) -> dict:
+    torch.manual_seed(0)
+    model = PPO("SpikePlasticPolicy", env_id, seed=0, policy_kwargs=policy_kwargs or None)
+    norms = record_gradient_norms(model)
+    std = (lambda: float(torch.exp(model.policy.log_std.detach()).mean())) if hasattr(model.policy, "log_std") else None
+    std_start = std() if std else None
+    start = time.perf_counter()
+    model.learn(steps)
+    seconds = time.perf_counter() - start
+    finite = [n for n in norms if math.isfinite(n)]
+    episodes = [e["r"] for e in model.ep_info_buffer]
+    return dict(env=env_id, policy_kwargs=policy_kwargs, steps=model.num_timesteps,
+                env_steps_per_s=round(model.num_timesteps / seconds, 1), updates=model._n_updates // model.n_epochs,
+                grad_norm_max=round(max(finite), 2), grad_norm_median=round(float(np.median(finite)), 2),
+                nonfinite=len(norms) - len(finite), std_start=std_start and round(std_start, 4),
+                std_end=round(std(), 4) if std else None,
+                rollout_return=round(float(np.mean(episodes)), 1) if episodes else None,
+                success=tmaze_success(model) if env_id.startswith("TMazeCue") else None)
+
+
+def checks_markdown(report: dict) -> str:
+    lines = ["# Bare line, brief checks: `PPO(\"SpikePlasticPolicy\", env, policy_kwargs=...)`, seed 0", "",
+             f"Command: `{report['command']}`", "",
+             f"Machine: {report['machine']}; torch threads {report['torch_threads']}; commit {report['commit']}", "",
+             f"Load before: `{report['uptime_before']}`", "", f"Load after: `{report['uptime_after']}`", "",
+             "| env | policy_kwargs | steps (updates) | env-steps/s | grad norm max / median (non-finite) | std start "
+             "→ end | rollout return | deterministic success (100 ep.) |", "|---|---|---|---|---|---|---|---|"]
+    for r in report["checks"]:
+        std = "-" if r["std_start"] is None else f"{r['std_start']} → {r['std_end']}"
+        lines.append(f"| {r['env']} | `{json.dumps(r['policy_kwargs'])}` | {r['steps']} ({r['updates']}) | "
+                     f"{r['env_steps_per_s']:g} | {r['grad_norm_max']:.3g} / {r['grad_norm_median']:.3g} "
+                     f"({r['nonfinite']}) | {std} | {r['rollout_return']} | "
+                     f"{'-' if r['success'] is None else r['success']} |")
+    return "\n".join(lines) + "\n"
+
+
 def markdown(report: dict) -> str:
     lines = [f"# Bare line: `PPO(policy, \"{report['env']}\")` with every default", "",
              f"Command: `{report['command']}`", "",
@@ -138,6 +196,8 @@ def main(argv=None) -> None:
     parser.add_argument("--eval-episodes", type=int, default=10)
     parser.add_argument("--torch-threads", type=int, default=1)
     parser.add_argument("--out", default="results/bare_line")
+    parser.add_argument("--checks", action="store_true", help="brief checks of every rule and env (see above)")
+    parser.add_argument("--only", nargs="+", help="with --checks: only the checks of these env ids")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.torch_threads)
     out = Path(args.out)
@@ -147,6 +207,16 @@ def main(argv=None) -> None:
                   machine=f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
                   torch_threads=args.torch_threads, eval_episodes=args.eval_episodes, policies=args.policies,
                   uptime_before=uptime(), runs=[])
+    if args.checks:
+        report["checks"] = []
+        for env_id, policy_kwargs in [c for c in CHECKS if not args.only or c[0] in args.only]:
+            report["checks"].append(check(env_id, policy_kwargs, args.steps))
+            print(json.dumps(report["checks"][-1]), flush=True)
+            report["uptime_after"] = uptime()
+            (out / "checks.json").write_text(json.dumps(report, indent=1) + "\n")
+            (out / "checks.md").write_text(checks_markdown(report))
+        print(checks_markdown(report))
+        return
     for seed in args.seeds:
         for policy in args.policies:
             result = run(policy, args.env, args.steps, seed, args.eval_every, args.eval_episodes)
