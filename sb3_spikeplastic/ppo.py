@@ -65,8 +65,8 @@ class PPO(SB3PPO):
     * ``grad_clip="per-parameter"`` (SB3 clips globally): backpropagation through the plastic traces makes the
       plastic layers' gradients orders of magnitude larger than the readout's and the critic's, which a global
       clip would shrink below Adam's ``eps`` until they stop learning.
-    * ``batch_size=256`` (SB3: 64), eight whole chunks of ``bptt_steps=32``: a minibatch of two chunks spends
-      its time in per-operation overhead and gives a noisier gradient.
+    * ``batch_size=256`` (SB3: 64), eight whole chunks of ``bptt_steps=32``, as the shipped entries: smaller
+      minibatches spend more of their time in per-operation overhead on the CPU (``benchmarks/README.md``).
     * ``learning_rate=1e-3`` (SB3: 3e-4): with per-parameter clipping and Adam, 3e-4 left the HalfCheetah policy
       near its initial return after 100k steps (``docs/halfcheetah.md``, runs C and D).
 
