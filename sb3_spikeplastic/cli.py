@@ -584,7 +584,7 @@ def cmd_plot(args: argparse.Namespace, argv: Sequence[str]) -> int:
 def cmd_inspect(args: argparse.Namespace, argv: Sequence[str]) -> int:
     import torch
 
-    from .monitoring import inspection_episodes, record_episode
+    from .monitoring import inspection_episodes, record_episode, typical_seed
 
     if args.output:
         check_output_path(args.output, "-o/--output", directory=True)
@@ -619,9 +619,13 @@ def cmd_inspect(args: argparse.Namespace, argv: Sequence[str]) -> int:
     bar = tqdm(episodes.items(), total=len(episodes), unit="episode", disable=args.no_progress, dynamic_ncols=True,
                leave=False)
     for name, make in bar:
+        seed, note = args.seed, None
+        if name == "typical":
+            seed, note = typical_seed(model.policy, make, args.seed, deterministic=args.deterministic,
+                                      obs_transform=obs_transform)
         env = make()
         try:
-            activity = record_episode(model.policy, env, seed=args.seed, deterministic=args.deterministic,
+            activity = record_episode(model.policy, env, seed=seed, deterministic=args.deterministic,
                                       max_steps=args.max_steps, obs_transform=obs_transform)
         finally:
             env.close()
@@ -630,7 +634,8 @@ def cmd_inspect(args: argparse.Namespace, argv: Sequence[str]) -> int:
         fig = activity_figure(activity, title=f"{env_id} · {name.replace('_', ' ')}")
         path = out / f"activity_{name}.png"
         fig.savefig(path, dpi=110)
-        bar.write(f"{name:>9}: return {activity.episode_return:.3g} over {activity.n_steps} steps -> {path}")
+        detail = f" (seed {seed}: {note})" if note else ""
+        bar.write(f"{name:>9}: return {activity.episode_return:.3g} over {activity.n_steps} steps{detail} -> {path}")
     return 0
 
 

@@ -249,3 +249,23 @@ def test_rollout_energy_scalars_agree_with_rates():
         v[f"snn/layer{i - 1}/spikes_per_step"] * net.sizes[i + 1] for i in range(1, len(net.layers))]
     assert [v[f"snn/layer{i}/synops_per_step"] for i in range(len(net.layers))] == pytest.approx(synops, rel=1e-5)
     assert v["snn/synops_per_step"] == pytest.approx(sum(synops), rel=1e-5)
+
+
+def test_typical_seed_is_the_first_episode_that_ends_as_most_do(monkeypatch):
+    from types import SimpleNamespace
+
+    from sb3_spikeplastic import monitoring
+
+    outcomes = {}
+
+    def episode(policy, env, seed, **kwargs):
+        return SimpleNamespace(done=True, info={} if outcomes is None else {"is_success": outcomes[seed]})
+
+    monkeypatch.setattr(monitoring, "record_episode", episode)
+    make = lambda: SimpleNamespace(close=lambda: None)  # noqa: E731
+    outcomes = {5: False, 6: True, 7: True, 8: False}
+    assert monitoring.typical_seed(None, make, 5, n_episodes=4) == (6, "2 of 4 episodes from seed 5 succeeded")
+    outcomes = {0: True, 1: False, 2: False}
+    assert monitoring.typical_seed(None, make, 0, n_episodes=3) == (1, "1 of 3 episodes from seed 0 succeeded")
+    outcomes = None  # no success reported: the seed asked for
+    assert monitoring.typical_seed(None, make, 3, n_episodes=3) == (3, None)
