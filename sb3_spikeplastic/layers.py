@@ -8,6 +8,7 @@ SLAYER's SRM neuron).
 
 from __future__ import annotations
 
+import collections
 import math
 from typing import NamedTuple, Optional
 
@@ -56,6 +57,39 @@ class LayerOutput(NamedTuple):
     modulation: Optional[Tensor]
     rate: Tensor
     input_rate: Tensor
+
+
+class _FusedOutputs(NamedTuple):
+    """What ``srm_interval_forward`` returns, in its order (``_fast/srm_interval.cpp``; empty tensors where an
+    output does not apply): the interval's eight outputs, the updated trace and BCM threshold, then what the
+    backward pass needs."""
+
+    spikes: Tensor
+    membrane: Tensor
+    h1: Tensor
+    h2: Tensor
+    ref_h1: Tensor
+    ref_h2: Tensor
+    r_pre: Tensor
+    r_post: Tensor
+    trace: Tensor
+    phi: Tensor
+    product_in: Tensor
+    surrogate: Tensor
+    p: Tensor
+    pre: Tensor
+    m: Tensor
+    carried: Tensor
+
+
+#: What ``srm_interval_deferred_forward`` returns, in its order: as :class:`_FusedOutputs`, with the trace the
+#: interval used (empty unless written) and the update it leaves pending, ``(p_next, q_next)``, before ``carried``.
+_DeferredOutputs = collections.namedtuple("_DeferredOutputs", [*_FusedOutputs._fields[:-1], "p_next", "q_next",
+                                                               "carried"])
+
+
+#: the outputs of an interval, the first eight of both ops' (spikes, membrane, PSP and refractory states, rates)
+INTERVAL_OUTPUTS = 8
 
 
 class _IntervalConstants(NamedTuple):
@@ -300,7 +334,7 @@ class _FusedInterval(torch.autograd.Function):
         inputs = _FusedInterval.arguments(layer, constants, spikes_in, state, ops)
         if torch.is_grad_enabled():
             return _FusedInterval.apply(*inputs)
-        return _FusedInterval.outputs(_FusedInterval.run(*inputs, need_surrogate=False)[:10], constants.form)
+        return _FusedInterval.outputs(_FusedInterval.run(*inputs, need_surrogate=False), constants.form)
 
     @staticmethod
     def arguments(layer: "PlasticSRMLayer", constants: _IntervalConstants, spikes_in: Tensor, state: LayerState,
@@ -316,34 +350,34 @@ class _FusedInterval(torch.autograd.Function):
 
     @staticmethod
     def run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m,
-            constants: _IntervalConstants, ops, need_surrogate=True) -> list[Tensor]:
-        """The forward op: the 10 outputs of :meth:`run_layer` (empty tensors for ``None``), then what the backward
-        pass needs."""
+            constants: _IntervalConstants, ops, need_surrogate=True) -> _FusedOutputs:
+        """The forward op's outputs."""
         oja, modulation = constants.rule_flags
-        return ops.srm_interval_forward(
+        return _FusedOutputs._make(ops.srm_interval_forward(
             spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m, *constants.filters,
             constants.filter_first, *constants.spike, constants.e_max, oja, modulation, need_surrogate,
-            constants.carry_state)
+            constants.carry_state))
 
     @staticmethod
-    def outputs(outputs: list, form: Optional[CompiledForm]) -> list:
-        """``None`` for the new trace and BCM threshold where the op left them empty."""
-        return [*outputs[:8], outputs[8] if form is not None else None,
-                outputs[9] if form is not None and form.bcm else None]
+    def outputs(out: _FusedOutputs, form: Optional[CompiledForm]) -> list:
+        """The outputs of :meth:`run_layer`: ``None`` for the new trace and BCM threshold where the op left them
+        empty."""
+        return [*out[:INTERVAL_OUTPUTS], out.trace if form is not None else None,
+                out.phi if form is not None and form.bcm else None]
 
     @staticmethod
     def forward(ctx, spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m,
                 constants, ops):
-        *outputs, product_in, surrogate, p, pre, m, carried = _FusedInterval.run(
-            spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m, constants, ops)
-        ctx.save_for_backward(product_in, carried, weight, alpha, trace, surrogate, p, pre, m, outputs[6], outputs[7],
-                              phi, eta, eta_phi, psi, w_m)
+        out = _FusedInterval.run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, phi, eta, eta_phi, psi, w_m,
+                                 constants, ops)
+        ctx.save_for_backward(out.product_in, out.carried, weight, alpha, trace, out.surrogate, out.p, out.pre, out.m,
+                              out.r_pre, out.r_post, phi, eta, eta_phi, psi, w_m)
         ctx.constants, ctx.ops = constants, ops
-        ctx.mark_non_differentiable(*_constant_outputs(ctx, outputs))
+        ctx.mark_non_differentiable(*_constant_outputs(ctx, out))
         # Outputs the loss does not reach (the membrane, the output layer's spikes, unused rates, the final trace)
         # get None, which the op reads as zero, instead of a zero-filled tensor of their size.
         ctx.set_materialize_grads(False)
-        return tuple(_FusedInterval.outputs(outputs, constants.form))
+        return tuple(_FusedInterval.outputs(out, constants.form))
 
     @staticmethod
     @torch.autograd.function.once_differentiable
@@ -396,34 +430,34 @@ class _DeferredInterval(torch.autograd.Function):
 
     @staticmethod
     def run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, p0, q0, p1, q1, phi, eta, eta_phi, psi, w_m,
-            constants: _IntervalConstants, ops, write: bool, need_surrogate=True) -> list[Tensor]:
+            constants: _IntervalConstants, ops, write: bool, need_surrogate=True) -> _DeferredOutputs:
         oja, modulation = constants.rule_flags
-        return ops.srm_interval_deferred_forward(
+        return _DeferredOutputs._make(ops.srm_interval_deferred_forward(
             spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, p0, q0, p1, q1, phi, eta, eta_phi, psi, w_m,
             *constants.filters, constants.filter_first, *constants.spike, constants.e_max, oja, modulation,
-            need_surrogate, write, constants.carry_state)
+            need_surrogate, write, constants.carry_state))
 
     @staticmethod
-    def outputs(outputs: list, trace: Tensor, bcm: bool) -> list:
+    def outputs(out: _DeferredOutputs, trace: Tensor, bcm: bool) -> list:
         """The 8 outputs of the interval, the trace passed on (the one written, else the input ``trace``), the BCM
         threshold (``None`` unless BCM), ``p`` and ``q``."""
-        written = outputs[8].numel() > 0
-        return [*outputs[:8], outputs[8] if written else trace, outputs[9] if bcm else None, outputs[15], outputs[16]]
+        written = out.trace.numel() > 0
+        return [*out[:INTERVAL_OUTPUTS], out.trace if written else trace, out.phi if bcm else None, out.p_next,
+                out.q_next]
 
     @staticmethod
     def forward(ctx, spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, p0, q0, p1, q1, phi, eta, eta_phi, psi,
                 w_m, constants, ops, write):
-        outputs = _DeferredInterval.run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, p0, q0, p1, q1, phi,
-                                        eta, eta_phi, psi, w_m, constants, ops, write)
-        product_in, surrogate, p, pre, m = outputs[10:15]
-        ctx.save_for_backward(product_in, outputs[17], weight, alpha, trace, p0, q0, p1, q1, surrogate, p, pre, m,
-                              outputs[6], outputs[7], phi, eta, eta_phi, psi, w_m)
+        out = _DeferredInterval.run(spikes_in, h1, h2, ref_h1, ref_h2, weight, alpha, trace, p0, q0, p1, q1, phi, eta,
+                                    eta_phi, psi, w_m, constants, ops, write)
+        ctx.save_for_backward(out.product_in, out.carried, weight, alpha, trace, p0, q0, p1, q1, out.surrogate, out.p,
+                              out.pre, out.m, out.r_pre, out.r_post, phi, eta, eta_phi, psi, w_m)
         ctx.constants, ctx.ops, ctx.write = constants, ops, write
-        ctx.mark_non_differentiable(*_constant_outputs(ctx, outputs))
+        ctx.mark_non_differentiable(*_constant_outputs(ctx, out))
         ctx.set_materialize_grads(False)
         # A trace passed on unwritten is the input itself: autograd returns it as a view with this node's history,
         # so that its gradient comes back here and is added in the row pass, not in a pass of its own.
-        return tuple(_DeferredInterval.outputs(outputs, trace, phi is not None))
+        return tuple(_DeferredInterval.outputs(out, trace, phi is not None))
 
     @staticmethod
     @torch.autograd.function.once_differentiable
@@ -448,13 +482,13 @@ class _DeferredInterval(torch.autograd.Function):
                 None)
 
 
-def _constant_outputs(ctx, outputs: list[Tensor]) -> list[Tensor]:
+def _constant_outputs(ctx, out: _FusedOutputs | _DeferredOutputs) -> list[Tensor]:
     """The fused interval's outputs that carry no gradient: the membrane and the refractory state (as in
     :class:`~sb3_spikeplastic.neurons.SRMSpikeRecursion`), and, when the input spikes and the carried PSP state have
     no gradient (the input layer), the PSP state and ``r_pre``, which depend on those only."""
-    constant = [outputs[1], outputs[4], outputs[5]]
+    constant = [out.membrane, out.ref_h1, out.ref_h2]
     if not any(ctx.needs_input_grad[:3]):
-        constant += [outputs[2], outputs[3], outputs[6]]
+        constant += [out.h1, out.h2, out.r_pre]
     return constant
 
 

@@ -247,8 +247,8 @@ def test_float32_surrogate_within_two_ulp_of_slayer_surrogate():
     with torch.no_grad():
         outputs = _FusedInterval.run(*_FusedInterval.arguments(layer, constants, spikes_in, layer.initial_state(4),
                                                                _fast.interval_ops()))
-    membrane, surrogate = outputs[1], outputs[11]
-    assert torch.equal(outputs[7], outputs[0].mean(1))  # r_post, counted in the same loop
+    membrane, surrogate = outputs.membrane, outputs.surrogate
+    assert torch.equal(outputs.r_post, outputs.spikes.mean(1))  # counted in the same loop
     width = layer.neuron.tau_rho * layer.neuron.theta
     distance = (membrane - layer.neuron.theta).abs() / width
     assert distance.min() < 0.1 and distance.max() > 87.3  # near the threshold and past exp's float32 range
