@@ -73,7 +73,7 @@ def default_hyperparams_path() -> Path:
     return packaged_hyperparams_path("ppo")
 
 
-PACKAGED_HYPERPARAMS = ("ppo", "paper", "mlp", "ppo_lstm")
+PACKAGED_HYPERPARAMS = ("ppo", "paper", "mlp", "ppo_lstm", "mlp_zoo", "ppo_lstm_zoo")
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -10,6 +10,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 import sb3_spikeplastic
 from sb3_spikeplastic import PPO, SpikePlasticPolicy, config
 from sb3_spikeplastic.config import (
+    algorithm_class,
     default_hyperparams_path,
     load_hyperparams,
     load_hyperparams_file,
@@ -244,6 +245,13 @@ def test_load_hyperparams_rule_and_other_files():
     assert cheetah.normalize == {"gamma": 0.99} and cheetah.model_kwargs["learning_rate"](0.5) == pytest.approx(2.5e-4)
     lstm = load_hyperparams("HalfCheetah-v5", "ppo_lstm")
     assert (lstm.algo, lstm.policy) == ("ppo_lstm", "MlpLstmPolicy") and "algo" not in lstm.model_kwargs
+    # the baselines with their own tuned settings (rl-baselines3-zoo's HalfCheetah entries) build as they say
+    for conf, cls in (("mlp_zoo", "PPO"), ("ppo_lstm_zoo", "RecurrentPPO")):
+        zoo = load_hyperparams("HalfCheetah-v5", conf)
+        model = algorithm_class(zoo.algo)(zoo.policy, "HalfCheetah-v5", **zoo.model_kwargs)
+        assert type(model).__name__ == cls and (model.n_steps, model.batch_size, model.n_epochs) == (512, 64, 20)
+        assert model.learning_rate == pytest.approx(2.0633e-05) and model.policy.log_std.mean().item() == -2.0
+        assert [m.out_features for m in model.policy.mlp_extractor.policy_net if hasattr(m, "out_features")] == [256, 256]
     # a registered id without an entry gets `default`, as on the command line
     assert load_hyperparams("CartPole-v1").model_kwargs["policy_kwargs"] == {}
     # fresh copies: changing one result leaves the next alone
@@ -253,7 +261,7 @@ def test_load_hyperparams_rule_and_other_files():
 
 @pytest.mark.parametrize("args, message", [
     (("TMazeCu-v0",), r"^unknown environment id 'TMazeCu-v0'; did you mean TMazeCue-v0.*accepted: an entry of the file \(TMazeCue-v0, "),
-    (("TMazeCue-v0", "ppo2"), r"^cannot read hyperparameter file 'ppo2'.*packaged files: ppo, paper, mlp, ppo_lstm"),
+    (("TMazeCue-v0", "ppo2"), r"^cannot read hyperparameter file 'ppo2'.*packaged files: ppo, paper, mlp, ppo_lstm, mlp_zoo, ppo_lstm_zoo"),
     (("TMazeCue-v0", "ppo", "hebb"), r"^unknown rule 'hebb'; accepted: static, "),
     (("HalfCheetah-v5", "mlp", "dp-oja"), r"^rule='dp-oja' needs policy SpikePlasticPolicy, not 'MlpPolicy'"),
 ])
