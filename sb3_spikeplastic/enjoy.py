@@ -17,6 +17,7 @@ success, and record them as a video.
   beside the target and renames it into place at the end, so a crash or Ctrl-C leaves no half-written video.
 
 Errors of the caller's input are ``ValueError`` (the command line reports them in one line).
+:func:`enjoy_command` is ``sb3-spikeplastic enjoy``.
 """
 
 from __future__ import annotations
@@ -496,3 +497,36 @@ class Player:
             print(f"wrote {video.path}: {video.n_frames} frames ({sum(e.length for e in episodes)} steps + one "
                   f"reset frame per episode), {width}x{height}, {self.fps:g} fps")
         return episodes
+
+
+def enjoy_command(run: Optional[str] = None, model: Optional[str] = None, env: Optional[str] = None,
+                  vecnormalize: Optional[str] = None, best: bool = False, env_kwargs: Optional[Sequence[str]] = None,
+                  n_episodes: int = 1, deterministic: bool = True, seed: int = 0, max_steps: Optional[int] = None,
+                  video: Optional[str] = None, fps: Optional[float] = None, size: Optional[Sequence[int]] = None,
+                  raster: bool = False, no_progress: bool = False, device: str = "cpu",
+                  torch_threads: int = 1) -> Callable[[], int]:
+    """``sb3-spikeplastic enjoy`` with these options (its long names): the model is found and loaded and its
+    :class:`Player` built (``ValueError``, nothing written); returns the play, which prints the model and each
+    episode (:meth:`Player.run`) and returns 0."""
+    import torch
+
+    from .inputs import check_int, check_output_path, model_source
+    from .run_folder import load_model
+
+    check_int("--n-episodes", n_episodes, 1)
+    check_int("--max-steps", max_steps, 1)
+    if video:
+        check_output_path(video, "--video", directory=False)
+    check_video_options(video, fps, size, raster)
+    info, env_id = model_source(run, model, env, vecnormalize, best, env_kwargs)
+    torch.set_num_threads(torch_threads)
+    player = Player(load_model(info, device), env_id, info.env_kwargs, info.vecnormalize, info.model_path,
+                    video=video, fps=fps, size=size, raster=raster)
+
+    def enjoy() -> int:
+        print(f"{env_id}: {info.model_path}" + (f" (VecNormalize: {info.vecnormalize})" if info.vecnormalize else ""))
+        torch.manual_seed(seed)
+        player.run(n_episodes, deterministic, seed, max_steps, progress=not no_progress)
+        return 0
+
+    return enjoy

@@ -1,13 +1,21 @@
 """Evaluate a trained model: returns, episode lengths, success rate and, for spiking policies, the energy proxies
-(spikes and synaptic operations per environment step, :class:`~sb3_spikeplastic.monitoring.EnergyMeter`)."""
+(spikes and synaptic operations per environment step, :class:`~sb3_spikeplastic.monitoring.EnergyMeter`).
+
+:func:`evaluate_command` is ``sb3-spikeplastic evaluate``; :func:`load_checked` loads a model and checks it against
+the environment it is to play in (for ``evaluate``, ``robustness`` and ``inspect``)."""
 
 from __future__ import annotations
 
 import contextlib
+import json
 from dataclasses import dataclass
-from typing import Any, Optional
+from pathlib import Path
+from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
+
+from .inputs import check_int, check_output_path, model_source
+from .run_folder import RunInfo, atomic_write, load_model, make_eval_env
 
 
 @dataclass
@@ -74,3 +82,83 @@ def evaluate_model(model, venv, n_episodes: int, deterministic: bool = True, see
         bar.close()
     return Evaluation(np.asarray(returns, dtype=float), np.asarray(lengths, dtype=float), successes,
                       meter.summary() if meter is not None else None)
+
+
+def check_fits(model, info: RunInfo, env_id: str, make_error: Optional[str] = None) -> None:
+    """``ValueError`` unless ``env_id``, made with ``info``'s ``env_kwargs``, fits ``model``'s spaces (or cannot be
+    made: ``make_error`` starts that message, default ``cannot make <env_id> with env_kwargs=...``)."""
+    import gymnasium
+
+    from .experiment import check_spaces
+
+    try:
+        probe = gymnasium.make(env_id, **info.env_kwargs)
+    except Exception as exc:
+        raise ValueError(f"{make_error or f'cannot make {env_id} with env_kwargs={info.env_kwargs}'}: {exc}") from None
+    try:  # the model against the env before the env's VecNormalize statistics (which would blame the env)
+        check_spaces(model, probe, env_id, info.model_path)
+    finally:
+        probe.close()
+
+
+def load_checked(info: RunInfo, env_id: str, device: str = "cpu"):
+    """The model of ``info``, loaded (``ValueError`` if it cannot be) and checked by :func:`check_fits`."""
+    model = load_model(info, device)
+    check_fits(model, info, env_id)
+    return model
+
+
+def report_lines(result: Evaluation, env_id: str, info: RunInfo, deterministic: bool) -> list[str]:
+    """What ``evaluate`` prints: the model, the mean return and episode length, the success rate (environments
+    that report one) and the energy proxies (spiking policies)."""
+    summary = result.as_dict()
+    mode = "deterministic" if deterministic else "stochastic"
+    lines = [f"{env_id}: {info.model_path}" + (f" (VecNormalize: {info.vecnormalize})" if info.vecnormalize else ""),
+             f"mean return {summary['mean_return']:.3f} ± {summary['std_return']:.3f} over {summary['episodes']} "
+             f"episodes ({mode}); mean episode length {summary['mean_length']:.1f}"]
+    if result.successes:
+        lines.append(f"success rate {result.success_rate:.3f} ({int(sum(result.successes))}/{len(result.successes)})")
+    energy = result.energy
+    if energy is not None:
+        layers = " / ".join(f"{x:,.0f}" for x in energy["synops_per_step"])
+        lines.append(f"per environment step: {energy['total_spikes_per_step']:,.1f} spikes (input population: "
+                     f"{energy['spikes_per_step'][0]:,.1f}), {energy['total_synops_per_step']:,.0f} SynOps ({layers} "
+                     "by layer)")
+    return lines
+
+
+def evaluate_command(run: Optional[str] = None, model: Optional[str] = None, env: Optional[str] = None,
+                     vecnormalize: Optional[str] = None, best: bool = False,
+                     env_kwargs: Optional[Sequence[str]] = None, episodes: int = 100, deterministic: bool = True,
+                     seed: int = 0, n_envs: int = 1, output: Optional[str] = None, no_progress: bool = False,
+                     device: str = "cpu", torch_threads: int = 1) -> Callable[[], int]:
+    """``sb3-spikeplastic evaluate`` with these options (its long names): the model is found, loaded and checked
+    against its environment and the evaluation environments are made (``ValueError``, nothing written); returns
+    the evaluation, which prints :func:`report_lines`, writes ``output`` (JSON) if given and returns 0."""
+    import torch
+
+    check_int("--episodes", episodes, 1)
+    check_int("--n-envs", n_envs, 1)
+    if output:
+        check_output_path(output, "-o/--output", directory=False)
+    info, env_id = model_source(run, model, env, vecnormalize, best, env_kwargs)
+    torch.set_num_threads(torch_threads)
+    loaded = load_checked(info, env_id, device)
+    try:
+        venv = make_eval_env(env_id, n_envs, seed, info.env_kwargs, info.vecnormalize)
+    except Exception as exc:
+        raise ValueError(f"cannot make {env_id} with the statistics {str(info.vecnormalize)!r}: {exc}") from None
+
+    def evaluate() -> int:
+        try:
+            result = evaluate_model(loaded, venv, episodes, deterministic, seed, progress=not no_progress)
+        finally:
+            venv.close()
+        print("\n".join(report_lines(result, env_id, info, deterministic)))
+        if output:
+            record = dict(env=env_id, model=str(info.model_path), deterministic=deterministic, seed=seed,
+                          **result.as_dict())
+            atomic_write(Path(output), lambda f: json.dump(record, f, indent=1), binary=False)
+        return 0
+
+    return evaluate

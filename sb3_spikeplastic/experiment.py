@@ -6,23 +6,30 @@ The model is built in memory first (:meth:`Experiment.setup`), so that bad hyper
 is written; then :meth:`Experiment.create_run_folder` and :meth:`Experiment.learn`, which saves the final model,
 writes ``INTERRUPTED.txt`` on Ctrl-C, and on a crash removes the folder (before the first step) or marks it with
 ``FAILED.txt``.
+
+:func:`train_command` is ``sb3-spikeplastic train``: it checks the options and builds the model (``ValueError``,
+nothing written yet), and returns the run, which prints where it writes and what it wrote.
 """
 
 from __future__ import annotations
 
+import random
 import shlex
 import shutil
 import signal
+import sys
 import threading
 import traceback
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Optional
+from typing import Any, Callable, Optional, Sequence, Union
 
 import gymnasium
 
 from . import config as cfg
-from .run_folder import RunInfo, atomic_write, next_run_dir, save_model, save_vecnormalize
+from .inputs import check_device, check_int, check_output_path
+from .run_folder import (RunInfo, atomic_write, latest_checkpoint, locate_run, next_run_dir, read_run_args,
+                         read_run_config, save_model, save_vecnormalize)
 
 
 class SuccessColumn(gymnasium.Wrapper):
@@ -329,3 +336,164 @@ class Experiment:
                 pass
         self.save()
         return True
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# sb3-spikeplastic train
+
+#: ``train`` runs at least this long checkpoint every tenth of their steps unless ``--save-freq`` says otherwise.
+AUTO_CHECKPOINT_MIN_STEPS = 100_000
+
+
+def continued_run(trained_agent: str, env_id: str, overridden: bool = False) -> RunInfo:
+    """The model (final or checkpoint) that ``--trained-agent`` names, with its run's config, VecNormalize
+    statistics and TensorBoard folder; ``ValueError`` if it cannot be continued as asked (``overridden``: options
+    that would change its configuration were given)."""
+    if overridden:
+        raise ValueError("--trained-agent continues a run with its own configuration; only -n (the total "
+                         "steps), --seed and the callback options may be given with it")
+    folder = Path(trained_agent)
+    env_id_of_folder = read_run_config(folder)[0] if folder.is_dir() else None
+    if env_id_of_folder and not (folder / f"{env_id_of_folder}.zip").is_file() and latest_checkpoint(folder):
+        # A run killed before its end (no final model): continue from its latest checkpoint.
+        info = locate_run(latest_checkpoint(folder))
+        print(f"sb3-spikeplastic: {str(folder)!r} has no final model; continuing from {info.model_path.name}")
+    else:
+        info = locate_run(trained_agent)
+    if not info.model_path.is_file() or info.model_path.suffix != ".zip":
+        raise ValueError(f"--trained-agent needs a model .zip or a run folder, got {trained_agent!r}")
+    if info.env_id is not None and info.env_id != env_id:
+        raise ValueError(f"--trained-agent {trained_agent!r} was trained on {info.env_id}, not {env_id}")
+    if info.run_dir is not None:
+        tb = read_run_args(info.run_dir, info.env_id).get("tensorboard_dir")
+        info.tensorboard_dir = Path(tb) if tb else None
+    return info
+
+
+def train_config(env_id: str, conf: Optional[str] = None, rule: Optional[str] = None,
+                 hyperparams: Optional[Sequence[str]] = None, env_kwargs: Optional[Sequence[str]] = None,
+                 n_timesteps: Optional[int] = None, n_envs: Optional[int] = None,
+                 source: Optional[RunInfo] = None) -> dict:
+    """The resolved entry of ``train``'s options: a continued run's own entry (with ``n_timesteps``), else the
+    file's entry with the overrides (``env_kwargs`` ``KEY=VALUE`` after ``hyperparams``: they win)."""
+    if source is not None and source.config:
+        return cfg.validate_entry({**source.config, **({"n_timesteps": n_timesteps} if n_timesteps else {})})
+    overrides = [*(hyperparams or ()), *[f"env_kwargs.{item}" for item in env_kwargs or ()]]
+    return cfg.resolve_hyperparams(env_id, conf, overrides, rule=rule, n_timesteps=n_timesteps, n_envs=n_envs)
+
+
+def build(experiment: Experiment) -> None:
+    """:meth:`Experiment.setup`, any error of it a one-line ``ValueError``: the model is built from the user's
+    input, so its errors (and gymnasium's for bad env_kwargs) are bad input."""
+    try:
+        experiment.setup()
+    except (ValueError, TypeError, AssertionError) as exc:
+        message = " ".join(str(exc).split()) or type(exc).__name__
+        if experiment.source is not None:
+            raise ValueError(message) from None
+        raise ValueError(f"invalid configuration for {experiment.env_id}: {message}") from None
+    except Exception as exc:
+        if type(exc).__module__.startswith("gymnasium"):
+            raise ValueError(f"cannot make {experiment.env_id} with env_kwargs={experiment.env_kwargs}: {exc}") from None
+        raise
+
+
+def train_command(env: str, rule: Optional[str] = None, n_timesteps: Optional[int] = None,
+                  seed: Optional[int] = None, log_folder: str = "logs", tensorboard_log: Optional[str] = None,
+                  hyperparams: Optional[Sequence[str]] = None, env_kwargs: Optional[Sequence[str]] = None,
+                  conf: Optional[str] = None, n_envs: Optional[int] = None, vec_env: str = "dummy",
+                  eval_freq: int = 0, eval_episodes: int = 20, save_freq: Optional[int] = None,
+                  keep_checkpoints: int = 2, figure_freq: int = 0, trained_agent: Optional[str] = None,
+                  verbose: int = 1, no_progress: bool = False, device: str = "cpu",
+                  torch_threads: Union[int, str] = "auto", command_line: str = "sb3-spikeplastic train"
+                  ) -> Callable[[], int]:
+    """``sb3-spikeplastic train`` with these options (its long names): every option is checked and the model built
+    in memory (``ValueError``, nothing written); returns the run, which creates the run folder (``command_line``
+    in ``command.txt``, the options in ``<EnvId>/args.yml``), trains, prints the files written and returns the exit
+    status (130 when interrupted)."""
+    options = {k: v for k, v in locals().items() if k != "command_line"}
+    import torch
+
+    from ._fast.allocator import keep_freed_memory
+    from .plasticity import get_rule_class
+
+    env_id = cfg.check_env_id(env, list(cfg.load_hyperparams_file(conf)))
+    if rule is not None:
+        get_rule_class(rule)
+    for name, value, minimum in (("--n-timesteps", n_timesteps, 1), ("--n-envs", n_envs, 1),
+                                 ("--eval-freq", eval_freq, 0), ("--eval-episodes", eval_episodes, 1),
+                                 ("--save-freq", save_freq, 0), ("--keep-checkpoints", keep_checkpoints, 0),
+                                 ("--figure-freq", figure_freq, 0)):
+        check_int(name, value, minimum)
+    check_device(device)
+    check_output_path(log_folder, "-f/--log-folder", directory=True)
+    if tensorboard_log:
+        check_output_path(tensorboard_log, "--tensorboard-log", directory=True)
+    source = None
+    if trained_agent:
+        source = continued_run(trained_agent, env_id, bool(hyperparams or rule or n_envs or conf or env_kwargs))
+    config = train_config(env_id, conf, rule, hyperparams, env_kwargs, n_timesteps, n_envs, source)
+    if figure_freq and config["policy"] != "SpikePlasticPolicy":
+        raise ValueError(f"--figure-freq needs policy SpikePlasticPolicy, not {config['policy']!r}")
+    # Checkpoints by default on long runs (a run killed outright keeps its latest tenth), none on short ones.
+    if save_freq is None:
+        save_freq = config["n_timesteps"] // 10 if config["n_timesteps"] >= AUTO_CHECKPOINT_MIN_STEPS else 0
+    cores = torch.get_num_threads()  # torch's default: the physical cores
+    if torch_threads != "auto":
+        torch.set_num_threads(torch_threads)
+    keep_freed_memory()
+    if seed is None and source is not None and source.run_dir is not None:  # a continued run keeps its seed
+        seed = read_run_args(source.run_dir, source.env_id or env_id).get("seed")
+    if seed is None:
+        seed = random.SystemRandom().randrange(2**31 - 1)
+    experiment = Experiment(
+        env_id, config, seed, Path(log_folder), tensorboard_log, device=device, verbose=verbose, eval_freq=eval_freq,
+        eval_episodes=eval_episodes, save_freq=save_freq, keep_checkpoints=keep_checkpoints, figure_freq=figure_freq,
+        vec_env=vec_env, progress=not no_progress, trained_agent=source)
+    build(experiment)
+    if torch_threads == "auto":
+        torch.set_num_threads(training_threads(experiment.model.policy, cores))
+    return lambda: _train(experiment, command_line, {"command": "train", **options}, tensorboard_log or log_folder)
+
+
+def _train(experiment: Experiment, command_line: str, options: dict[str, Any], tensorboard_root) -> int:
+    """Create the run folder, train and report: the run of :func:`train_command`."""
+    import torch
+
+    config, env_id = experiment.config, experiment.env_id
+    run_dir = experiment.create_run_folder(command_line, dict(sorted(options.items())))
+    algo_name = "RecurrentPPO" if config.get("algo") == "ppo_lstm" else "PPO"
+    print(f"Training {algo_name} ({config['policy']}, rule {rule_label(config)}) on {env_id} for "
+          f"{config['n_timesteps']:,} steps, seed {experiment.seed}, {torch.get_num_threads()} torch thread(s)")
+    print(f"Run folder:  {run_dir}")
+    print(f"TensorBoard: tensorboard --logdir {tensorboard_root}")
+    sys.stdout.flush()
+    model = experiment.model
+    try:
+        finished = experiment.learn()
+    except BaseException:
+        if run_dir.exists():
+            print(f"sb3-spikeplastic: training failed after {model.num_timesteps:,} steps; logs kept in {run_dir} "
+                  "(see FAILED.txt; no final model written)", file=sys.stderr)
+        else:
+            print(f"sb3-spikeplastic: training failed before its first environment step; removed {run_dir}",
+                  file=sys.stderr)
+        raise
+    if not finished:
+        print(f"\nInterrupted after {model.num_timesteps:,} steps; saved {experiment.model_path} (see "
+              f"{run_dir / 'INTERRUPTED.txt'})")
+        return 130
+    print(f"\nDone: {model.num_timesteps:,} steps.")
+    print(f"  model:        {experiment.model_path}")
+    if model.get_vec_normalize_env() is not None:
+        print(f"  vecnormalize: {experiment.vecnormalize_path}")
+    if experiment.eval_freq:
+        best = run_dir / "best_model.zip"
+        print(f"  best model:   {best if best.exists() else '(no evaluation ran)'}; evaluations.npz")
+    if experiment.save_freq:
+        print(f"  checkpoints:  {run_dir}/rl_model_*_steps.zip")
+    print(f"  config:       {run_dir / env_id / 'config.yml'}")
+    print(f"  monitor:      {run_dir}/*.monitor.csv")
+    print(f"  tensorboard:  {experiment.tb_dir}")
+    print(f"Evaluate with: sb3-spikeplastic evaluate --run {shlex.quote(str(run_dir))}")
+    return 0

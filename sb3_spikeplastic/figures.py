@@ -2,6 +2,9 @@
 
 Every function returns a ``matplotlib.figure.Figure`` built without ``pyplot`` (no GUI backend, no global figure
 registry): save it with ``fig.savefig(path)`` (Agg renderer) or log it with SB3's ``Figure`` logger type.
+
+:func:`plot_command` is ``sb3-spikeplastic plot``: the training curves of run folders (:func:`read_runs`) and a
+line of statistics per run (:func:`curve_summaries`).
 """
 
 from __future__ import annotations
@@ -12,7 +15,7 @@ import math
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Optional, Union
+from typing import TYPE_CHECKING, Callable, Optional, Union
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -280,3 +283,75 @@ def robustness_figure(rows: Sequence["RobustnessRow"], title: Optional[str] = No
     if title:
         ax.set_title(title)
     return fig
+
+
+def read_runs(folders: Sequence[Union[str, os.PathLike]]) -> dict[str, dict[str, np.ndarray]]:
+    """The Monitor data (:func:`read_monitor_files`) of run folders, labelled by folder name and rule (the full
+    path where two folders share a name); ``ValueError`` for a folder without finished episodes."""
+    from .experiment import rule_label
+    from .run_folder import read_run_config
+
+    runs = {}
+    for folder in folders:
+        p = Path(folder)
+        if not p.is_dir():
+            raise ValueError(f"no run folder {str(folder)!r}")
+        if not list(p.glob("*monitor.csv")):
+            raise ValueError(f"no Monitor files (*.monitor.csv) in {str(folder)!r}")
+        try:
+            data = read_monitor_files(p)
+        except (ValueError, KeyError) as exc:
+            raise ValueError(f"unreadable Monitor file in {str(folder)!r}: {exc}") from None
+        if len(data["r"]) == 0:
+            raise ValueError(f"no finished episodes in the Monitor files of {str(folder)!r}")
+        label = p.name
+        config = read_run_config(p)[1]
+        if config:
+            label += f" ({rule_label(config)})"
+        if label in runs:
+            label = str(p)
+        runs[label] = data
+    return runs
+
+
+def curve_summaries(runs: Mapping[str, Mapping[str, np.ndarray]], last: int = 100) -> list[str]:
+    """One line per run: its episodes and steps, the mean return of its ``last`` episodes and, where reported,
+    the success rate of its ``last`` episodes that report success."""
+    lines = []
+    for label, data in runs.items():
+        tail = slice(-last, None)
+        line = (f"{label}: {len(data['r'])} episodes, {int(data['l'].sum()):,} steps, mean return of the last "
+                f"{len(data['r'][tail])}: {data['r'][tail].mean():.3f}")
+        success = data["is_success"][~np.isnan(data["is_success"])]
+        if len(success):
+            line += f", success rate of the last {len(success[tail])}: {success[tail].mean():.3f}"
+        lines.append(line)
+    return lines
+
+
+def plot_command(runs: Sequence[Union[str, os.PathLike]], output: Union[str, os.PathLike] = "training_curves.png",
+                 x: str = "timesteps", smooth: int = 20, title: Optional[str] = None) -> Callable[[], int]:
+    """``sb3-spikeplastic plot`` with these options: the run folders are read (``ValueError``, nothing written);
+    returns the plot, which writes :func:`training_curves_figure` to ``output``, prints :func:`curve_summaries`
+    and returns 0."""
+    from .inputs import check_int, check_output_path
+
+    if x not in ("timesteps", "episodes", "walltime"):
+        raise ValueError(f"unknown --x {x!r}; accepted: timesteps, episodes, walltime")
+    check_int("--smooth", smooth, 1)
+    check_output_path(output, "-o/--output", directory=False)
+    data = read_runs(runs)
+
+    def plot() -> int:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        fig = training_curves_figure(data, x=x, smooth=smooth, title=title)
+        out = Path(output)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(out, dpi=120)
+        print("\n".join(curve_summaries(data)))
+        print(f"wrote {out}")
+        return 0
+
+    return plot

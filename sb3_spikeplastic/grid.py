@@ -649,3 +649,26 @@ def run(job: GridJob, workers: int = 1, retry: bool = False, summary_only: bool 
     log(table.rstrip())
     log(f"wrote {csv_path}, {md_path}")
     return status
+
+
+def grid_command(grid_file: str, workers: int = 1, heartbeat_interval: int = 60, grace_period: Optional[int] = None,
+                 retry_failed: bool = False, summary_only: bool = False, storage: Optional[str] = None,
+                 study_name: Optional[str] = None, log_folder: str = "logs", device: str = "cpu",
+                 torch_threads: int = 1) -> Callable[[], int]:
+    """``sb3-spikeplastic grid`` with these options (its long names): the grid file and the study are checked by
+    :func:`prepare` (``ValueError``, nothing written); returns the work (:func:`run`)."""
+    from .inputs import check_device, check_int, check_output_path
+    from .studies import check_storage
+
+    for name, value, minimum in (("--workers", workers, 1), ("--heartbeat-interval", heartbeat_interval, 1),
+                                 ("--grace-period", grace_period, heartbeat_interval + 1),
+                                 ("--torch-threads", torch_threads, 1)):
+        check_int(name, value, minimum)
+    check_device(device)
+    check_output_path(log_folder, "-f/--log-folder", directory=True)
+    check_storage(storage)
+    name = study_name or Path(grid_file).stem
+    job = prepare(load_grid(grid_file), Path(log_folder) / "grid" / name, name, storage, summary_only,
+                  heartbeat_interval=heartbeat_interval, grace_period=grace_period, device=device,
+                  torch_threads=torch_threads)
+    return lambda: run(job, workers, retry_failed, summary_only)

@@ -459,3 +459,26 @@ def run(search: Search, log: Callable[[str], None] = print) -> int:
     log(f"Best entry: {write_best(search, study)} (sb3-spikeplastic train --env {s.env_id} --conf "
         f"{s.folder / 'best.yml'})")
     return status
+
+
+def optimize_command(env: str, conf: Optional[str] = None, rule: Optional[str] = None,
+                     hyperparams: Optional[Sequence[str]] = None, n_timesteps: Optional[int] = None,
+                     n_trials: int = 20, sampler: str = "tpe", pruner: str = "median", n_startup_trials: int = 5,
+                     n_evaluations: int = 5, eval_episodes: int = 10, seeds_per_trial: int = 1,
+                     storage: Optional[str] = None, study_name: Optional[str] = None, log_folder: str = "logs",
+                     seed: Optional[int] = None, search_space: Optional[str] = None, device: str = "cpu",
+                     torch_threads: int = 1) -> Callable[[], int]:
+    """``sb3-spikeplastic optimize`` with these options (its long names): everything is checked by
+    :func:`prepare` (``ValueError``, nothing written); returns the search (:func:`run`)."""
+    from .inputs import check_device, check_int, check_output_path
+    from .studies import check_storage
+
+    check_int("--torch-threads", torch_threads, 1)
+    check_device(device)
+    check_output_path(log_folder, "-f/--log-folder", directory=True)
+    check_storage(storage)
+    search = prepare(OptimizeSettings(
+        env, conf, rule, hyperparams or (), n_timesteps, n_trials, sampler, pruner, n_startup_trials, n_evaluations,
+        eval_episodes, seeds_per_trial, storage, study_name, Path(log_folder), seed, device, torch_threads,
+        search_space))
+    return lambda: run(search)

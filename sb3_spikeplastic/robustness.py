@@ -7,6 +7,9 @@ evaluated). The noise is applied by the wrappers of :mod:`sb3_spikeplastic.envs.
 Every (model, ``sigma``) cell is evaluated on a fresh vectorised environment seeded alike, so all models and noise
 levels see the same initial states, and the noise draws of a given ``sigma`` are the same for every model: the
 comparison between models is paired.
+
+:func:`write_report` writes the rows as CSV, Markdown and a figure; :func:`robustness_command` is
+``sb3-spikeplastic robustness``.
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ import math
 import os
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, Optional
 
 import gymnasium
 import numpy as np
@@ -27,7 +30,10 @@ from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize
 from tqdm.auto import tqdm
 
-from sb3_spikeplastic.envs.noise import make_noisy_env, noise_kwargs
+from sb3_spikeplastic.envs.noise import FRICTION_TARGETS, NOISE_TYPES, make_noisy_env, noise_kwargs
+
+from .inputs import check_int, check_output_path, parse_env_kwargs
+from .run_folder import RunInfo, atomic_write, load_model, locate_run
 
 
 @dataclasses.dataclass(frozen=True)
@@ -207,3 +213,98 @@ def format_table(rows: Sequence[RobustnessRow]) -> str:
         for r in rows
     ]
     return "\n".join(lines)
+
+
+def write_report(rows: Sequence[RobustnessRow], folder: str | os.PathLike, env_id: str, noise_type: str,
+                 n_episodes: int) -> tuple[str, list[Path]]:
+    """Write ``robustness_<env_id>_<noise_type>`` ``.csv`` (:func:`write_csv`), ``.md`` (:func:`format_table`) and
+    ``.png`` (:func:`sb3_spikeplastic.figures.robustness_figure`) into ``folder`` (created if needed).
+
+    :return: the Markdown table and the three files written.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from .figures import robustness_figure
+
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    stem = out / f"robustness_{env_id}_{noise_type}"
+    csv_path = write_csv(rows, stem.with_suffix(".csv"))
+    table = format_table(rows)
+    atomic_write(stem.with_suffix(".md"), lambda f: f.write(table + "\n"), binary=False)
+    fig = robustness_figure(rows, title=f"{env_id}: {noise_type} noise ({n_episodes} episodes per point)")
+    fig.savefig(stem.with_suffix(".png"), dpi=120)
+    return table, [csv_path, stem.with_suffix(".md"), stem.with_suffix(".png")]
+
+
+def parse_models(specs: Sequence[str]) -> dict[str, RunInfo]:
+    """``--models`` entries ``NAME=RUN_FOLDER_OR_ZIP`` (or a bare path, named after its folder or file) located."""
+    infos: dict[str, RunInfo] = {}
+    for spec in specs:
+        name, sep, path = spec.partition("=")
+        if not sep:
+            name, path = Path(spec.rstrip("/")).name.removesuffix(".zip"), spec
+        if not name or not path:
+            raise ValueError(f"malformed --models entry {spec!r}; expected NAME=RUN_FOLDER_OR_ZIP")
+        if name in infos:
+            raise ValueError(f"model name {name!r} given twice in --models")
+        infos[name] = locate_run(path)
+    return infos
+
+
+def robustness_command(models: Sequence[str], noise: str, env: Optional[str] = None,
+                       sigmas: Sequence[float] = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5), episodes: int = 100, seed: int = 0,
+                       n_envs: int = 1, env_kwargs: Optional[Sequence[str]] = None,
+                       friction_target: str = "damping", deterministic: bool = True, output: str = "robustness",
+                       no_progress: bool = False, device: str = "cpu", torch_threads: int = 1) -> Callable[[], int]:
+    """``sb3-spikeplastic robustness`` with these options (its long names): the noise is applied to the
+    environment once, the models are loaded and checked against it (``ValueError``, nothing written); returns the
+    comparison, which prints the table, writes it (:func:`write_report`) and returns 0."""
+    from .config import check_env_id
+    from .experiment import check_spaces
+
+    if noise not in NOISE_TYPES:
+        raise ValueError(f"unknown noise type {noise!r}; accepted: {', '.join(NOISE_TYPES)}")
+    check_output_path(output, "-o/--output", directory=True)
+    if friction_target not in FRICTION_TARGETS:
+        raise ValueError(f"unknown friction target {friction_target!r}; accepted: {', '.join(FRICTION_TARGETS)}")
+    for s in sigmas:
+        if not math.isfinite(s) or s < 0:
+            raise ValueError(f"sigma {s!r} must be a finite number >= 0")
+    check_int("--episodes", episodes, 1)
+    check_int("--n-envs", n_envs, 1)
+    infos = parse_models(models)
+    env_ids = {i.env_id for i in infos.values() if i.env_id}
+    env_id = env
+    if env_id is None:
+        if len(env_ids) != 1:
+            raise ValueError("--env is needed" + (f": the runs were trained on {', '.join(sorted(env_ids))}"
+                                                  if env_ids else ""))
+        env_id = env_ids.pop()
+    env_id = check_env_id(env_id)
+    kwargs = parse_env_kwargs(env_kwargs) or {}
+    try:  # the noise must apply to this environment: fail before loading models or writing anything
+        make_noisy_env(env_id, **noise_kwargs(noise, 0.1, friction_target), **kwargs).close()
+    except (ValueError, TypeError) as exc:
+        raise ValueError(f"{noise} noise cannot be applied to {env_id} (env_kwargs={kwargs}): {exc}") from None
+    torch.set_num_threads(torch_threads)
+    loaded = {name: load_model(info, device) for name, info in infos.items()}
+    probe = gymnasium.make(env_id, **kwargs)
+    try:
+        for name, model in loaded.items():
+            check_spaces(model, probe, env_id, infos[name].model_path)
+    finally:
+        probe.close()
+
+    def compare() -> int:
+        rows = evaluate_robustness(
+            loaded, env_id, noise, sigmas, n_episodes=episodes, seed=seed, deterministic=deterministic,
+            vec_normalize_stats={name: info.vecnormalize for name, info in infos.items()},
+            progress_bar=not no_progress, n_envs=n_envs, friction_target=friction_target, env_kwargs=kwargs)
+        table, paths = write_report(rows, output, env_id, noise, episodes)
+        print(table)
+        print(f"\nwrote {', '.join(str(p) for p in paths)}")
+        return 0
+
+    return compare

@@ -63,6 +63,14 @@ def is_url(storage: str) -> bool:
     return "://" in storage
 
 
+def check_storage(storage: Optional[str]) -> None:
+    """``ValueError`` unless a ``--storage`` journal file (not a URL) could be written."""
+    from .inputs import check_output_path
+
+    if storage is not None and not is_url(storage):
+        check_output_path(storage, "--storage", directory=False)
+
+
 def _journal_heartbeat_class():
     from optuna.storages import JournalStorage
     from optuna.storages._heartbeat import BaseHeartbeat
