@@ -131,7 +131,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--env-kwargs", nargs="+", metavar="KEY=VALUE", help="gymnasium.make arguments, values as YAML "
                    "(the same as --hyperparams env_kwargs.KEY=VALUE), e.g. max_episode_steps=200 action_noise=0.1")
     t.add_argument("--conf", help="hyperparameter file, or a packaged one by name: ppo (default), paper, mlp, "
-                   "ppo_lstm")
+                   "ppo_lstm, mlp_zoo, ppo_lstm_zoo")
     t.add_argument("--n-envs", type=int, help="number of environments (default: the file's)")
     t.add_argument("--vec-env", choices=("dummy", "subproc"), default="dummy", help="step the environments in this "
                    "process (dummy, default) or each in its own (subproc: for slow environments)")
