@@ -46,6 +46,21 @@ def training_synops(run: Path) -> float:
     return float(np.mean(values[-max(1, len(values) // 4):])) if values else float("nan")
 
 
+def plasticity_macs(env_id: str, rule: str) -> float:
+    """The plasticity's MACs per environment step of the entry's network with ``rule`` (``+tanh`` allowed): they
+    depend on the network's shape and rule only (:func:`sb3_spikeplastic.energy.plasticity_operations`)."""
+    from stable_baselines3.common.env_util import make_vec_env
+
+    from sb3_spikeplastic import PPO, load_hyperparams
+    from sb3_spikeplastic.energy import plasticity_operations
+
+    h = load_hyperparams(env_id, rule=rule.split("+")[0])
+    if rule.endswith("+tanh"):
+        h.model_kwargs["policy_kwargs"].setdefault("rule_kwargs", {})["modulation"] = "tanh"
+    model = PPO(h.policy, make_vec_env(env_id, n_envs=h.n_envs, env_kwargs=h.env_kwargs), **h.model_kwargs)
+    return float(sum(plasticity_operations(model.policy.snn)))
+
+
 def collect(runs: Path) -> list[dict]:
     rows = []
     for config_file in sorted(runs.rglob("*/config.yml")):
@@ -66,6 +81,32 @@ def collect(runs: Path) -> list[dict]:
     return rows
 
 
+def with_energy(rows: list[dict]) -> list[dict]:
+    """``rows`` with the plasticity's MACs per step and the energy estimate (nJ per step) of each."""
+    from sb3_spikeplastic.energy import energy_estimate
+
+    macs = {}
+    for row in rows:
+        key = (row["env"], row["rule"])
+        if key not in macs:
+            macs[key] = plasticity_macs(*key)
+        estimate = energy_estimate([float(row["synops"])], [macs[key]])
+        row.update(plasticity_macs=macs[key], synops_nj=estimate["synops_nj"], energy_nj=estimate["total_nj"])
+    return rows
+
+
+def read_csv(path: Path) -> list[dict]:
+    """Rows of an ``energy.csv`` written before, numbers as numbers."""
+    with open(path) as f:
+        rows = list(csv.DictReader(f))
+    for row in rows:
+        for key in ("seed",):
+            row[key] = int(row[key])
+        for key in ("success", "input_spikes", "network_spikes", "output_synops", "synops", "training_synops"):
+            row[key] = float(row[key])
+    return rows
+
+
 def mean_sd(values: list[float], digits: int = 0) -> str:
     return f"{np.mean(values):,.{digits}f} ± {np.std(values):,.{digits}f}"
 
@@ -74,8 +115,10 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--runs", type=Path, default=Path("results/tmaze_energy/runs"))
     parser.add_argument("--out", type=Path, default=Path("results/tmaze_energy"))
+    parser.add_argument("--from-csv", type=Path, help="tabulate an energy.csv written before instead of --runs")
     args = parser.parse_args(argv)
-    rows = collect(args.runs)
+    rows = read_csv(args.from_csv) if args.from_csv else collect(args.runs)
+    rows = with_energy(rows) if rows else rows
     if not rows:
         print(f"no evaluated run folders with energy under {args.runs}")
         return 1
@@ -86,19 +129,25 @@ def main(argv=None) -> int:
         writer.writerows(rows)
     rules = [r for r in RULE_ORDER if any(row["rule"] == r for row in rows)]
     lines = ["| rule | seeds | held-out success (per seed) | hidden + output spikes / step | SynOps into the output "
-             "layer / step | all SynOps / step | all SynOps / step, last quarter of training |",
-             "|---|---|---|---|---|---|---|"]
+             "layer / step | all SynOps / step | all SynOps / step, last quarter of training | plasticity MACs / step "
+             "| energy nJ / step: SynOps + plasticity |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for rule in rules:
         mine = sorted((r for r in rows if r["rule"] == rule), key=lambda r: r["seed"])
         successes = " / ".join(f"{r['success']:.2f}" for r in mine)
         lines.append(f"| {rule} | {len(mine)} | {successes} | "
                      f"{mean_sd([r['network_spikes'] for r in mine])} | {mean_sd([r['output_synops'] for r in mine])} "
-                     f"| {mean_sd([r['synops'] for r in mine])} | {mean_sd([r['training_synops'] for r in mine])} |")
+                     f"| {mean_sd([r['synops'] for r in mine])} | {mean_sd([r['training_synops'] for r in mine])} "
+                     f"| {mine[0]['plasticity_macs']:,.0f} | {np.mean([r['synops_nj'] for r in mine]):.1f} + "
+                     f"{np.mean([r['energy_nj'] - r['synops_nj'] for r in mine]):.1f} = "
+                     f"{np.mean([r['energy_nj'] for r in mine]):.1f} |")
     envs = sorted({r["env"] for r in rows})
     inputs = [r["input_spikes"] for r in rows]
     table = "\n".join(lines)
     note = (f"\n\n{', '.join(envs)}; per environment step (25 ms) and environment; the input population fires "
-            f"{np.mean(inputs):.0f} spikes per step whatever the rule.\n")
+            f"{np.mean(inputs):.0f} spikes per step whatever the rule. Plasticity MACs: the trace update and the "
+            "efficacy of every plastic synapse at each update and the modulatory signal (`sb3_spikeplastic.energy`); "
+            "energy at 0.9 pJ per SynOp (an accumulate) and 4.6 pJ per MAC (32-bit float, 45 nm: Horowitz, 2014).\n")
     (args.out / "energy.md").write_text(table + note)
     print(table + note)
 

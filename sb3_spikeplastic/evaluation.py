@@ -124,6 +124,12 @@ def report_lines(result: Evaluation, env_id: str, info: RunInfo, deterministic: 
         lines.append(f"per environment step: {energy['total_spikes_per_step']:,.1f} spikes (input population: "
                      f"{energy['spikes_per_step'][0]:,.1f}), {energy['total_synops_per_step']:,.0f} SynOps ({layers} "
                      "by layer)")
+        joules = energy["energy_nj"]
+        if energy["total_plasticity_macs_per_step"] is not None:
+            lines.append(f"energy estimate per environment step: {joules['total_nj']:,.1f} nJ = SynOps "
+                         f"{joules['synops_nj']:,.1f} nJ + plasticity {joules['plasticity_nj']:,.1f} nJ "
+                         f"({energy['total_plasticity_macs_per_step']:,.0f} MACs of trace updates; 45 nm costs, "
+                         "sb3_spikeplastic.energy)")
     return lines
 
 

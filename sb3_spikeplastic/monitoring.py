@@ -31,6 +31,7 @@ from torch import Tensor
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import Figure, Logger, TensorBoardOutputFormat
 
+from .energy import energy_estimate, plasticity_operations
 from .network import NetworkOutput, NetworkState, SpikingPlasticNetwork
 
 
@@ -90,13 +91,19 @@ class EnergyMeter:
     def summary(self) -> dict[str, Any]:
         """``spikes_per_step`` (input first, then each layer), ``synops_per_step`` (per layer) and their totals
         ``total_spikes_per_step`` / ``total_synops_per_step`` (without the input's spikes, which the encoder
-        makes), averaged over the environment steps measured."""
+        makes), averaged over the environment steps measured; the plasticity's own work per step,
+        ``plasticity_macs_per_step`` (per layer; ``None`` for a rule of one's own) and its total; and the energy
+        estimate ``energy_nj`` (:func:`sb3_spikeplastic.energy.energy_estimate`)."""
         if not self.env_steps:
             raise RuntimeError("no environment step was measured")
         spikes = self._sums.double().cpu() / self.env_steps
         synops = synaptic_operations(spikes, self.network.sizes)
+        plastic = plasticity_operations(self.network)
         return {"spikes_per_step": spikes.tolist(), "synops_per_step": synops.tolist(),
-                "total_spikes_per_step": float(spikes[1:].sum()), "total_synops_per_step": float(synops.sum())}
+                "total_spikes_per_step": float(spikes[1:].sum()), "total_synops_per_step": float(synops.sum()),
+                "plasticity_macs_per_step": plastic,
+                "total_plasticity_macs_per_step": None if plastic is None else float(sum(plastic)),
+                "energy_nj": energy_estimate(synops.tolist(), plastic)}
 
 
 class RolloutActivity:

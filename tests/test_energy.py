@@ -48,3 +48,21 @@ def test_a_rule_of_ones_own_has_no_known_cost():
 
     net = tmaze_model("energy-test-linear").policy.snn
     assert trace_update_macs(net.layers[0].rule) is None and plasticity_operations(net) is None
+
+
+def test_energy_meter_summary_adds_the_plasticity_and_the_estimate():
+    import torch
+
+    from sb3_spikeplastic.monitoring import EnergyMeter
+
+    model = tmaze_model("ndp-bcm")
+    net, obs = model.policy.snn, torch.ones(3, *model.observation_space.shape, device=model.device)
+    state = net.initial_state(3)
+    with EnergyMeter(net) as meter:
+        for _ in range(2):
+            _, state = net(obs, state)
+    summary = meter.summary()
+    macs = plasticity_operations(net)
+    assert summary["plasticity_macs_per_step"] == macs and summary["total_plasticity_macs_per_step"] == sum(macs)
+    expected = sum(summary["synops_per_step"]) * AC_PJ / 1000 + sum(macs) * MAC_PJ / 1000
+    assert summary["energy_nj"]["total_nj"] == pytest.approx(expected) and sum(summary["synops_per_step"]) > 0
