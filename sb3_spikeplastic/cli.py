@@ -242,7 +242,8 @@ def build_parser() -> argparse.ArgumentParser:
     model_source(y)
     y.add_argument("--n-episodes", type=int, default=1, help="episodes (default: 1)")
     action_mode(y)
-    y.add_argument("--seed", type=int, default=0, help="reset seed of the first episode (default: 0)")
+    y.add_argument("--seed", type=int, help="reset seed of the first episode (default: for a task that reports "
+                   "success, the first of seeds 0-9 whose episode ends as most of them do; else 0)")
     y.add_argument("--max-steps", type=int, help="at most N steps per episode (default: until the env ends it)")
     y.add_argument("--video", metavar="FILE", help="record the episodes to FILE: .mp4 or .gif (needs "
                    "pip install \"sb3-spikeplastic[video]\"; MuJoCo renders with MUJOCO_GL, else egl or osmesa)")

@@ -501,7 +501,8 @@ class Player:
 
 def enjoy_command(run: Optional[str] = None, model: Optional[str] = None, env: Optional[str] = None,
                   vecnormalize: Optional[str] = None, best: bool = False, env_kwargs: Optional[Sequence[str]] = None,
-                  n_episodes: int = 1, deterministic: bool = True, seed: int = 0, max_steps: Optional[int] = None,
+                  n_episodes: int = 1, deterministic: bool = True, seed: Optional[int] = None,
+                  max_steps: Optional[int] = None,
                   video: Optional[str] = None, fps: Optional[float] = None, size: Optional[Sequence[int]] = None,
                   raster: bool = False, no_progress: bool = False, device: str = "cpu",
                   torch_threads: int = 1) -> Callable[[], int]:
@@ -525,8 +526,18 @@ def enjoy_command(run: Optional[str] = None, model: Optional[str] = None, env: O
 
     def enjoy() -> int:
         print(f"{env_id}: {info.model_path}" + (f" (VecNormalize: {info.vecnormalize})" if info.vecnormalize else ""))
-        torch.manual_seed(seed)
-        player.run(n_episodes, deterministic, seed, max_steps, progress=not no_progress)
+        first = seed
+        if first is None:  # a first episode that ends as most do (a success-reporting task, a spiking policy)
+            first, note = 0, None
+            if hasattr(player.model.policy, "snn") and deterministic:
+                from .monitoring import typical_seed
+
+                first, note = typical_seed(player.model.policy, lambda: gymnasium.make(env_id, **info.env_kwargs),
+                                           0, obs_transform=player.obs_transform)
+            if note:
+                print(f"first episode: seed {first} ({note}; --seed picks another)")
+        torch.manual_seed(first)
+        player.run(n_episodes, deterministic, first, max_steps, progress=not no_progress)
         return 0
 
     return enjoy

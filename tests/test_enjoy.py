@@ -228,3 +228,13 @@ def test_halfcheetah_video(tmp_path, capsys, monkeypatch):
     with imageio.get_reader(video) as reader:
         frames = np.stack(list(reader.iter_data()))
     assert frames.shape == (5, 48, 64, 3) and frames.std() > 10  # a scene, not a blank image
+
+
+def test_default_first_episode_ends_as_most_episodes_do(tmaze_run, capsys):
+    code, out, err = run_cli(capsys, "enjoy", "--run", tmaze_run, "--no-progress")
+    assert code == 0, err
+    chosen = re.search(r"first episode: seed (\d) \((\d+) of 10 episodes from seed 0 succeeded", out)
+    assert chosen, out
+    majority_succeeded = int(chosen.group(2)) * 2 >= 10
+    assert re.search(r"episode 1: return \S+, \d+ steps, (success|failure)", out).group(1) == (
+        "success" if majority_succeeded else "failure"), out
