@@ -11,3 +11,33 @@ def _one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+def _built(monkeypatch, cuda: bool):
+    """The compiled ops (built on first use, even where ``SB3_SPIKEPLASTIC_NO_COMPILE`` is set), or a skip naming
+    the build error."""
+    import warnings
+
+    from sb3_spikeplastic import _fast
+
+    monkeypatch.delenv(_fast.NO_COMPILE_ENV, raising=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        ops = _fast.load_cuda_ops() if cuda else _fast.load_ops()
+    if ops is None:
+        pytest.skip(f"{'CUDA' if cuda else 'compiled'} ops unavailable: {_fast.build_error(cuda=cuda)}")
+    return ops
+
+
+@pytest.fixture
+def compiled_ops(monkeypatch):
+    """The compiled CPU ops; skips where they cannot be built."""
+    return _built(monkeypatch, cuda=False)
+
+
+@pytest.fixture
+def compiled_cuda_ops(monkeypatch):
+    """The compiled CUDA ops; skips without a CUDA device or where they cannot be built."""
+    if not torch.cuda.is_available():
+        pytest.skip("needs a CUDA device")
+    return _built(monkeypatch, cuda=True)

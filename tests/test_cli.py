@@ -12,6 +12,7 @@ import matplotlib.image
 import numpy as np
 import pytest
 import yaml
+from helpers import run_cli
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from sb3_spikeplastic import PPO, cli
@@ -23,12 +24,6 @@ TINY_TMAZE = ["n_envs=2", "n_steps=32", "batch_size=32", "bptt_steps=16", "n_epo
 TINY_CHEETAH = ["n_envs=1", "n_steps=32", "batch_size=32", "bptt_steps=16", "n_epochs=1",
                 "policy_kwargs.hidden_sizes=[16]", "policy_kwargs.steps=10", "policy_kwargs.encoder_pop_size=8",
                 "policy_kwargs.action_pop_size=4", "env_kwargs.max_episode_steps=20"]
-
-
-def run_cli(capsys, *argv):
-    code = cli.main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def assert_png(path: Path):

@@ -221,18 +221,11 @@ def test_decoder_gradchecks():
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["f32", "f64"])
-def test_compiled_sampler_is_bit_identical_to_the_eager_hash(monkeypatch, dtype):
+def test_compiled_sampler_is_bit_identical_to_the_eager_hash(compiled_ops, monkeypatch, dtype):
     """The compiled sampler (``_fast.bernoulli_spikes``) against the eager int32 hash, including keys with the
     sign bit set and probabilities 0 and 1; and ``SB3_SPIKEPLASTIC_NO_COMPILE`` gives the eager spikes."""
-    import warnings
-
     from sb3_spikeplastic import _fast
 
-    monkeypatch.delenv(_fast.NO_COMPILE_ENV, raising=False)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        if _fast.load_ops() is None:
-            pytest.skip(f"compiled ops unavailable: {_fast.build_error()}")
     sampler = CounterBernoulli()
     keys = torch.tensor([0, -1, 2**31 - 1, -(2**31), 12345, -987654], dtype=torch.int32)
     p = torch.rand(6, 37, generator=torch.Generator().manual_seed(0), dtype=dtype)

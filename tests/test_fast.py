@@ -11,7 +11,6 @@ import math
 import os
 import subprocess
 import sys
-import warnings
 
 import numpy as np
 import pytest
@@ -39,15 +38,9 @@ DTYPES = [torch.float32, torch.float64]
 
 
 @pytest.fixture
-def compiled(monkeypatch):
-    """The compiled op (built on first use); skips, naming the build error, where it cannot be built."""
-    monkeypatch.delenv(_fast.NO_COMPILE_ENV, raising=False)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        ops = _fast.load_ops()
-    if ops is None:
-        pytest.skip(f"compiled ops unavailable: {_fast.build_error()}")
-    return ops.srm_loop
+def compiled(compiled_ops):
+    """The compiled SRM loop (skips where the ops cannot be built)."""
+    return compiled_ops.srm_loop
 
 
 def constants(p: SRMParameters) -> tuple[float, float]:
@@ -235,17 +228,9 @@ def test_no_compile_at_import():
 
 
 @pytest.fixture
-def compiled_cuda(monkeypatch):
-    """The CUDA op (built on first use); skips without a CUDA device or, naming the error, where it cannot be built."""
-    if not torch.cuda.is_available():
-        pytest.skip("needs a CUDA device")
-    monkeypatch.delenv(_fast.NO_COMPILE_ENV, raising=False)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        ops = _fast.load_cuda_ops()
-    if ops is None:
-        pytest.skip(f"CUDA op unavailable: {_fast.build_error(cuda=True)}")
-    return ops.srm_loop
+def compiled_cuda(compiled_cuda_ops):
+    """The CUDA SRM loop (skips without a CUDA device or where it cannot be built)."""
+    return compiled_cuda_ops.srm_loop
 
 
 def to_cuda(syn, state):

@@ -125,9 +125,9 @@ def test_nonfinite_gradient_skips_the_step_counts_it_and_warns_once():
 
 
 @pytest.mark.slow
-def test_short_run_of_the_shipped_entry_runs_forward():
-    """100k steps of the shipped entry (~6 min on one core): the deterministic policy runs forward, far above a
-    uniformly random policy (about -280 per episode) and above standing still (about 0)."""
+def test_short_run_of_the_shipped_entry_passes_a_return_of_1500():
+    """100k steps of the shipped entry (~6 min on one core): the deterministic policy passes a return of 1500, as
+    the README says, far above a uniformly random policy (about -280 per episode) and standing still (about 0)."""
     from stable_baselines3.common.evaluation import evaluate_policy
 
     model = shipped_model()
@@ -136,18 +136,7 @@ def test_short_run_of_the_shipped_entry_runs_forward():
     eval_env = VecNormalize(make_vec_env(ENV_ID, 1, seed=123), training=False, norm_reward=False)
     eval_env.obs_rms = train_env.obs_rms
     trained, _ = evaluate_policy(model, eval_env, n_eval_episodes=5, deterministic=True)
-    rng = np.random.default_rng(0)
-    random_env = gym.make(ENV_ID)
-    random_returns = []
-    for episode in range(3):
-        random_env.reset(seed=episode)
-        done, total = False, 0.0
-        while not done:
-            _, reward, terminated, truncated, _ = random_env.step(rng.uniform(-1, 1, 6))
-            total += reward
-            done = terminated or truncated
-        random_returns.append(total)
-    assert trained > max(200.0, np.mean(random_returns) + 400.0), (trained, random_returns)
+    assert trained > 1500.0, trained
 
 
 def test_auto_threads_split_the_halfcheetah_entry_but_not_small_policies():

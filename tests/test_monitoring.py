@@ -65,7 +65,11 @@ def test_rollout_scalars_discrete():
     model.learn(64, callback=lambda _locals, _globals: calls.append(1) or True)
     assert len(calls) == 64 // 2  # the user's callback ran at every rollout step
     values = written.values
-    assert 0.0 <= values["snn/layer0/spike_rate"] <= 1.0 and 0.0 <= values["snn/layer0/silent_fraction"] <= 1.0
+    # spikes per step and neuron, at most one per 1 ms network step: the rate, silent neurons contributing nothing
+    rate, silent = values["snn/layer0/spike_rate"], values["snn/layer0/silent_fraction"]
+    assert 0.0 < rate <= 1.0 - silent
+    snn = model.policy.snn
+    assert values["snn/layer0/spikes_per_step"] == pytest.approx(rate * snn.sizes[1] * snn.steps, rel=1e-5)
     for key in ("snn/layer0/spike_rate", "snn/layer0/silent_fraction", "snn/layer1/spike_rate",
                 "plasticity/layer0/eta", "plasticity/layer0/trace_abs_mean", "plasticity/layer0/trace_clip_fraction",
                 "plasticity/layer0/alpha_abs_mean", "plasticity/layer0/modulation_mean",
@@ -136,7 +140,10 @@ def test_record_episode_tmaze_is_complete_and_leaves_global_rng_alone():
     assert [m.shape for m in activity.membrane] == [(total, 16), (total, 2)]
     assert activity.traces[0].shape == (activity.n_steps, 16, 40)
     assert activity.modulation == [None, None]  # dp-bcm is not neuromodulated
-    assert activity.info["is_success"] in (True, False)
+    maze = TMazeCueEnv()
+    maze.reset(seed=3)  # the same episode: its cues decide the correct arm
+    assert activity.info["correct_action"] == maze.correct_action
+    assert activity.info["is_success"] == (int(activity.actions[-1]) == maze.correct_action)
     assert [g[0] for g in activity.input_groups] == ["left cue", "right cue", "decision", "noise"]
     # the recorded raster is the environment's: same seed, same spikes
     first, _ = TMazeCueEnv().reset(seed=3)

@@ -1,7 +1,6 @@
 """``sb3-spikeplastic optimize``: the search space, trials with intermediate evaluations and pruning, the best
 entry that ``train --conf`` reads, and bad input."""
 
-import math
 
 import optuna
 import pytest
@@ -125,7 +124,9 @@ def test_the_packaged_space_samples_consistent_spiking_entries():
         assert -0.5 <= entry["policy_kwargs"]["alpha_init_mean"] <= 0.5
     for space, overrides, entry in sampled_entries("HalfCheetah-v5", conf="mlp", n=3):  # no spiking keys for an MLP
         assert not any(k.startswith("policy_kwargs.") or k == "bptt_steps" for k in space)
-        assert math.isfinite(entry["learning_rate"])
+        low, high = space["learning_rate"][1]  # sampled on the log scale of the space, and applied
+        sampled = next(float(o.split("=", 1)[1]) for o in overrides if o.startswith("learning_rate="))
+        assert low <= sampled <= high and entry["learning_rate"] == pytest.approx(sampled)
 
 
 #: Options and the error each gives.

@@ -7,9 +7,11 @@ import gymnasium
 import numpy as np
 import pytest
 from stable_baselines3 import PPO
+from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-from sb3_spikeplastic.robustness import RobustnessRow, evaluate_robustness, format_table, write_csv
+from sb3_spikeplastic.robustness import RobustnessRow, evaluate_robustness, format_table, write_csv, write_report
 
 SHORT = {"max_episode_steps": 5}
 
@@ -59,7 +61,12 @@ def test_end_to_end_with_ppo(tmp_path):
     rows = evaluate_robustness(models, "HalfCheetah-v5", "action", [0.5, 0.1], progress_bar=True, **kwargs)
 
     assert [(r.model, r.sigma) for r in rows] == [(m, s) for m in models for s in (0.0, 0.1, 0.5)]
-    assert all(isinstance(r, RobustnessRow) and r.n_episodes == 2 and r.noise_type == "action" for r in rows)
+    assert all(r.n_episodes == 2 and r.noise_type == "action" for r in rows)
+    # the noise-free cell is SB3's own evaluation of the plain environment, seeded alike
+    plain = DummyVecEnv([lambda: Monitor(gymnasium.make("HalfCheetah-v5", max_episode_steps=20))])
+    plain.seed(0)
+    returns, _ = evaluate_policy(model, plain, n_eval_episodes=2, deterministic=True, return_episode_rewards=True)
+    assert (rows[0].mean_return, rows[0].std_return) == pytest.approx((np.mean(returns), np.std(returns)))
     assert all(r.ratio == 1.0 for r in rows if r.sigma == 0.0)
     for r in rows:
         baseline = next(b for b in rows if b.model == r.model and b.sigma == 0.0)
@@ -126,3 +133,15 @@ def test_return_ratio_reads_as_kept_performance_for_negative_returns_too():
     assert return_ratio(-1.62, -5.33) == pytest.approx(1 + 3.71 / 5.33)  # less negative: better, above 1
     assert return_ratio(-10.66, -5.33) == pytest.approx(0.0)  # twice as negative: below 1
     assert math.isnan(return_ratio(3.0, 0.0))
+
+
+def test_report_is_written_as_csv_markdown_and_figure(tmp_path):
+    rows = [RobustnessRow("oja", "obs", sigma, mean, 1.0, 3, mean / 10.0) for sigma, mean in ((0.0, 10.0), (0.2, 7.5))]
+    table, paths = write_report(rows, tmp_path / "out", "HalfCheetah-v5", "obs", 3)
+    stem = tmp_path / "out" / "robustness_HalfCheetah-v5_obs"
+    assert paths == [stem.with_suffix(".csv"), stem.with_suffix(".md"), stem.with_suffix(".png")]
+    assert table == format_table(rows) and stem.with_suffix(".md").read_text() == table + "\n"
+    with stem.with_suffix(".csv").open() as f:
+        read = list(csv.DictReader(f))
+    assert [(r["sigma"], r["mean_return"], r["ratio"]) for r in read] == [("0.0", "10.0", "1.0"), ("0.2", "7.5", "0.75")]
+    assert stem.with_suffix(".png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

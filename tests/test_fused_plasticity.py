@@ -1,6 +1,7 @@
-"""The fused trace update (``_fast.trace_step``, used by every built-in rule's ``step``) against the eager ops.
+"""The compiled plasticity ops against the eager ones: the fused trace update (``_fast.trace_step``, used by every
+built-in rule's ``step``), the plastic layer's product (``plastic_linear``) and the sparse spike products.
 
-Forward values and all four gradients (E, post, pre, eta) are compared with the eager
+For the trace update, forward values and all four gradients (E, post, pre, eta) are compared with the eager
 ``hebbian_update(...).clamp`` on traces where about half the synapses are at the clip bound, and the op is
 gradchecked in float64. The rules themselves are checked against NumPy in ``test_plasticity.py``.
 """
@@ -9,7 +10,6 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import warnings
 
 import pytest
 import torch
@@ -31,15 +31,6 @@ from sb3_spikeplastic.plasticity import (
 TOL = {torch.float32: dict(rtol=1e-5, atol=1e-6), torch.float64: dict(rtol=1e-12, atol=1e-12)}
 
 
-@pytest.fixture
-def fused(monkeypatch):
-    monkeypatch.delenv(_fast.NO_COMPILE_ENV, raising=False)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        if _fast.load_ops() is None:
-            pytest.skip(f"compiled ops unavailable: {_fast.build_error()}")
-
-
 def case(dtype, B=3, O=5, I=9, seed=0, scale=3.0):
     g = torch.Generator().manual_seed(seed)
     E = (torch.rand(B, O, I, generator=g, dtype=dtype) * 1.6 - 0.8).requires_grad_()
@@ -52,7 +43,7 @@ def case(dtype, B=3, O=5, I=9, seed=0, scale=3.0):
 
 @pytest.mark.parametrize("oja", [False, True], ids=["hebb", "oja"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["f32", "f64"])
-def test_fused_equals_eager_values_and_gradients(fused, dtype, oja):
+def test_fused_equals_eager_values_and_gradients(compiled_ops, dtype, oja):
     E, post, pre, eta, upstream = case(dtype)
     e_max = 0.5
     out = _fast.trace_step(E, post, pre, eta, e_max, oja)
@@ -69,13 +60,13 @@ def test_fused_equals_eager_values_and_gradients(fused, dtype, oja):
 
 
 @pytest.mark.parametrize("oja", [False, True], ids=["hebb", "oja"])
-def test_fused_gradcheck(fused, oja):
+def test_fused_gradcheck(compiled_ops, oja):
     E, post, pre, eta, _ = case(torch.float64, scale=0.5)  # keep x off the clip's kinks
     assert torch.autograd.gradcheck(lambda *a: _fast.trace_step(*a, 0.9, oja), (E, post, pre, eta))
 
 
 @pytest.mark.parametrize("name", ["dp-linear", "dp-oja", "dp-bcm", "ndp-oja", "ndp-bcm"])
-def test_rule_step_fused_equals_eager_update_and_paper_function(fused, monkeypatch, name):
+def test_rule_step_fused_equals_eager_update_and_paper_function(compiled_ops, monkeypatch, name):
     """``step`` (fused) == ``update`` + clamp (eager) == the paper's pure function, values and gradients."""
     torch.manual_seed(3)
     rule = get_rule_class(name)(7, 4, e_max=0.3, eta_init=0.5).double()
@@ -122,7 +113,7 @@ def test_hebbian_trace_step_falls_back_when_disabled(monkeypatch):
                                rtol=0, atol=0)
 
 
-def test_unsupported_inputs_are_left_to_eager(fused):
+def test_unsupported_inputs_are_left_to_eager(compiled_ops):
     E, post, pre, eta, _ = case(torch.float32)
     assert _fast.trace_step(E.double(), post, pre, eta, 0.5, True) is None  # mixed dtypes
     assert _fast.trace_step(E.half(), post.half(), pre.half(), eta.half(), 0.5, True) is None
@@ -132,7 +123,7 @@ def test_unsupported_inputs_are_left_to_eager(fused):
 
 @pytest.mark.parametrize("x_grad", [True, False], ids=["x-grad", "no-x-grad"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["f32", "f64"])
-def test_fused_plastic_linear_equals_eager(fused, dtype, x_grad):
+def test_fused_plastic_linear_equals_eager(compiled_ops, dtype, x_grad):
     """``x[b] (W + alpha * E[b])^T`` and its four gradients against ``addcmul`` + ``matmul``; without a
     gradient for ``x`` (the input layer's spikes) none is computed."""
     g = torch.Generator().manual_seed(1)
@@ -154,7 +145,7 @@ def test_fused_plastic_linear_equals_eager(fused, dtype, x_grad):
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["f32", "f64"])
-def test_fused_plastic_linear_one_environment_per_block(fused, dtype):
+def test_fused_plastic_linear_one_environment_per_block(compiled_ops, dtype):
     """At the paper network's sizes (600 -> 64) a block holds one environment, whose products call BLAS directly
     (where torch's MKL exports it; the input gradient runs small_gemm.h's kernel where the CPU has FMA): the output
     and its four gradients equal the eager ops, for both layouts of the product (64 -> 600 too). The input
@@ -179,7 +170,7 @@ def test_fused_plastic_linear_one_environment_per_block(fused, dtype):
 
 @pytest.mark.parametrize("rows", [1, 5, 6, 11, 50])
 @pytest.mark.parametrize("n_in", [64, 128, 72], ids=["kernel", "kernel-128", "blas"])
-def test_input_gradient_of_one_environment_per_block(fused, rows, n_in):
+def test_input_gradient_of_one_environment_per_block(compiled_ops, rows, n_in):
     """The input gradient ``dY (W + alpha * E[b])`` of a block of one float32 environment (a 600-output layer):
     small_gemm.h's register tiles (6 rows at a time, then the remaining 1-5; ``n_in`` a multiple of 16) or BLAS
     (other ``n_in``), against the same product in float64. Its error stays within float32 rounding of the
@@ -202,7 +193,7 @@ def test_input_gradient_of_one_environment_per_block(fused, rows, n_in):
 @pytest.mark.parametrize("n_in, n_out", [(9, 5), (600, 64)], ids=["blocks", "one-environment-per-block"])
 @pytest.mark.parametrize("rows_grad", [True, False], ids=["rows-grad", "no-rows-grad"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["f32", "f64"])
-def test_fused_plastic_linear_with_carried_rows(fused, dtype, rows_grad, n_in, n_out):
+def test_fused_plastic_linear_with_carried_rows(compiled_ops, dtype, rows_grad, n_in, n_out):
     """Rows carried beside ``x`` (a layer's PSP state), multiplied in the pass that builds the efficacy: the product
     of ``[x; carried]`` and its five gradients against the eager ops on the concatenated rows, with and without
     gradients for the rows; the carried rows' part of the weight gradients is not lost when their products get no
@@ -237,7 +228,7 @@ def test_fused_plastic_linear_with_carried_rows(fused, dtype, rows_grad, n_in, n
 
 
 @pytest.mark.parametrize("threads", [1, 2])
-def test_fused_plastic_linear_splits_environments_between_threads(fused, threads):
+def test_fused_plastic_linear_splits_environments_between_threads(compiled_ops, threads):
     """Environments big enough to be split between threads (each thread sums its own dW and dalpha): values and
     gradients equal the eager ops for any thread count, and ``x``'s gradient comes out even though the pool's
     threads start with autograd on."""
@@ -260,7 +251,7 @@ def test_fused_plastic_linear_splits_environments_between_threads(fused, threads
 
 
 @pytest.mark.parametrize("rule", ["dp-oja", "ndp-bcm"])
-def test_network_gradients_with_and_without_compiled_ops(fused, monkeypatch, rule):
+def test_network_gradients_with_and_without_compiled_ops(compiled_ops, monkeypatch, rule):
     """A 4-step BPTT sequence through a 2-layer plastic network (float64, so that no spike flips on rounding):
     every parameter's gradient agrees between the compiled path and pure PyTorch."""
     from sb3_spikeplastic.coding import DiscreteDecoder, RasterInput
@@ -292,7 +283,7 @@ def test_network_gradients_with_and_without_compiled_ops(fused, monkeypatch, rul
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
-def test_cuda_uses_eager_and_matches_cpu(fused):
+def test_cuda_uses_eager_and_matches_cpu(compiled_ops):
     E, post, pre, eta, _ = case(torch.float32)
     terms = HebbianTerms(post.cuda(), pre.cuda(), True)
     gpu = hebbian_trace_step(E.cuda(), eta.cuda(), terms, 0.5)
@@ -300,7 +291,7 @@ def test_cuda_uses_eager_and_matches_cpu(fused):
     torch.testing.assert_close(gpu.cpu(), cpu, rtol=1e-5, atol=1e-6)
 
 
-def test_user_rule_with_hebbian_terms_runs_the_fused_update(fused, monkeypatch):
+def test_user_rule_with_hebbian_terms_runs_the_fused_update(compiled_ops, monkeypatch):
     from sb3_spikeplastic.plasticity import PlasticityRule
 
     class Covariance(PlasticityRule):
@@ -319,7 +310,7 @@ def test_user_rule_with_hebbian_terms_runs_the_fused_update(fused, monkeypatch):
     torch.testing.assert_close(stepped, rule.update(r_pre, r_post, state).trace.clamp(-0.2, 0.2), rtol=1e-12, atol=1e-12)
 
 
-def test_pool_threads_follow_the_callers_flush_denormal_mode(fused):
+def test_pool_threads_follow_the_callers_flush_denormal_mode(compiled_ops):
     """Products whose sums are subnormal floats: after ``torch.set_flush_denormal(True)`` every environment's
     result is 0, whichever thread computed it (the pool's threads are started before the mode is set). In a
     subprocess: the mode and the pool are process-wide."""
@@ -339,7 +330,7 @@ print(kept, bool((_fast.plastic_linear(x, W, alpha, E) == 0).all()))
 
 
 @pytest.fixture
-def spike_limit(fused):
+def spike_limit(compiled_ops):
     """Sets the spike products' density limit for one test and restores it."""
     before = _fast.spike_density_limit()
     yield _fast.spike_density_limit
