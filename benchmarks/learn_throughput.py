@@ -10,7 +10,9 @@ Two groups of rows, each algorithm at one and at every other requested torch thr
 * the shipped CPU entry (``entry``: ``ppo.yml``'s HalfCheetah-v5, 17 x 10 inputs, T = 10, its own settings)
   against ``entry-recurrent`` (``ppo_lstm.yml``: RecurrentPPO with the same PPO settings as the entry);
 * ``tmaze``: the T-maze entry (``ppo.yml``'s TMazeCue-v0), the small network that ``train --torch-threads auto``
-  keeps on one thread.
+  keeps on one thread;
+* ``bare`` and ``bare-mlp``: ``PPO("SpikePlasticPolicy", "HalfCheetah-v5")`` and ``PPO("MlpPolicy",
+  "HalfCheetah-v5")`` with every default (one environment).
 
 Every row runs in a process of its own (its thread count set first; its peak RSS its own) and times, after one
 warm-up rollout + update, the rollouts + updates that cover one whole episode of every environment (HalfCheetah:
@@ -62,6 +64,8 @@ LABELS = {
     "entry": "SpikePlastic CPU entry (ppo.yml, dp-oja)",
     "entry-recurrent": "RecurrentPPO, the entry's settings (ppo_lstm.yml)",
     "tmaze": "SpikePlastic T-maze entry (ppo.yml, TMazeCue-v0)",
+    "bare": 'PPO("SpikePlasticPolicy", "HalfCheetah-v5"), every default',
+    "bare-mlp": 'PPO("MlpPolicy", "HalfCheetah-v5"), every default',
 }
 #: (spiking row, baseline row) pairs whose throughput ratio is reported and checked
 RATIOS = {"ndp-oja / recurrent": ("ndp-oja", "recurrent"), "entry / entry-recurrent": ("entry", "entry-recurrent")}
@@ -125,6 +129,8 @@ def make_model(key: str, device: str):
         from sb3_contrib import RecurrentPPO
 
         return RecurrentPPO(h.policy, env, seed=0, device=device, **h.model_kwargs)
+    if key in ("bare", "bare-mlp"):  # the one-line models, as a new user builds them
+        return PPO("SpikePlasticPolicy" if key == "bare" else "MlpPolicy", ENV_ID, seed=0, device=device)
     env = make_vec_env(ENV_ID, n_envs=8, seed=0)
     common = dict(COMMON, device=device)
     if key == "mlp":
