@@ -44,6 +44,8 @@ from grid_common import cli, run_one
 
 ENV = "HalfCheetah-v5"
 STABILISED = ["policy_kwargs.rule_kwargs.modulation=tanh", "policy_kwargs.rule_kwargs.wm_init_gain=5"]
+#: The plain NDP variants are the rules as the paper writes them (their default modulation is the bounded one).
+PAPER_FORM = ["policy_kwargs.rule_kwargs.modulation=linear"]
 RULES = ("static", "dp-linear", "dp-oja", "dp-bcm", "ndp-oja", "ndp-bcm")
 VARIANTS = (*RULES, "ndp-oja+tanh", "ndp-bcm+tanh", "mlp", "ppo_lstm")
 NOISES = ("friction", "action", "obs")
@@ -74,7 +76,8 @@ def train_command(variant: str, seed: int, args: argparse.Namespace) -> list[str
         selection = ["--conf", variant]
     else:
         selection = ["--rule", variant.split("+")[0]]
-        overrides = [*(STABILISED if variant.endswith("+tanh") else []), *args.hyperparams]
+        form = STABILISED if variant.endswith("+tanh") else PAPER_FORM if variant.startswith("ndp-") else []
+        overrides = [*form, *args.hyperparams]
         selection += ["--hyperparams", *overrides] if overrides else []
     return [cli(), "train", "--env", ENV, *selection, "--seed", str(seed), "-n", str(args.n_timesteps),
             "-f", str(run_root(variant, seed, args)), "--eval-freq", str(args.eval_freq), "--eval-episodes",
