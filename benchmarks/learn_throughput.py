@@ -20,8 +20,9 @@ warm-up rollout + update, the rollouts + updates that cover one whole episode of
 an update's cost can depend on whether its rollout holds an episode start: sb3-contrib's RecurrentPPO runs its
 LSTM one step at a time through every sequence of such an update (``_process_sequence``), ~20 times slower than
 in one call, and on HalfCheetah that is one update in 3.9 (the warm-up is always one of them). Timing whole
-episodes measures each algorithm at its long-run average. It reports env-steps/s, peak RSS, the load average per core when the row started (rows started above 0.3 per
-core are marked BUSY, and a warning says their ratios are not to be quoted) and a roofline line:
+episodes measures each algorithm at its long-run average. It reports env-steps/s, peak RSS, the machine's state when the row started (the CPU fraction other processes
+used over 2 s: rows started above 0.3 are marked BUSY, and a warning says their ratios are not to be quoted; and
+the 1-minute load average per core, which still counts the previous rows' own work) and a roofline line:
 the dense multiply-adds of its networks per training env step (rollout forward + ``n_epochs`` x forward and
 backward, counting a backward pass as two forwards; for the spiking network ``T`` products per layer), as
 GFLOP/s achieved, against the machine's dense float32 matrix-product rate at the same thread count.
@@ -183,8 +184,8 @@ def run_row(key: str, threads: int, device: str, rollouts: Optional[int]) -> dic
     return row
 
 
-#: a row started at a 1-minute load average above this per core is marked busy: other processes slow the
-#: latency-bound baselines (RecurrentPPO's one-step LSTM) more than the spiking network, which skews the ratios
+#: a row started while other processes kept more than this fraction of the cores busy is marked busy: they slow
+#: the latency-bound baselines (RecurrentPPO's one-step LSTM) more than the spiking network, which skews the ratios
 BUSY_LOAD_PER_CORE = 0.3
 
 
@@ -192,17 +193,38 @@ def load_per_core() -> float:
     return os.getloadavg()[0] / (os.cpu_count() or 1)
 
 
+def busy_fraction(seconds: float = 2.0) -> float:
+    """The fraction of the machine's CPU time spent by other processes over ``seconds`` just before a row, from
+    ``/proc/stat`` (no row runs meanwhile). The 1-minute load average is recorded too, but it still counts the
+    previous rows' own work for a minute after they end; NaN where ``/proc/stat`` is missing."""
+
+    def times():
+        with open("/proc/stat") as f:
+            values = [int(x) for x in f.readline().split()[1:]]
+        idle = values[3] + (values[4] if len(values) > 4 else 0)
+        return sum(values) - idle, sum(values)
+
+    try:
+        busy0, total0 = times()
+        time.sleep(seconds)
+        busy1, total1 = times()
+    except OSError:
+        return float("nan")
+    return (busy1 - busy0) / max(total1 - total0, 1)
+
+
 def run_in_subprocess(key: str, threads: int, args) -> dict:
-    """One row in a process of its own, with the machine's load when it started (``load_per_core``, ``busy``)."""
+    """One row in a process of its own, with the machine's state when it started: the 1-minute load average per
+    core, the CPU fraction other processes used (``others_busy``) and ``busy`` when that is above the limit."""
     command = [sys.executable, __file__, "--row", key, "--threads", str(threads), "--device", args.device]
     if args.rollouts:
         command += ["--rollouts", str(args.rollouts)]
-    load = load_per_core()
+    load, others = load_per_core(), busy_fraction()
     result = subprocess.run(command, capture_output=True, text=True)
     if result.returncode != 0:
         raise RuntimeError(f"{key} with {threads} threads failed:\n{result.stderr[-3000:]}")
     row = json.loads(result.stdout.strip().splitlines()[-1])
-    return dict(row, load_per_core=round(load, 2), busy=load > BUSY_LOAD_PER_CORE)
+    return dict(row, load_per_core=round(load, 2), others_busy=round(others, 2), busy=others > BUSY_LOAD_PER_CORE)
 
 
 def ratios(rows: list[dict]) -> dict:
@@ -220,7 +242,7 @@ def print_row(row: dict) -> None:
     busy = "  BUSY" if row.get("busy") else ""
     print(f"{row['name']:52s} {row['threads']:7d} {row['env_steps_per_s']:11.1f} {row['peak_rss_mb']:7.0f} MB "
           f"{row['achieved_gflops']:8.1f} {row['achieved_gflops'] / row['matmul_gflops']:8.1%} "
-          f"{row.get('load_per_core', float('nan')):9.2f}{busy}", flush=True)
+          f"{row.get('others_busy', float('nan')):11.2f}{busy}", flush=True)
 
 
 def runs_flat(runs: dict) -> list[dict]:
@@ -268,7 +290,7 @@ def main(argv=None) -> int:
         print("sb3-contrib not installed (pip install -e '.[bench]'): RecurrentPPO rows skipped", file=sys.stderr)
         keys = [k for k in keys if "recurrent" not in k]
     print(f"{'row':52s} {'threads':>7s} {'env-steps/s':>11s} {'peak RSS':>9s} {'GFLOP/s':>8s} {'of matmul':>9s} "
-          f"{'load/core':>9s}")
+          f"{'others busy':>11s}")
     runs: dict[tuple[str, int], list[dict]] = {}
     for round_ in range(args.repeats):
         if args.repeats > 1:
@@ -288,9 +310,9 @@ def main(argv=None) -> int:
         print(f"{name} (each at its best thread count): {value:.3f}")
     busy = [row for row in runs_flat(runs) if row["busy"]]
     if busy:
-        print(f"WARNING: {len(busy)} of {len(runs_flat(runs))} rows started at a load above {BUSY_LOAD_PER_CORE} per "
-              "core (marked BUSY): other processes slow the baselines more than the spiking network; measure again "
-              "on a quiet machine before quoting a ratio", file=sys.stderr)
+        print(f"WARNING: {len(busy)} of {len(runs_flat(runs))} rows started while other processes used more than "
+              f"{BUSY_LOAD_PER_CORE:.0%} of the CPU (marked BUSY): they slow the baselines more than the spiking "
+              "network; measure again on a quiet machine before quoting a ratio", file=sys.stderr)
     result = dict(machine=describe_machine(max(threads)), settings=dict(vars(args), output=str(args.output),
                                                                         threads=threads),
                   rows=rows, ratios=found)
