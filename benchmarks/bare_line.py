@@ -118,14 +118,11 @@ CHECKS = [("HalfCheetah-v5", dict(rule=rule)) for rule in ("static", "dp-linear"
 
 
 def tmaze_success(model, episodes: int = 100) -> float:
-    """Deterministic success over the first ``episodes`` episodes that end in 20 seeded T-mazes."""
-    env = make_vec_env("TMazeCue-v0", n_envs=20, seed=123)
-    obs, state, starts, successes = env.reset(), None, np.ones(env.num_envs, bool), []
-    while len(successes) < episodes:
-        actions, state = model.predict(obs, state=state, episode_start=starts, deterministic=True)
-        obs, _, starts, infos = env.step(actions)
-        successes += [infos[i]["is_success"] for i in np.flatnonzero(starts)]
-    return float(np.mean(successes[:episodes]))
+    """Deterministic success over ``episodes`` episodes of 20 seeded T-mazes (``evaluate``'s own evaluation)."""
+    from sb3_spikeplastic.evaluation import evaluate_model
+    from sb3_spikeplastic.run_folder import make_eval_env
+
+    return evaluate_model(model, make_eval_env("TMazeCue-v0", 20, 123, {}), episodes).success_rate
 
 
 def check(env_id: str, policy_kwargs: dict, steps: int) -> dict:
