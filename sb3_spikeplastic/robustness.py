@@ -50,6 +50,9 @@ class RobustnessRow:
         (NaN if :math:`R_0 = 0`): the paper's :math:`R_\sigma / R_0` when :math:`R_0 > 0`, and for a negative
         :math:`R_0` still below 1 exactly when the noise lowers the return (a plain quotient would read -5.3 ->
         -1.6 as 0.3, a loss).
+    :param returns: every episode's return, sorted by (episode within its environment, environment): a position
+        holds the same seeded environment's same episode in every cell, which pairs the episodes of different
+        ``sigma`` and models.
     """
 
     model: str
@@ -59,6 +62,7 @@ class RobustnessRow:
     std_return: float
     n_episodes: int
     ratio: float
+    returns: tuple[float, ...] = ()
 
 
 def frozen_eval_env(make: Callable[[], gymnasium.Env], n_envs: int, seed: int,
@@ -118,7 +122,8 @@ def evaluate_robustness(
     :param env_kwargs: arguments of ``gymnasium.make`` for ``env_id`` (e.g. ``max_episode_steps``).
     :param n_envs: environments stepped side by side (batches the policy's forward pass).
     :param friction_target: the friction parameters perturbed by ``"friction"`` noise.
-    :return: one row per (model, ``sigma``), models in the given order, ``sigma`` increasing.
+    :return: one row per (model, ``sigma``), models in the given order, ``sigma`` increasing, with every episode's
+        return (:attr:`RobustnessRow.returns`).
     """
     noise_kwargs(noise_type, 0.0, friction_target)  # fail on a bad noise type or target before any work
     grid = sorted({0.0, *(float(s) for s in sigmas)})
@@ -141,9 +146,14 @@ def evaluate_robustness(
         total=len(models) * len(grid) * n_episodes, disable=not progress_bar, desc="robustness", unit="episode"
     ) as bar:
 
+        finished: list[tuple[int, int]] = []  # (episode within its environment, environment) of each return
+
         def count_episode(local_vars: dict[str, Any], _globals: dict[str, Any]) -> None:
-            # evaluate_policy calls back for every counted step; a Monitor "episode" entry marks a finished episode.
+            # evaluate_policy calls back for every counted step; a Monitor "episode" entry marks a finished episode,
+            # whose return evaluate_policy appends right after this call.
             if local_vars["done"] and "episode" in local_vars["info"]:
+                env = local_vars["i"]
+                finished.append((int(local_vars["episode_counts"][env]), env))
                 bar.update(1)
 
         for name, model in models.items():
@@ -155,6 +165,7 @@ def evaluate_robustness(
                 )
                 if not deterministic:
                     torch.manual_seed(seed)
+                finished.clear()
                 try:
                     returns, _ = evaluate_policy(
                         model,
@@ -166,11 +177,13 @@ def evaluate_robustness(
                     )
                 finally:
                     venv.close()
-                mean = float(np.mean(returns))
+                ordered = tuple(float(r) for _, r in sorted(zip(finished, returns), key=lambda pair: pair[0]))
+                mean = float(np.mean(ordered))
                 if sigma == 0.0:
                     baseline = mean
                 ratio = return_ratio(mean, baseline)
-                rows.append(RobustnessRow(name, noise_type, sigma, mean, float(np.std(returns)), len(returns), ratio))
+                rows.append(RobustnessRow(name, noise_type, sigma, mean, float(np.std(ordered)), len(ordered), ratio,
+                                          ordered))
     return rows
 
 
@@ -189,11 +202,30 @@ def write_csv(rows: Sequence[RobustnessRow], path: str | os.PathLike) -> Path:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    names = [field.name for field in dataclasses.fields(RobustnessRow)]
+    names = [field.name for field in dataclasses.fields(RobustnessRow) if field.name != "returns"]
     with path.open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=names)
         writer.writeheader()
-        writer.writerows(dataclasses.asdict(row) for row in rows)
+        writer.writerows({name: getattr(row, name) for name in names} for row in rows)
+    return path
+
+
+def write_episodes_csv(rows: Sequence[RobustnessRow], path: str | os.PathLike) -> Path:
+    """Write every episode's return, one line per (model, ``sigma``, episode) with the columns ``model``,
+    ``noise_type``, ``sigma``, ``episode`` (the position in :attr:`RobustnessRow.returns`) and ``return``: the raw
+    data of intervals over seeds and episodes.
+
+    :param rows: rows from :func:`evaluate_robustness`.
+    :param path: the file to write (parent folders are created).
+    :return: the path written.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["model", "noise_type", "sigma", "episode", "return"])
+        for row in rows:
+            writer.writerows([row.model, row.noise_type, row.sigma, k, r] for k, r in enumerate(row.returns))
     return path
 
 
@@ -217,10 +249,11 @@ def format_table(rows: Sequence[RobustnessRow]) -> str:
 
 def write_report(rows: Sequence[RobustnessRow], folder: str | os.PathLike, env_id: str, noise_type: str,
                  n_episodes: int) -> tuple[str, list[Path]]:
-    """Write ``robustness_<env_id>_<noise_type>`` ``.csv`` (:func:`write_csv`), ``.md`` (:func:`format_table`) and
-    ``.png`` (:func:`sb3_spikeplastic.figures.robustness_figure`) into ``folder`` (created if needed).
+    """Write ``robustness_<env_id>_<noise_type>`` ``.csv`` (:func:`write_csv`), ``.md`` (:func:`format_table`),
+    ``.png`` (:func:`sb3_spikeplastic.figures.robustness_figure`) and, when the rows hold their episodes,
+    ``_episodes.csv`` (:func:`write_episodes_csv`) into ``folder`` (created if needed).
 
-    :return: the Markdown table and the three files written.
+    :return: the Markdown table and the files written.
     """
     import matplotlib
 
@@ -235,7 +268,10 @@ def write_report(rows: Sequence[RobustnessRow], folder: str | os.PathLike, env_i
     atomic_write(stem.with_suffix(".md"), lambda f: f.write(table + "\n"), binary=False)
     fig = robustness_figure(rows, title=f"{env_id}: {noise_type} noise ({n_episodes} episodes per point)")
     fig.savefig(stem.with_suffix(".png"), dpi=120)
-    return table, [csv_path, stem.with_suffix(".md"), stem.with_suffix(".png")]
+    paths = [csv_path, stem.with_suffix(".md"), stem.with_suffix(".png")]
+    if any(row.returns for row in rows):
+        paths.append(write_episodes_csv(rows, stem.parent / f"{stem.name}_episodes.csv"))
+    return table, paths
 
 
 def parse_models(specs: Sequence[str]) -> dict[str, RunInfo]:

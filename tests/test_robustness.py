@@ -145,3 +145,25 @@ def test_report_is_written_as_csv_markdown_and_figure(tmp_path):
         read = list(csv.DictReader(f))
     assert [(r["sigma"], r["mean_return"], r["ratio"]) for r in read] == [("0.0", "10.0", "1.0"), ("0.2", "7.5", "0.75")]
     assert stem.with_suffix(".png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_every_episode_is_kept_in_environment_order_and_written(tmp_path):
+    """Returns are sorted by (episode within its environment, environment): positions 0 and 2 are environment 0's
+    two episodes, exactly what an evaluation of environment 0 alone (seeded alike) returns."""
+    from sb3_spikeplastic.robustness import write_episodes_csv
+
+    rows = evaluate_robustness({"stub": RecurrentStub()}, "HalfCheetah-v5", "friction", [0.3], n_episodes=4,
+                               n_envs=2, seed=7, progress_bar=False, env_kwargs=SHORT)
+    assert [len(r.returns) for r in rows] == [4, 4]
+    assert all(r.mean_return == pytest.approx(np.mean(r.returns)) for r in rows)
+    alone = evaluate_robustness({"stub": RecurrentStub()}, "HalfCheetah-v5", "friction", [0.3], n_episodes=2,
+                                n_envs=1, seed=7, progress_bar=False, env_kwargs=SHORT)
+    for together, single in zip(rows, alone):
+        assert together.returns[0::2] == pytest.approx(single.returns)
+    assert rows[1].returns[0] != rows[1].returns[1]  # the two environments differ: the order is not trivially right
+
+    path = write_episodes_csv(rows, tmp_path / "episodes.csv")
+    with path.open() as f:
+        read = list(csv.DictReader(f))
+    assert [(r["sigma"], r["episode"]) for r in read] == [(s, str(k)) for s in ("0.0", "0.3") for k in range(4)]
+    assert [float(r["return"]) for r in read] == pytest.approx([*rows[0].returns, *rows[1].returns])
