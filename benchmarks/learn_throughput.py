@@ -12,7 +12,12 @@ Two groups of rows, each algorithm at one and at every other requested torch thr
 * ``tmaze``: the T-maze entry (``ppo.yml``'s TMazeCue-v0), the small network that ``train --torch-threads auto``
   keeps on one thread;
 * ``bare`` and ``bare-mlp``: ``PPO("SpikePlasticPolicy", "HalfCheetah-v5")`` and ``PPO("MlpPolicy",
-  "HalfCheetah-v5")`` with every default (one environment).
+  "HalfCheetah-v5")`` with every default (one environment);
+* ``paper-conf``: the model of ``train --env HalfCheetah-v5 --conf paper`` (``paper.yml``: ndp-oja with the tanh
+  modulation, 6 environments x 500 steps, batch 1000, BPTT 20, VecNormalize), against ``recurrent``.
+
+``--n-envs N`` sets the number of environments of the paper rows (keeping 2048 transitions per update) and of
+``paper-conf`` (keeping ~3000): the sweep of a GPU's throughput against the batch of environments.
 
 Every row runs in a process of its own (its thread count set first; its peak RSS its own) and times, after one
 warm-up rollout + update, the rollouts + updates that cover one whole episode of every environment (HalfCheetah:
@@ -35,6 +40,8 @@ Usage (documented in benchmarks/README.md)::
     python benchmarks/learn_throughput.py --check              # compare the spiking/RecurrentPPO ratios with the committed result
     python benchmarks/learn_throughput.py --device cuda        # on the GPU (+ ndp-oja without CUDA graphs);
                                                                # writes benchmarks/results/learn_throughput_cuda.json
+    python benchmarks/learn_throughput.py --device cuda --only paper-conf recurrent --n-envs 32 \
+        --output benchmarks/results/learn_throughput_cuda_32envs.json
 """
 
 from __future__ import annotations
@@ -67,9 +74,15 @@ LABELS = {
     "tmaze": "SpikePlastic T-maze entry (ppo.yml, TMazeCue-v0)",
     "bare": 'PPO("SpikePlasticPolicy", "HalfCheetah-v5"), every default',
     "bare-mlp": 'PPO("MlpPolicy", "HalfCheetah-v5"), every default',
+    "paper-conf": "SpikePlastic train --conf paper (ndp-oja, tanh)",
 }
 #: (spiking row, baseline row) pairs whose throughput ratio is reported and checked
-RATIOS = {"ndp-oja / recurrent": ("ndp-oja", "recurrent"), "entry / entry-recurrent": ("entry", "entry-recurrent")}
+RATIOS = {"ndp-oja / recurrent": ("ndp-oja", "recurrent"), "entry / entry-recurrent": ("entry", "entry-recurrent"),
+          "paper-conf / recurrent": ("paper-conf", "recurrent")}
+#: Rows whose number of environments ``--n-envs`` sets, keeping the transitions per update: the paper rows' 2048
+#: (``n_steps = 2048 / n_envs``, a multiple of their BPTT length 32) and ``paper.yml``'s 3000 (``n_steps`` the
+#: multiple of its BPTT length 20 nearest to ``3000 / n_envs``).
+SCALABLE = ("mlp", "recurrent", "static", "ndp-oja", "ndp-oja-eager", "ndp-oja-two-passes", "paper-conf")
 
 
 def peak_rss_mb() -> float:
@@ -112,12 +125,21 @@ def matmul_gflops(device: str) -> float:
     return 2 * 1024**3 * repeats / (time.perf_counter() - start) / 1e9
 
 
-def make_model(key: str, device: str):
+def make_model(key: str, device: str, n_envs: Optional[int] = None):
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import VecNormalize
 
     from sb3_spikeplastic import PPO
     from sb3_spikeplastic.config import load_hyperparams
+
+    if key == "paper-conf":  # the command's model: its own PPO settings, VecNormalize, linear learning-rate decay
+        h = load_hyperparams(ENV_ID, "paper")
+        kwargs = dict(h.model_kwargs)
+        if n_envs:
+            bptt = kwargs["bptt_steps"]
+            kwargs["n_steps"] = max(bptt, round(3000 / n_envs / bptt) * bptt)
+        env = VecNormalize(make_vec_env(ENV_ID, n_envs=n_envs or h.n_envs, seed=0), **h.normalize)
+        return PPO(h.policy, env, seed=0, device=device, **kwargs)
 
     if key in ("entry", "entry-recurrent", "tmaze"):
         env_id = "TMazeCue-v0" if key == "tmaze" else ENV_ID
@@ -132,8 +154,8 @@ def make_model(key: str, device: str):
         return RecurrentPPO(h.policy, env, seed=0, device=device, **h.model_kwargs)
     if key in ("bare", "bare-mlp"):  # the one-line models, as a new user builds them
         return PPO("SpikePlasticPolicy" if key == "bare" else "MlpPolicy", ENV_ID, seed=0, device=device)
-    env = make_vec_env(ENV_ID, n_envs=8, seed=0)
-    common = dict(COMMON, device=device)
+    env = make_vec_env(ENV_ID, n_envs=n_envs or 8, seed=0)
+    common = dict(COMMON, device=device, n_steps=2048 // (n_envs or 8))
     if key == "mlp":
         return PPO("MlpPolicy", env, **common)
     if key == "recurrent":
@@ -156,16 +178,17 @@ def episode_rollouts(model) -> int:
     return 2 if not limit else max(2, math.ceil(limit / model.n_steps))
 
 
-def run_row(key: str, threads: int, device: str, rollouts: Optional[int]) -> dict:
-    """One row, in this process: build, warm up (first rollout + update: allocations, lazy compilation), time
-    ``rollouts`` rollouts + updates (default: :func:`episode_rollouts`)."""
+def run_row(key: str, threads: int, device: str, rollouts: Optional[int], n_envs: Optional[int] = None) -> dict:
+    """One row, in this process: build (with ``n_envs`` environments for :data:`SCALABLE` rows), warm up (first
+    rollout + update: allocations, lazy compilation), time ``rollouts`` rollouts + updates (default:
+    :func:`episode_rollouts`)."""
     import torch
 
     torch.set_num_threads(threads)
     from sb3_spikeplastic._fast.allocator import keep_freed_memory
 
     keep_freed_memory()  # as `sb3-spikeplastic train` does
-    model = make_model(key, device)
+    model = make_model(key, device, n_envs if key in SCALABLE else None)
     rollouts = rollouts or episode_rollouts(model)
     per_rollout = model.n_steps * model.n_envs
     model.learn(per_rollout)
@@ -174,7 +197,8 @@ def run_row(key: str, threads: int, device: str, rollouts: Optional[int]) -> dic
     seconds = time.perf_counter() - start
     steps_per_s = rollouts * per_rollout / seconds
     flops = 2 * dense_macs_per_step(model) * (1 + 3 * model.n_epochs)
-    row = dict(key=key, name=LABELS[key], threads=threads, timesteps=rollouts * per_rollout, seconds=seconds,
+    row = dict(key=key, name=LABELS[key], threads=threads, n_envs=model.n_envs, n_steps=model.n_steps,
+               timesteps=rollouts * per_rollout, seconds=seconds,
                env_steps_per_s=steps_per_s, peak_rss_mb=peak_rss_mb(), train_flops_per_step=flops,
                achieved_gflops=flops * steps_per_s / 1e9, matmul_gflops=matmul_gflops(device))
     if getattr(model, "network_state", None) is not None:
@@ -219,6 +243,8 @@ def run_in_subprocess(key: str, threads: int, args) -> dict:
     command = [sys.executable, __file__, "--row", key, "--threads", str(threads), "--device", args.device]
     if args.rollouts:
         command += ["--rollouts", str(args.rollouts)]
+    if args.n_envs:
+        command += ["--n-envs", str(args.n_envs)]
     load, others = load_per_core(), busy_fraction()
     result = subprocess.run(command, capture_output=True, text=True)
     if result.returncode != 0:
@@ -264,6 +290,8 @@ def main(argv=None) -> int:
     parser.add_argument("--threads", type=int, nargs="+",
                         help="torch thread counts to run every row at (default: 1 and the number of CPUs)")
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--n-envs", type=int, help="environments of the paper rows and paper-conf (the same "
+                        "transitions per update; default: 8, paper.yml's 6)")
     parser.add_argument("--only", nargs="*", choices=list(LABELS), help="a subset of the rows")
     parser.add_argument("--output", type=Path, help=f"default: {RESULTS} ({RESULTS_CUDA.name} with --device cuda)")
     parser.add_argument("--check", action="store_true",
@@ -276,7 +304,7 @@ def main(argv=None) -> int:
         parser.error(f"--repeats {args.repeats}: must be a positive number of rounds")
     cuda = args.device.startswith("cuda")
     if args.row:
-        print(json.dumps(run_row(args.row, args.threads[0], args.device, args.rollouts)))
+        print(json.dumps(run_row(args.row, args.threads[0], args.device, args.rollouts, args.n_envs)))
         return 0
     from machine import describe_machine, write_result  # benchmarks/machine.py (the script's folder is on sys.path)
 
