@@ -4,7 +4,8 @@ Run on a machine with a CUDA GPU, from the repository root, with the package and
 
     MUJOCO_GL=egl python benchmarks/gpu_check.py                 # -> benchmarks/results/gpu_check.md
     MUJOCO_GL=egl python benchmarks/gpu_check.py --pytest-args "-q -rfE -n 8"   # with pytest-xdist
-    MUJOCO_GL=egl python benchmarks/gpu_check.py --benchmark     # + learn_throughput.py --device cuda
+    MUJOCO_GL=egl python benchmarks/gpu_check.py --only benchmark   # learn_throughput.py --device cuda
+    MUJOCO_GL=egl python benchmarks/gpu_check.py --only sweep       # env-steps/s against the number of environments
 
 Each check runs as its own subprocess with a time limit; the verdict is one table (check, PASS/FAIL, seconds, what
 it measured), printed and written as Markdown with the machine, torch and CUDA versions. Logs of every check go to
@@ -17,7 +18,9 @@ it measured), printed and written as Markdown with the machine, torch and CUDA v
 * ``cuda -> cpu`` / ``cpu -> cuda``: a model saved on one device loads on the other and takes the same
   deterministic actions over 60 steps, the recurrent state carried through (float tolerance; the T-maze's actions
   under its action masks, as the environment takes them);
-* ``paper network``: ``train --conf paper --device cuda`` for a short run, its env-steps/s.
+* ``paper network``: ``train --conf paper --device cuda`` for a short run, its env-steps/s;
+* ``sweep`` (only when asked): ``learn_throughput.py``'s ``paper-conf`` and ``recurrent`` rows with 8, 16, 32 and
+  64 environments, each written to ``benchmarks/results/learn_throughput_cuda_<N>envs.json``.
 """
 
 from __future__ import annotations
@@ -36,7 +39,9 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 #: the groups of checks, in the order they run
-GROUPS = ("suite", "tmaze", "cheetah", "rules", "devices", "paper", "benchmark")
+GROUPS = ("suite", "tmaze", "cheetah", "rules", "devices", "paper", "benchmark", "sweep")
+#: environments of the ``sweep`` group's rows
+SWEEP_ENVS = (8, 16, 32, 64)
 CLI = [sys.executable, "-m", "sb3_spikeplastic.cli"]
 
 #: the cross-device check, run in a subprocess: ``python -c CROSS_DEVICE <model.zip> <env id> <from> <to>``
@@ -167,9 +172,10 @@ def main(argv=None) -> int:
     parser.add_argument("--logs", type=Path, default=None, help="folder for every check's log (default: a temp dir)")
     parser.add_argument("--pytest-args", default="-q -p no:cacheprovider -rfE",
                         help="arguments of the suite's pytest (default: %(default)s)")
-    parser.add_argument("--only", nargs="+", choices=GROUPS, default=[g for g in GROUPS if g != "benchmark"],
+    parser.add_argument("--only", nargs="+", choices=GROUPS,
+                        default=[g for g in GROUPS if g not in ("benchmark", "sweep")],
                         help="groups of checks to run (default: all but benchmark)")
-    parser.add_argument("--benchmark-args", default="--only ndp-oja recurrent entry entry-recurrent",
+    parser.add_argument("--benchmark-args", default="--only ndp-oja recurrent entry entry-recurrent paper-conf",
                         help="arguments of learn_throughput.py --device cuda (default: %(default)s)")
     args = parser.parse_args(argv)
     import torch
@@ -235,6 +241,12 @@ def main(argv=None) -> int:
     if "benchmark" in args.only:
         check("learn_throughput --device cuda", [sys.executable, "benchmarks/learn_throughput.py", "--device", "cuda",
                                                  *args.benchmark_args.split()], timeout=1800, cwd=ROOT)
+    if "sweep" in args.only:  # throughput against the number of environments, the same rollout size
+        for n_envs in SWEEP_ENVS:
+            check(f"learn_throughput, {n_envs} environments",
+                  [sys.executable, "benchmarks/learn_throughput.py", "--device", "cuda", "--only", "paper-conf",
+                   "recurrent", "--threads", "1", "--n-envs", str(n_envs), "--output",
+                   f"benchmarks/results/learn_throughput_cuda_{n_envs}envs.json"], timeout=900, cwd=ROOT)
 
     passed = write_verdict(rows, args.output, argv)
     print(f"\n{passed} of {len(rows)} checks passed; logs in {logs}; verdict in {args.output}")
