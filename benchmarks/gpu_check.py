@@ -174,7 +174,7 @@ def main(argv=None) -> int:
                         help="arguments of the suite's pytest (default: %(default)s)")
     parser.add_argument("--only", nargs="+", choices=GROUPS,
                         default=[g for g in GROUPS if g not in ("benchmark", "sweep")],
-                        help="groups of checks to run (default: all but benchmark)")
+                        help="groups of checks to run (default: all but benchmark and sweep)")
     parser.add_argument("--benchmark-args", default="--only ndp-oja recurrent entry entry-recurrent paper-conf",
                         help="arguments of learn_throughput.py --device cuda (default: %(default)s)")
     args = parser.parse_args(argv)
