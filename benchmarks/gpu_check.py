@@ -20,7 +20,8 @@ it measured), printed and written as Markdown with the machine, torch and CUDA v
   under its action masks, as the environment takes them);
 * ``paper network``: ``train --conf paper --device cuda`` for a short run, its env-steps/s;
 * ``sweep`` (only when asked): ``learn_throughput.py``'s ``paper-conf`` and ``recurrent`` rows with 8, 16, 32 and
-  64 environments, each written to ``benchmarks/results/learn_throughput_cuda_<N>envs.json``.
+  64 environments, each written to ``benchmarks/results/learn_throughput_cuda_<N>envs.json``, and 2 and 4
+  ``paper-conf`` trainings at once (``learn_throughput_cuda_x<K>.json``).
 """
 
 from __future__ import annotations
@@ -247,6 +248,11 @@ def main(argv=None) -> int:
                   [sys.executable, "benchmarks/learn_throughput.py", "--device", "cuda", "--only", "paper-conf",
                    "recurrent", "--threads", "1", "--n-envs", str(n_envs), "--output",
                    f"benchmarks/results/learn_throughput_cuda_{n_envs}envs.json"], timeout=900, cwd=ROOT)
+        for concurrent in (2, 4):  # several trainings sharing the GPU, as a grid runs them
+            check(f"learn_throughput, {concurrent} trainings at once",
+                  [sys.executable, "benchmarks/learn_throughput.py", "--device", "cuda", "--only", "paper-conf",
+                   "--threads", "1", "--concurrent", str(concurrent), "--output",
+                   f"benchmarks/results/learn_throughput_cuda_x{concurrent}.json"], timeout=900, cwd=ROOT)
 
     passed = write_verdict(rows, args.output, argv)
     print(f"\n{passed} of {len(rows)} checks passed; logs in {logs}; verdict in {args.output}")

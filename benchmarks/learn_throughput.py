@@ -18,6 +18,8 @@ Two groups of rows, each algorithm at one and at every other requested torch thr
 
 ``--n-envs N`` sets the number of environments of the paper rows (keeping 2048 transitions per update) and of
 ``paper-conf`` (keeping ~3000): the sweep of a GPU's throughput against the batch of environments.
+``--concurrent K`` runs K copies of each row at once and reports their summed env-steps/s (several trainings
+sharing one GPU).
 
 Every row runs in a process of its own (its thread count set first; its peak RSS its own) and times, after one
 warm-up rollout + update, the rollouts + updates that cover one whole episode of every environment (HalfCheetah:
@@ -239,17 +241,31 @@ def busy_fraction(seconds: float = 2.0) -> float:
 
 def run_in_subprocess(key: str, threads: int, args) -> dict:
     """One row in a process of its own, with the machine's state when it started: the 1-minute load average per
-    core, the CPU fraction other processes used (``others_busy``) and ``busy`` when that is above the limit."""
+    core, the CPU fraction other processes used (``others_busy``) and ``busy`` when that is above the limit.
+
+    With ``--concurrent K`` the row's process runs K times at once (trainings sharing a GPU, as the grids run
+    them): ``env_steps_per_s`` is their sum, each one's in ``env_steps_per_s_each`` (their timed windows overlap
+    but are not identical, so the sum is approximate)."""
     command = [sys.executable, __file__, "--row", key, "--threads", str(threads), "--device", args.device]
     if args.rollouts:
         command += ["--rollouts", str(args.rollouts)]
     if args.n_envs:
         command += ["--n-envs", str(args.n_envs)]
     load, others = load_per_core(), busy_fraction()
-    result = subprocess.run(command, capture_output=True, text=True)
-    if result.returncode != 0:
-        raise RuntimeError(f"{key} with {threads} threads failed:\n{result.stderr[-3000:]}")
-    row = json.loads(result.stdout.strip().splitlines()[-1])
+    processes = [subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                 for _ in range(args.concurrent)]
+    found = []
+    for process in processes:
+        stdout, stderr = process.communicate()
+        if process.returncode != 0:
+            raise RuntimeError(f"{key} with {threads} threads failed:\n{stderr[-3000:]}")
+        found.append(json.loads(stdout.strip().splitlines()[-1]))
+    row = found[0]
+    if args.concurrent > 1:
+        each = [r["env_steps_per_s"] for r in found]
+        row = dict(row, name=f"{row['name']} x{args.concurrent}", env_steps_per_s=sum(each),
+                   env_steps_per_s_each=each, concurrent=args.concurrent,
+                   achieved_gflops=sum(r["achieved_gflops"] for r in found))
     return dict(row, load_per_core=round(load, 2), others_busy=round(others, 2), busy=others > BUSY_LOAD_PER_CORE)
 
 
@@ -298,10 +314,14 @@ def main(argv=None) -> int:
                         help="exit 1 if a spiking/RecurrentPPO ratio falls > 30%% below the committed result")
     parser.add_argument("--repeats", type=int, default=1,
                         help="rounds over all rows, interleaved; each row reports its median round (default 1)")
+    parser.add_argument("--concurrent", type=int, default=1,
+                        help="run each row's process this many times at once and report the sum (default 1)")
     parser.add_argument("--row", help=argparse.SUPPRESS)  # internal: run one row in this process, print JSON
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error(f"--repeats {args.repeats}: must be a positive number of rounds")
+    if args.concurrent < 1:
+        parser.error(f"--concurrent {args.concurrent}: must be a positive number of processes")
     cuda = args.device.startswith("cuda")
     if args.row:
         print(json.dumps(run_row(args.row, args.threads[0], args.device, args.rollouts, args.n_envs)))
