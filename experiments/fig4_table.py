@@ -31,13 +31,11 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
+from halfcheetah_grid import BASELINES, ENV, NOISES
 
 from sb3_spikeplastic.intervals import Interval, bootstrap_difference, bootstrap_interval
 from sb3_spikeplastic.robustness import return_ratio
 
-ENV = "HalfCheetah-v5"
-NOISES = ("friction", "action", "obs")
-BASELINES = ("mlp", "mlp_zoo", "ppo_lstm", "ppo_lstm_zoo")
 STATIC = "static"
 
 

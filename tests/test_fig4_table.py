@@ -17,6 +17,7 @@ SIGMAS = (0.0, 0.2, 0.4)
 
 @pytest.fixture(scope="module")
 def fig4_table():
+    sys.path.insert(0, str(EXPERIMENTS))  # the script imports its grid's constants, as when run from there
     spec = importlib.util.spec_from_file_location("fig4_table", EXPERIMENTS / "fig4_table.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
