@@ -21,8 +21,9 @@ variants are the paper's unbounded form), and the baselines twice: with the spik
 ``ppo_lstm``: ``--conf mlp`` / ``ppo_lstm``) and with rl-baselines3-zoo's tuned HalfCheetah settings
 (``mlp_zoo``, ``ppo_lstm_zoo``).
 
-Running a command again resumes it: finished runs and robustness cells are skipped, and a run cut short continues
-from its latest checkpoint (``train --trained-agent``).
+Running a command again resumes it: finished runs and robustness cells are skipped, a run cut short continues
+from its latest checkpoint (``train --trained-agent``), and a finished run shorter than ``-n`` continues from its
+final model to ``-n`` steps (300k-step runs become 1M-step runs with their checkpoints every ``--save-freq``).
 
 Usage::
 
@@ -69,7 +70,8 @@ def run_folders(variant: str, seed: int, args: argparse.Namespace) -> list[Path]
 
 def train_command(variant: str, seed: int, args: argparse.Namespace) -> list[str]:
     """The run's ``train`` command; a run cut short before (killed, or stopped with the machine) continues from
-    its latest checkpoint (``--trained-agent``, a new run folder beside it) instead of starting over."""
+    its latest checkpoint, and a finished shorter run from its final model (``--trained-agent``, a new run folder
+    beside it), instead of starting over."""
     common = ["--seed", str(seed), "-n", str(args.n_timesteps), "-f", str(run_root(variant, seed, args)),
               "--eval-freq", str(args.eval_freq), "--eval-episodes", str(args.eval_episodes), "--save-freq",
               str(args.save_freq), "--keep-checkpoints", "0", "--torch-threads", "1", "--no-progress", "-v", "0"]
@@ -89,6 +91,17 @@ def train_command(variant: str, seed: int, args: argparse.Namespace) -> list[str
 def finished(variant: str, seed: int, args: argparse.Namespace) -> bool:
     folders = run_folders(variant, seed, args)
     return bool(folders) and (folders[-1] / f"{ENV}.zip").exists()
+
+
+def trained_steps(variant: str, seed: int, args: argparse.Namespace) -> int:
+    """The length of the finished run of (variant, seed), 0 if there is none: a run shorter than ``-n`` is
+    continued from its final model to ``-n`` steps (``train --trained-agent``, step counter kept)."""
+    import yaml
+
+    if not finished(variant, seed, args):
+        return 0
+    meta = yaml.safe_load((run_folders(variant, seed, args)[-1] / ENV / "args.yml").read_text())
+    return int(meta["n_timesteps"])
 
 
 def budget_label(steps: int) -> str:
@@ -164,7 +177,8 @@ def main(argv=None) -> int:
     logs = args.out / "logs"
     failed = []
     if not (args.aggregate_only or args.skip_training):
-        jobs = [(v, s) for s in args.seeds for v in args.variants if not finished(v, s, args)]  # seed-major
+        jobs = [(v, s) for s in args.seeds for v in args.variants  # seed-major
+                if trained_steps(v, s, args) < args.n_timesteps]
         print(f"{len(jobs)} runs to train, {args.jobs} at a time; logs under {logs}")
         with ThreadPoolExecutor(args.jobs) as pool:
             codes = list(pool.map(lambda job: run_one([lambda: train_command(*job, args)],

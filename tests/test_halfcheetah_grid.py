@@ -1,0 +1,55 @@
+"""The HalfCheetah grid's bookkeeping: which runs it trains, continues or leaves, and which model it evaluates at
+each budget."""
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+EXPERIMENTS = Path(__file__).resolve().parent.parent / "experiments"
+
+
+@pytest.fixture(scope="module")
+def grid():
+    sys.path.insert(0, str(EXPERIMENTS))  # the script imports grid_common, as when run from there
+    spec = importlib.util.spec_from_file_location("halfcheetah_grid", EXPERIMENTS / "halfcheetah_grid.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def fake_run(out, name, index, steps, checkpoints, final=True):
+    """A run folder as ``train`` leaves it: checkpoints, and the final model with its args.yml if ``final``."""
+    folder = out / "runs" / name / "ppo" / f"HalfCheetah-v5_{index}"
+    (folder / "HalfCheetah-v5").mkdir(parents=True)
+    (folder / "HalfCheetah-v5" / "args.yml").write_text(f"n_timesteps: {steps}\n")
+    for step in checkpoints:
+        (folder / f"rl_model_{step}_steps.zip").write_bytes(b"")
+    if final:
+        (folder / "HalfCheetah-v5.zip").write_bytes(b"")
+    return folder
+
+
+def test_runs_shorter_than_n_are_continued_and_every_budget_is_found(grid, tmp_path):
+    short = fake_run(tmp_path, "static_0", 1, 300_000, range(50_000, 300_001, 50_000))
+    cut = fake_run(tmp_path, "dp-oja_0", 1, 1_000_000, (50_000, 100_000), final=False)
+    long_run = fake_run(tmp_path, "mlp_0", 1, 1_000_000, range(50_000, 1_000_001, 50_000))
+    args = grid.argparse.Namespace(out=tmp_path, n_timesteps=1_000_000, eval_freq=50_000, eval_episodes=5,
+                                   save_freq=50_000, hyperparams=[], budgets=[300_000, 1_000_000])
+    assert [grid.trained_steps(v, 0, args) for v in ("static", "dp-oja", "mlp", "dp-bcm")] == [300_000, 0,
+                                                                                             1_000_000, 0]
+    for variant, folder in (("static", short), ("dp-oja", cut)):  # both continue from their own run folder
+        command = grid.train_command(variant, 0, args)
+        assert command[command.index("--trained-agent") + 1] == str(folder)
+        assert command[command.index("-n") + 1] == "1000000"
+    assert "--trained-agent" not in grid.train_command("dp-bcm", 0, args)
+
+    # the continued run: a second folder with the later checkpoints; the 300k model stays the first run's
+    fake_run(tmp_path, "static_0", 2, 1_000_000, range(350_000, 1_000_001, 50_000))
+    assert grid.trained_steps("static", 0, args) == 1_000_000
+    found = grid.models(args)
+    assert found["static@300k_s0"] == short / "rl_model_300000_steps.zip"
+    assert found["static@1M_s0"].name == "rl_model_1000000_steps.zip" and "_2" in found["static@1M_s0"].parent.name
+    assert found["mlp@1M_s0"] == long_run / "rl_model_1000000_steps.zip"
+    assert not any(name.startswith("dp-oja") for name in found)  # no final model: not evaluated yet
