@@ -88,6 +88,7 @@ SCALABLE = ("mlp", "recurrent", "static", "ndp-oja", "ndp-oja-eager", "ndp-oja-t
 
 
 def peak_rss_mb() -> float:
+    """Peak resident memory of this process in MiB (Linux reports ru_maxrss in KiB)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
@@ -282,7 +283,7 @@ def ratios(rows: list[dict]) -> dict:
 
 def print_row(row: dict) -> None:
     busy = "  BUSY" if row.get("busy") else ""
-    print(f"{row['name']:52s} {row['threads']:7d} {row['env_steps_per_s']:11.1f} {row['peak_rss_mb']:7.0f} MB "
+    print(f"{row['name']:52s} {row['threads']:7d} {row['env_steps_per_s']:11.1f} {row['peak_rss_mb']:7.0f} MiB"
           f"{row['achieved_gflops']:8.1f} {row['achieved_gflops'] / row['matmul_gflops']:8.1%} "
           f"{row.get('others_busy', float('nan')):11.2f}{busy}", flush=True)
 
