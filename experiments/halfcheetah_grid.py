@@ -111,18 +111,12 @@ def budget_label(steps: int) -> str:
 def model_at(variant: str, seed: int, budget: int, args: argparse.Namespace) -> Path | None:
     """The model of (variant, seed) after ``budget`` steps: the checkpoint saved there or, for a run of exactly
     that length, its final model (None if the run did not reach it)."""
-    import yaml
-
     folders = run_folders(variant, seed, args)
     for folder in reversed(folders):
         checkpoint = folder / f"rl_model_{budget}_steps.zip"
         if checkpoint.exists():
             return checkpoint
-    if folders and (folders[-1] / f"{ENV}.zip").exists():
-        meta = yaml.safe_load((folders[-1] / ENV / "args.yml").read_text())
-        if int(meta["n_timesteps"]) == budget:
-            return folders[-1]
-    return None
+    return folders[-1] if trained_steps(variant, seed, args) == budget else None
 
 
 def models(args: argparse.Namespace) -> dict[str, Path]:

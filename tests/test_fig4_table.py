@@ -2,26 +2,20 @@
 models that did not learn listed apart and left out, and verdicts only where the interval excludes 0."""
 
 import csv
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import load_experiment
 
 from sb3_spikeplastic.robustness import RobustnessRow, write_episodes_csv
 
-EXPERIMENTS = Path(__file__).resolve().parent.parent / "experiments"
 SIGMAS = (0.0, 0.2, 0.4)
 
 
 @pytest.fixture(scope="module")
 def fig4_table():
-    sys.path.insert(0, str(EXPERIMENTS))  # the script imports its grid's constants, as when run from there
-    spec = importlib.util.spec_from_file_location("fig4_table", EXPERIMENTS / "fig4_table.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_experiment("fig4_table")
 
 
 def write_model(out, name, r0, losses, rng, noise="action"):

@@ -1,22 +1,13 @@
 """The HalfCheetah grid's bookkeeping: which runs it trains, continues or leaves, and which model it evaluates at
 each budget."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
-
-EXPERIMENTS = Path(__file__).resolve().parent.parent / "experiments"
+from helpers import load_experiment
 
 
 @pytest.fixture(scope="module")
 def grid():
-    sys.path.insert(0, str(EXPERIMENTS))  # the script imports grid_common, as when run from there
-    spec = importlib.util.spec_from_file_location("halfcheetah_grid", EXPERIMENTS / "halfcheetah_grid.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_experiment("halfcheetah_grid")
 
 
 def fake_run(out, name, index, steps, checkpoints, final=True):
