@@ -2,7 +2,6 @@
 models that did not learn listed apart and left out, and verdicts only where the interval excludes 0."""
 
 import csv
-from pathlib import Path
 
 import numpy as np
 import pytest
