@@ -142,11 +142,14 @@ def training_curves(out: Path, runs: list[dict]) -> list[dict]:
         if not data:
             continue
         grid = np.unique(np.concatenate([s for s, _ in data]))
-        ys = np.stack([np.interp(grid, s, y) for s, y in data])
-        line, = ax.plot(grid, ys.mean(0), label=f"{variant} (n={len(data)})")
-        ax.fill_between(grid, ys.min(0), ys.max(0), alpha=0.2, color=line.get_color())
-        curves += [dict(variant=variant, steps=int(s), mean=round(float(m), 1), low=round(float(lo), 1),
-                        high=round(float(hi), 1)) for s, m, lo, hi in zip(grid, ys.mean(0), ys.min(0), ys.max(0))]
+        # A seed counts only up to its own last evaluation: the runs of a variant may have different lengths.
+        ys = np.stack([np.where(grid <= s[-1], np.interp(grid, s, y), np.nan) for s, y in data])
+        n = np.isfinite(ys).sum(0)
+        mean, low, high = np.nanmean(ys, 0), np.nanmin(ys, 0), np.nanmax(ys, 0)
+        line, = ax.plot(grid, mean, label=f"{variant} (n={len(data)})")
+        ax.fill_between(grid, low, high, alpha=0.2, color=line.get_color())
+        curves += [dict(variant=variant, steps=int(s), seeds=int(k), mean=round(float(m), 1), low=round(float(lo), 1),
+                        high=round(float(hi), 1)) for s, k, m, lo, hi in zip(grid, n, mean, low, high)]
     ax.set(title=f"{ENV}: deterministic evaluation return during training", xlabel="environment steps",
            ylabel="mean return")
     ax.legend(fontsize=8)

@@ -61,3 +61,18 @@ def test_table_and_verdicts(tmp_path, fig4_table, capsys):
     assert int(pooled["seeds"]) == 6  # dp-oja and dp-bcm; ndp-oja did not learn
     assert "| dp-oja@300k | static@300k | 3 vs 3 |" in (tmp_path / "verdicts.md").read_text()
     assert (tmp_path / "robustness.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_training_curves_average_only_the_seeds_that_reached_a_step(tmp_path, fig4_table):
+    """A 300k-step seed beside a 1M-step seed: past 300k the curve is the long seed alone, not a flat extrapolation
+    of the short one."""
+    for seed, steps, value in ((0, (100_000, 300_000), 1000.0), (1, (100_000, 300_000, 1_000_000), 3000.0)):
+        folder = tmp_path / "runs" / f"static_{seed}" / "ppo" / "HalfCheetah-v5_1"
+        folder.mkdir(parents=True)
+        np.savez(folder / "evaluations.npz", timesteps=np.array(steps),
+                 results=np.full((len(steps), 5), value))
+    curves = fig4_table.training_curves(tmp_path, [dict(variant="static", seed=0), dict(variant="static", seed=1)])
+    by_step = {row["steps"]: row for row in curves}
+    assert by_step[300_000]["seeds"] == 2 and by_step[300_000]["mean"] == 2000.0
+    assert by_step[1_000_000]["seeds"] == 1 and by_step[1_000_000]["mean"] == 3000.0
+    assert (tmp_path / "training_curves.png").exists()
