@@ -148,8 +148,9 @@ def training_curves(out: Path, runs: list[dict]) -> list[dict]:
         mean, low, high = np.nanmean(ys, 0), np.nanmin(ys, 0), np.nanmax(ys, 0)
         line, = ax.plot(grid, mean, label=f"{variant} (n={len(data)})")
         ax.fill_between(grid, low, high, alpha=0.2, color=line.get_color())
-        curves += [dict(variant=variant, steps=int(s), seeds=int(k), mean=round(float(m), 1), low=round(float(lo), 1),
-                        high=round(float(hi), 1)) for s, k, m, lo, hi in zip(grid, n, mean, low, high)]
+        curves += [dict(variant=variant, steps=int(s), seeds=int(k), mean=round(float(m), 1),
+                        low=round(float(lo), 1), high=round(float(hi), 1))
+                   for s, k, m, lo, hi in zip(grid, n, mean, low, high)]
     ax.set(title=f"{ENV}: deterministic evaluation return during training", xlabel="environment steps",
            ylabel="mean return")
     ax.legend(fontsize=8)

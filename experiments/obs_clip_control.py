@@ -20,6 +20,7 @@ Usage: ``python experiments/obs_clip_control.py --budget 300000`` (after the gri
 from __future__ import annotations
 
 import argparse
+import inspect
 import tempfile
 from pathlib import Path
 
@@ -33,11 +34,13 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
 from sb3_spikeplastic.cli import _route_mujoco_warnings
 from sb3_spikeplastic.intervals import bootstrap_interval
+from sb3_spikeplastic.policy import SpikePlasticPolicy
 from sb3_spikeplastic.robustness import evaluate_robustness, parse_models, write_episodes_csv
 from sb3_spikeplastic.run_folder import load_model
 
-#: The spiking entry's encoder range for standardised observations (``SpikePlasticPolicy``'s ``obs_bounds``).
-ENCODER_BOUND = 3.0
+#: The spiking encoder's upper bound for standardised observations (``SpikePlasticPolicy``'s default ``obs_bounds``,
+#: which the HalfCheetah entry keeps).
+ENCODER_BOUND = float(inspect.signature(SpikePlasticPolicy).parameters["obs_bounds"].default[1])
 NOISE = "obs"
 
 

@@ -29,7 +29,7 @@ def test_clipped_statistics_keep_the_standardisation_and_clip_at_the_bound(tmp_p
     assert clipped.clip_obs == 3.0
     np.testing.assert_allclose(clipped.obs_rms.mean, venv.obs_rms.mean)
     obs = np.zeros((1, 17))
-    obs[0, 0], obs[0, 1] = 100.0, 1.0  # (100 + 1) / 2 clipped to 3; (1 - 1 + 2/16) / 2 as it is
+    obs[0, 0], obs[0, 1] = 100.0, 1.0  # (100 + 1) / 2 clipped to 3; (1 + 0.875) / 2 kept
     normalized = clipped.normalize_obs(obs)
     assert normalized[0, 0] == pytest.approx(3.0)
     assert normalized[0, 1] == pytest.approx((1.0 - venv.obs_rms.mean[1]) / np.sqrt(4.0 + 1e-8), rel=1e-6)
