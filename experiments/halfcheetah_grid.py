@@ -76,7 +76,8 @@ def train_command(variant: str, seed: int, args: argparse.Namespace) -> list[str
               "--eval-freq", str(args.eval_freq), "--eval-episodes", str(args.eval_episodes), "--save-freq",
               str(args.save_freq), "--keep-checkpoints", "0", "--torch-threads", "1", "--no-progress", "-v", "0"]
     previous = run_folders(variant, seed, args)
-    if previous and any(previous[-1].glob("rl_model_*_steps.zip")):
+    # An interrupted run saved its model on the way out (INTERRUPTED.txt): that model is its latest point.
+    if previous and (any(previous[-1].glob("rl_model_*_steps.zip")) or (previous[-1] / f"{ENV}.zip").exists()):
         return [cli(), "train", "--env", ENV, "--trained-agent", str(previous[-1]), *common]
     if variant in BASELINES:
         selection = ["--conf", variant]
@@ -89,8 +90,9 @@ def train_command(variant: str, seed: int, args: argparse.Namespace) -> list[str
 
 
 def finished(variant: str, seed: int, args: argparse.Namespace) -> bool:
+    """Whether the latest run of (variant, seed) reached its end (an interrupted run also leaves a final model)."""
     folders = run_folders(variant, seed, args)
-    return bool(folders) and (folders[-1] / f"{ENV}.zip").exists()
+    return bool(folders) and (folders[-1] / f"{ENV}.zip").exists() and not (folders[-1] / "INTERRUPTED.txt").exists()
 
 
 def trained_steps(variant: str, seed: int, args: argparse.Namespace) -> int:

@@ -44,3 +44,17 @@ def test_runs_shorter_than_n_are_continued_and_every_budget_is_found(grid, tmp_p
     assert found["static@1M_s0"].name == "rl_model_1000000_steps.zip" and "_2" in found["static@1M_s0"].parent.name
     assert found["mlp@1M_s0"] == long_run / "rl_model_1000000_steps.zip"
     assert not any(name.startswith("dp-oja") for name in found)  # no final model: not evaluated yet
+
+
+def test_an_interrupted_run_is_continued_from_its_saved_model_and_not_evaluated(grid, tmp_path):
+    """``train`` stopped by a signal saves its model and INTERRUPTED.txt, with args.yml naming the full length:
+    the run is neither finished nor credited with that length, and continues from that folder."""
+    fake_run(tmp_path, "static_0", 1, 300_000, range(50_000, 300_001, 50_000))
+    cut = fake_run(tmp_path, "static_0", 2, 1_000_000, ())  # stopped before its first checkpoint
+    (cut / "INTERRUPTED.txt").write_text("interrupted after 333,824 of 1,000,000 steps\n")
+    args = grid.argparse.Namespace(out=tmp_path, n_timesteps=1_000_000, eval_freq=50_000, eval_episodes=5,
+                                   save_freq=50_000, hyperparams=[], budgets=[300_000, 1_000_000])
+    assert grid.trained_steps("static", 0, args) == 0
+    command = grid.train_command("static", 0, args)
+    assert command[command.index("--trained-agent") + 1] == str(cut)
+    assert not any(name.startswith("static") for name in grid.models(args))
