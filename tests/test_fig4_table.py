@@ -34,6 +34,7 @@ def test_table_and_verdicts(tmp_path, fig4_table, capsys):
         written[f"static@300k_s{seed}"] = write_model(tmp_path, f"static@300k_s{seed}", r0, (0, 0.3, 0.6), rng)
         written[f"dp-oja@300k_s{seed}"] = write_model(tmp_path, f"dp-oja@300k_s{seed}", r0 - 400, (0, 0.1, 0.2), rng)
         write_model(tmp_path, f"dp-bcm@300k_s{seed}", r0, (0, 0.3, 0.6), rng)  # as static: nothing to resolve
+        write_model(tmp_path, f"mlp@300k_s{seed}", r0 + 1000, (0, 0.3, 0.6), rng)
     write_model(tmp_path, "ndp-oja@300k_s0", -10, (0, 0, 0), rng)  # never learned: ratio 1 means nothing
     assert fig4_table.main(["--out", str(tmp_path), "--resamples", "300"]) == 0
 
@@ -60,6 +61,11 @@ def test_table_and_verdicts(tmp_path, fig4_table, capsys):
     pooled = next(r for name, r in verdicts.items() if name.startswith("plastic@300k (pooled"))
     assert int(pooled["seeds"]) == 6  # dp-oja and dp-bcm; ndp-oja did not learn
     assert "| dp-oja@300k | static@300k | 3 vs 3 |" in (tmp_path / "verdicts.md").read_text()
+    # the baseline against both fixed references, never against the best plastic group picked on these data
+    with open(tmp_path / "verdicts.csv") as f:
+        mlp = {r["reference"]: r for r in csv.DictReader(f) if r["model"] == "mlp@300k"}
+    assert set(mlp) == {"static@300k", "dp-oja@300k"}
+    assert mlp["static@300k"]["auc_verdict"] == "not resolved" and mlp["dp-oja@300k"]["auc_verdict"] == "loses more"
     assert (tmp_path / "robustness.png").read_bytes()[:4] == b"\x89PNG"
 
 
