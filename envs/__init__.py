@@ -8,6 +8,7 @@
 This package imports neither torch nor the rest of the plugin.
 """
 
+import warnings
 from typing import Any
 
 import gymnasium
@@ -32,7 +33,26 @@ __all__ = [
     "TMazeCueEnv",
     "make_noisy_env",
     "noise_kwargs",
+    "route_mujoco_warnings",
 ]
+
+
+def route_mujoco_warnings() -> None:
+    """Route MuJoCo's warnings into Python's ``warnings`` (``RuntimeWarning``): shown once per kind instead of once
+    per environment built, and no ``MUJOCO_LOG.TXT`` in the working folder. The deprecation of ``settotalmass``,
+    which gymnasium's HalfCheetah model triggers at every build, is dropped. The command line does this at start;
+    scripts building many MuJoCo environments may call it too."""
+    try:
+        import mujoco
+    except ImportError:
+        return
+
+    def warn(message: str) -> None:
+        if "settotalmass" in message:  # gymnasium's HalfCheetah model uses it: nothing a user can change
+            return
+        warnings.warn(f"MuJoCo: {message.strip()}", RuntimeWarning, stacklevel=2)
+
+    mujoco.set_mju_user_warning(warn)
 
 
 def _register(env_id: str, **kwargs: Any) -> None:

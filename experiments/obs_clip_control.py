@@ -32,7 +32,7 @@ from halfcheetah_grid import BASELINES, ENV, HELDOUT_SEED, budget_label, model_a
 
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-from sb3_spikeplastic.cli import _route_mujoco_warnings
+from sb3_spikeplastic.envs import route_mujoco_warnings
 from sb3_spikeplastic.intervals import bootstrap_interval
 from sb3_spikeplastic.policy import SpikePlasticPolicy
 from sb3_spikeplastic.robustness import evaluate_robustness, parse_models, write_episodes_csv
@@ -104,7 +104,7 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, default=Path("results/halfcheetah/fig4"))
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
-    _route_mujoco_warnings()  # HalfCheetah's settotalmass deprecation, once per environment otherwise
+    route_mujoco_warnings()  # HalfCheetah's settotalmass deprecation, once per environment otherwise
     grid = argparse.Namespace(out=args.out)
     for variant in args.variants:
         for seed in args.seeds:

@@ -30,8 +30,9 @@ import importlib
 import math
 import shlex
 import sys
-import warnings
 from typing import Callable, Optional, Sequence
+
+from sb3_spikeplastic.envs import route_mujoco_warnings
 
 PROG = "sb3-spikeplastic"
 
@@ -258,23 +259,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _route_mujoco_warnings() -> None:
-    """MuJoCo's warnings as Python ``RuntimeWarning`` objects: shown once per kind, not once per environment built,
-    and no ``MUJOCO_LOG.TXT`` in the working folder; the deprecation of ``settotalmass`` that gymnasium's HalfCheetah
-    model triggers at every build is dropped."""
-    try:
-        import mujoco
-    except ImportError:
-        return
-
-    def warn(message: str) -> None:
-        if "settotalmass" in message:  # gymnasium's HalfCheetah model uses it: nothing a user can change
-            return
-        warnings.warn(f"MuJoCo: {message.strip()}", RuntimeWarning, stacklevel=2)
-
-    mujoco.set_mju_user_warning(warn)
-
-
 def prepare(args: argparse.Namespace, argv: Sequence[str]) -> Callable[[], int]:
     """The parsed command's work, its options checked (``ValueError``: bad input, nothing written)."""
     module, name = COMMANDS[args.command]
@@ -292,7 +276,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # argparse: --help (0) or a usage error (2)
         return int(exc.code or 0)
-    _route_mujoco_warnings()
+    route_mujoco_warnings()
     try:
         try:
             work = prepare(args, argv)

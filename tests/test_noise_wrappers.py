@@ -234,3 +234,27 @@ def test_envs_import_neither_torch_nor_the_plugin():
                 assert name.split(".")[0] in allowed, (source.name, name)
                 if name.startswith("sb3_spikeplastic"):
                     assert name.startswith("sb3_spikeplastic.envs"), (source.name, name)
+
+
+def test_route_mujoco_warnings_drops_the_halfcheetah_deprecation_and_the_log_file(tmp_path):
+    """Without the route, every HalfCheetah build appends MuJoCo's `settotalmass` deprecation to ./MUJOCO_LOG.TXT;
+    with it, nothing is written and no Python warning is raised; MuJoCo's other warnings become RuntimeWarnings."""
+    import warnings
+
+    import mujoco
+
+    from sb3_spikeplastic.envs import route_mujoco_warnings
+
+    try:
+        cheetah().close()
+        assert (tmp_path / "MUJOCO_LOG.TXT").exists()
+        (tmp_path / "MUJOCO_LOG.TXT").unlink()
+        route_mujoco_warnings()
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            cheetah().close()
+        assert not (tmp_path / "MUJOCO_LOG.TXT").exists()
+        with pytest.warns(RuntimeWarning, match="^MuJoCo: too many contacts$"):
+            mujoco.get_mju_user_warning()("too many contacts\n")
+    finally:
+        mujoco.set_mju_user_warning(None)
