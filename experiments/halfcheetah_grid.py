@@ -59,6 +59,16 @@ NOISES = ("friction", "action", "obs")
 HELDOUT_SEED = 1_000_000
 
 
+def add_control_arguments(parser: argparse.ArgumentParser) -> None:
+    """The protocol's evaluation options of the controls that re-evaluate or add models beside the grid's."""
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    parser.add_argument("--budget", type=int, default=300_000, help="training steps of the models")
+    parser.add_argument("--sigmas", nargs="+", type=float, default=[0.0, 0.1, 0.2, 0.3, 0.4])
+    parser.add_argument("--episodes", type=int, default=100)
+    parser.add_argument("--n-envs", type=int, default=100)
+    parser.add_argument("--out", type=Path, default=Path("results/halfcheetah/fig4"))
+
+
 def run_root(variant: str, seed: int, args: argparse.Namespace) -> Path:
     return args.out / "runs" / f"{variant}_{seed}"
 

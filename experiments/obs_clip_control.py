@@ -28,7 +28,7 @@ import gymnasium
 import numpy as np
 import torch
 from fig4_table import auc, fmt, group_of, read_episodes
-from halfcheetah_grid import BASELINES, ENV, HELDOUT_SEED, budget_label, model_at
+from halfcheetah_grid import BASELINES, ENV, HELDOUT_SEED, add_control_arguments, budget_label, model_at
 
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
@@ -95,13 +95,8 @@ def table(args: argparse.Namespace) -> str:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--variants", nargs="+", default=list(BASELINES), choices=BASELINES)
-    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    parser.add_argument("--budget", type=int, default=300_000)
     parser.add_argument("--clip", type=float, default=ENCODER_BOUND, help="bound of the standardised observations")
-    parser.add_argument("--sigmas", nargs="+", type=float, default=[0.0, 0.1, 0.2, 0.3, 0.4])
-    parser.add_argument("--episodes", type=int, default=100)
-    parser.add_argument("--n-envs", type=int, default=100)
-    parser.add_argument("--out", type=Path, default=Path("results/halfcheetah/fig4"))
+    add_control_arguments(parser)
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     route_mujoco_warnings()  # HalfCheetah's settotalmass deprecation, once per environment otherwise

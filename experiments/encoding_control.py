@@ -1,0 +1,165 @@
+"""Control for the observation-noise result of the HalfCheetah protocol: is the spiking networks' edge their
+place-cell input code?
+
+Under observation noise every spiking network keeps far more of its return than the MlpPolicy, and clipping the
+MLP's input to the encoder's range does not change that (``experiments/obs_clip_control.py``). What remains
+between the two is the input code (17 standardised values against 17 x 10 broad place cells), the spikes and the
+network. This script trains the MlpPolicy of the ``mlp`` baseline (the spiking entry's PPO settings, the same
+``VecNormalize``) with one change: its input is the spiking encoder's place-cell code, the cells' firing
+probabilities (:meth:`sb3_spikeplastic.coding.PopulationEncoder.probabilities`, the policy's default
+``encoder_pop_size``, ``encoder_beta``, ``encoder_p_min`` and ``obs_bounds``) instead of the values, with no
+spikes. It then evaluates it under every noise type with the protocol of ``experiments/halfcheetah_grid.py`` (100
+episodes per point, the same episode seeds). If this MLP keeps its return under observation noise as the spiking
+networks do, the code explains their edge; if it loses as the plain MLP does, the spikes or the spiking network do.
+
+Writes ``<out>/encoding/robustness/mlp+encoder@<budget>_s<seed>/`` (per-episode returns, the grid's format), the
+models under ``<out>/encoding/runs/`` and ``<out>/encoding/table.md``: per noise type the AUC of the ratio curve
+and the return at the largest sigma of the encoded MLP, the plain MLP and the static SNN of the same budget, and
+the differences encoded minus plain and encoded minus static SNN (two-stage bootstrap intervals over seeds and
+episodes, :mod:`sb3_spikeplastic.intervals`).
+
+Usage: ``python experiments/encoding_control.py`` (after the grid's robustness evaluations of ``mlp`` and
+``static`` at 300k steps).
+"""
+
+from __future__ import annotations
+
+import argparse
+import inspect
+from pathlib import Path
+
+import gymnasium
+import numpy as np
+import torch
+from fig4_table import auc, fmt, group_of, mean_return_at, read_episodes
+from halfcheetah_grid import ENV, HELDOUT_SEED, NOISES, add_control_arguments, budget_label
+
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
+from stable_baselines3.common.vec_env import VecNormalize
+
+from sb3_spikeplastic import config as cfg
+from sb3_spikeplastic.coding import PopulationEncoder
+from sb3_spikeplastic.envs import route_mujoco_warnings
+from sb3_spikeplastic.experiment import make_train_env
+from sb3_spikeplastic.intervals import bootstrap_difference, bootstrap_interval
+from sb3_spikeplastic.policy import SpikePlasticPolicy
+from sb3_spikeplastic.robustness import evaluate_robustness, write_episodes_csv
+
+#: The spiking policy's encoder defaults, which the HalfCheetah entry keeps.
+ENCODER = {k: v.default for k, v in inspect.signature(SpikePlasticPolicy).parameters.items()
+           if k in ("encoder_pop_size", "encoder_beta", "encoder_p_min", "obs_bounds")}
+VARIANT = "mlp+encoder"
+
+
+class PlaceCellFeatures(BaseFeaturesExtractor):
+    """The spiking encoder's place-cell firing probabilities as an MLP's input: every observation dimension is
+    clipped to ``obs_bounds`` and read by ``pop_size`` Gaussian cells, :math:`p = \\mathrm{clip}(e^{-\\beta(\\Omega -
+    x)^2}, p_{min}, 1)` (SpikePropamine appendix 5.2), without sampling spikes."""
+
+    def __init__(self, observation_space: gymnasium.spaces.Box, pop_size: int, beta: float, p_min: float,
+                 bound: float):
+        n = int(np.prod(observation_space.shape))
+        super().__init__(observation_space, features_dim=n * pop_size)
+        self.encoder = PopulationEncoder(np.full(n, -bound), np.full(n, bound), pop_size, beta, p_min)
+
+    def forward(self, observations: torch.Tensor) -> torch.Tensor:
+        return self.encoder.probabilities(observations.flatten(1))
+
+
+def encoder_kwargs() -> dict:
+    low, high = ENCODER["obs_bounds"]
+    if low != -high:
+        raise ValueError(f"obs_bounds {ENCODER['obs_bounds']} are not symmetric")
+    return dict(pop_size=ENCODER["encoder_pop_size"], beta=ENCODER["encoder_beta"], p_min=ENCODER["encoder_p_min"],
+                bound=high)
+
+
+def train(seed: int, folder: Path, args: argparse.Namespace) -> tuple[Path, Path]:
+    """The ``mlp`` entry's PPO with the place-cell input, trained for ``args.budget`` steps; its model and
+    ``VecNormalize`` statistics (written last: a folder with both is complete)."""
+    model_path, stats_path = folder / "model.zip", folder / "vecnormalize.pkl"
+    if model_path.exists() and stats_path.exists():
+        return model_path, stats_path
+    config = cfg.resolve_hyperparams(ENV, "mlp", [], n_timesteps=args.budget)
+    policy, ppo_kwargs, policy_kwargs = cfg.model_arguments(config)
+    policy_kwargs = {**policy_kwargs, "features_extractor_class": PlaceCellFeatures,
+                     "features_extractor_kwargs": encoder_kwargs()}
+    venv = VecNormalize(make_train_env(ENV, config["n_envs"], {}), **cfg.normalize_arguments(config))
+    algorithm = cfg.algorithm_class(config.get("algo", "ppo"))
+    model = algorithm(policy, venv, **ppo_kwargs, policy_kwargs=policy_kwargs, seed=seed, verbose=0)
+    model.learn(config["n_timesteps"])
+    folder.mkdir(parents=True, exist_ok=True)
+    model.save(str(model_path))
+    venv.save(str(stats_path))
+    venv.close()
+    return model_path, stats_path
+
+
+def evaluate(name: str, model_path: Path, stats_path: Path, args: argparse.Namespace) -> None:
+    algorithm = cfg.algorithm_class("ppo")
+    model = algorithm.load(str(model_path), device="cpu")
+    for noise in NOISES:
+        csv = args.out / "encoding" / "robustness" / name / f"robustness_{ENV}_{noise}_episodes.csv"
+        if csv.exists():
+            continue
+        rows = evaluate_robustness({name: model}, ENV, noise, args.sigmas, n_episodes=args.episodes,
+                                   seed=HELDOUT_SEED, vec_normalize_stats={name: stats_path}, progress_bar=False,
+                                   n_envs=args.n_envs)
+        write_episodes_csv(rows, csv)
+
+
+def table(args: argparse.Namespace) -> str:
+    budget = budget_label(args.budget)
+    encoded = read_episodes(args.out / "encoding")
+    grid = read_episodes(args.out)
+    groups = {VARIANT: encoded, "mlp": grid, "static": grid}
+
+    def seeds(variant: str, noise: str) -> list[np.ndarray]:
+        data = groups[variant]
+        return [data[m][noise][1] for m in sorted(data) if group_of(m) == f"{variant}@{budget}" and noise in data[m]]
+
+    lines = [f"# {ENV}: the MlpPolicy with the spiking encoder's place-cell input, beside the plain MlpPolicy and the "
+             f"static SNN ({budget} steps)", "",
+             f"{args.episodes} episodes per point, the protocol's episode seeds; 95 % two-stage bootstrap intervals "
+             "over seeds and episodes. AUC: area under the ratio-to-R0 curve (1 = no loss).", "",
+             f"| noise | model | seeds | R0 | AUC | return at σ max | {VARIANT} − model: AUC | return at σ max |",
+             "|---|---|---|---|---|---|---|---|"]
+    for noise in NOISES:
+        reference = seeds(VARIANT, noise)
+        if not reference:
+            continue
+        sigmas = next(encoded[m][noise][0] for m in encoded if noise in encoded[m])
+        top = len(sigmas) - 1
+        for variant in groups:
+            group = seeds(variant, noise)
+            if not group:
+                continue
+            cells = [fmt(bootstrap_interval(group, mean_return_at(0))), fmt(bootstrap_interval(group, auc(sigmas)), 2),
+                     fmt(bootstrap_interval(group, mean_return_at(top)))]
+            if variant == VARIANT:
+                cells += ["", ""]
+            else:
+                cells += [fmt(bootstrap_difference(reference, group, auc(sigmas)), 2),
+                          fmt(bootstrap_difference(reference, group, mean_return_at(top)))]
+            lines.append(f"| {noise} | {variant}@{budget} | {len(group)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_control_arguments(parser)
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    route_mujoco_warnings()
+    for seed in args.seeds:
+        name = f"{VARIANT}@{budget_label(args.budget)}_s{seed}"
+        print(name, flush=True)
+        model_path, stats_path = train(seed, args.out / "encoding" / "runs" / name, args)
+        evaluate(name, model_path, stats_path, args)
+    (args.out / "encoding" / "table.md").write_text(table(args))
+    print((args.out / "encoding" / "table.md").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
