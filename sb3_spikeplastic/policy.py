@@ -38,6 +38,10 @@ def is_spike_raster_space(space: spaces.Space) -> bool:
             and bool(np.all(space.high == 1)))
 
 
+#: Network steps T per environment step for vector observations when ``steps`` is not given (spike rasters: their
+#: length).
+VECTOR_STEPS = 10
+
 #: Defaults of :class:`SpikePlasticPolicy` before the current ones. A model saved then records only the arguments
 #: its user gave, so :meth:`sb3_spikeplastic.PPO.load` rebuilds it with these (:func:`previous_defaults_filled`).
 PREVIOUS_DEFAULTS = dict(encoder_pop_size=50, encoder_beta=15.0, critic="snn", log_std_init=0.0,
@@ -195,7 +199,7 @@ class SpikePlasticPolicy(ActorCriticPolicy):
                              "observations pass through whole")
         if raster and steps is not None and steps != observation_space.shape[0]:
             raise ValueError(f"steps={steps} does not match the spike-raster length {observation_space.shape[0]}")
-        steps = int(observation_space.shape[0] if raster else (steps or 10))
+        steps = int(observation_space.shape[0] if raster else (steps or VECTOR_STEPS))
         neuron = dict(neuron or {})
         rule_kwargs = dict(rule_kwargs or {})
         modulation = inspect.signature(get_rule_class(rule).__init__).parameters.get("modulation")
