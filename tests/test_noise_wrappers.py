@@ -246,7 +246,9 @@ def test_route_mujoco_warnings_drops_the_halfcheetah_deprecation_and_the_log_fil
 
     from sb3_spikeplastic.envs import route_mujoco_warnings
 
+    previous = mujoco.get_mju_user_warning()
     try:
+        mujoco.set_mju_user_warning(None)  # MuJoCo's own handler, whatever an earlier test installed
         cheetah().close()
         assert (tmp_path / "MUJOCO_LOG.TXT").exists()
         (tmp_path / "MUJOCO_LOG.TXT").unlink()
@@ -258,4 +260,4 @@ def test_route_mujoco_warnings_drops_the_halfcheetah_deprecation_and_the_log_fil
         with pytest.warns(RuntimeWarning, match="^MuJoCo: too many contacts$"):
             mujoco.get_mju_user_warning()("too many contacts\n")
     finally:
-        mujoco.set_mju_user_warning(None)
+        mujoco.set_mju_user_warning(previous)
