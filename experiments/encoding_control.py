@@ -65,10 +65,10 @@ class PlaceCellFeatures(BaseFeaturesExtractor):
     x)^2}, p_{min}, 1)` (SpikePropamine appendix 5.2), without sampling spikes."""
 
     def __init__(self, observation_space: gymnasium.spaces.Box, pop_size: int, beta: float, p_min: float,
-                 bound: float):
+                 obs_bounds: tuple):
         n = int(np.prod(observation_space.shape))
         super().__init__(observation_space, features_dim=n * pop_size)
-        self.encoder = PopulationEncoder(np.full(n, -bound), np.full(n, bound), pop_size, beta, p_min)
+        self.encoder = PopulationEncoder(np.full(n, obs_bounds[0]), np.full(n, obs_bounds[1]), pop_size, beta, p_min)
 
     def forward(self, observations: torch.Tensor) -> torch.Tensor:
         return self.encoder.probabilities(observations.flatten(1))
@@ -80,8 +80,8 @@ class SpikeCountFeatures(PlaceCellFeatures):
     same observation always draws the same spikes, so PPO's update re-evaluates the rollout's inputs)."""
 
     def __init__(self, observation_space: gymnasium.spaces.Box, pop_size: int, beta: float, p_min: float,
-                 bound: float, steps: int):
-        super().__init__(observation_space, pop_size, beta, p_min, bound)
+                 obs_bounds: tuple, steps: int):
+        super().__init__(observation_space, pop_size, beta, p_min, obs_bounds)
         self.steps = int(steps)
 
     def forward(self, observations: torch.Tensor) -> torch.Tensor:
@@ -94,11 +94,8 @@ class SpikeCountFeatures(PlaceCellFeatures):
 
 def features_extractor(input_kind: str) -> tuple[type, dict]:
     """The features extractor of ``--input`` and its arguments, from the spiking policy's defaults."""
-    low, high = ENCODER["obs_bounds"]
-    if low != -high:
-        raise ValueError(f"obs_bounds {ENCODER['obs_bounds']} are not symmetric")
     kwargs = dict(pop_size=ENCODER["encoder_pop_size"], beta=ENCODER["encoder_beta"], p_min=ENCODER["encoder_p_min"],
-                  bound=high)
+                  obs_bounds=tuple(ENCODER["obs_bounds"]))
     if input_kind == "spikes":
         return SpikeCountFeatures, {**kwargs, "steps": VECTOR_STEPS}
     return PlaceCellFeatures, kwargs
@@ -127,12 +124,11 @@ def train(input_kind: str, seed: int, folder: Path, args: argparse.Namespace) ->
 
 
 def evaluate(name: str, model_path: Path, stats_path: Path, args: argparse.Namespace) -> None:
-    algorithm = cfg.algorithm_class("ppo")
-    model = algorithm.load(str(model_path), device="cpu")
-    for noise in NOISES:
-        csv = args.out / "encoding" / "robustness" / name / f"robustness_{ENV}_{noise}_episodes.csv"
-        if csv.exists():
-            continue
+    folder = args.out / "encoding" / "robustness" / name
+    todo = [n for n in NOISES if not (folder / f"robustness_{ENV}_{n}_episodes.csv").exists()]
+    model = cfg.algorithm_class("ppo").load(str(model_path), device="cpu") if todo else None
+    for noise in todo:
+        csv = folder / f"robustness_{ENV}_{noise}_episodes.csv"
         rows = evaluate_robustness({name: model}, ENV, noise, args.sigmas, n_episodes=args.episodes,
                                    seed=HELDOUT_SEED, vec_normalize_stats={name: stats_path}, progress_bar=False,
                                    n_envs=args.n_envs)
