@@ -3,7 +3,8 @@
 * ``TMazeCue-v0``: the spiking cue-association T-maze, low noise (:class:`TMazeCueEnv`).
 * ``TMazeCueNoisy-v0``: the same with the paper's high-noise spike probabilities.
 * ``NoisyHalfCheetah-v5``: ``HalfCheetah-v5`` with observation, action and joint-friction noise (``obs_noise``,
-  ``action_noise``, ``friction_noise`` standard deviations, ``friction_target``; all 0 by default).
+  ``action_noise``, ``friction_noise`` standard deviations, ``friction_target``; all 0 by default;
+  ``obs_indices`` limits the observation noise to some elements).
 
 This package imports neither torch nor the rest of the plugin.
 """
@@ -72,6 +73,7 @@ _register(
         "action_noise": 0.0,
         "friction_noise": 0.0,
         "friction_target": "damping",
+        "obs_indices": None,
     },
     max_episode_steps=1000,
 )

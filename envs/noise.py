@@ -10,6 +10,7 @@ arguments, which is how the robustness protocol sweeps one noise type at a time.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import gymnasium
@@ -37,6 +38,22 @@ def _check_target(target: Any) -> str:
     if target not in FRICTION_TARGETS:
         raise ValueError(f"friction target={target!r} is not one of {FRICTION_TARGETS}")
     return target
+
+
+def _check_indices(indices: Any, shape: tuple[int, ...]) -> tuple[int, ...]:
+    """Return ``indices`` as a sorted tuple, or raise a one-line ``ValueError`` unless they are distinct integers
+    indexing a 1-D observation of ``shape``."""
+    if len(shape) != 1:
+        raise ValueError(f"obs indices={indices!r} need a 1-D observation, got shape {shape}")
+    accepted = f"distinct integers in [0, {shape[0] - 1}]"
+    if isinstance(indices, (str, bytes)) or not isinstance(indices, Sequence) or not indices:
+        raise ValueError(f"obs indices={indices!r} must be a non-empty list of {accepted}")
+    for i in indices:
+        if isinstance(i, bool) or not isinstance(i, (int, np.integer)) or not 0 <= i < shape[0]:
+            raise ValueError(f"obs index {i!r} in {list(indices)!r} is not one of {accepted}")
+    if len(set(indices)) != len(indices):
+        raise ValueError(f"obs indices={list(indices)!r} repeat an index; accepted: {accepted}")
+    return tuple(sorted(int(i) for i in indices))
 
 
 class _NoiseWrapper(gymnasium.Wrapper):
@@ -74,21 +91,32 @@ class ObservationNoise(_NoiseWrapper, RecordConstructorArgs):
 
     :param env: environment with a floating-point ``Box`` observation space.
     :param sigma: standard deviation of ``z``; 0 is an exact no-op.
+    :param indices: perturb only these elements of a 1-D observation (e.g. the 12 the paper's HalfCheetah network
+        encodes); None perturbs every element. ``z`` is drawn for every element and zeroed elsewhere, so the
+        perturbed elements get the same draws as with ``indices=None``: evaluations of disjoint groups are paired
+        with the all-element one.
     """
 
     _stream = 1
 
-    def __init__(self, env: gymnasium.Env, sigma: float) -> None:
-        RecordConstructorArgs.__init__(self, sigma=sigma)
+    def __init__(self, env: gymnasium.Env, sigma: float, indices: Sequence[int] | None = None) -> None:
+        RecordConstructorArgs.__init__(self, sigma=sigma, indices=indices)
         super().__init__(env, sigma)
         space = env.observation_space
         if not (isinstance(space, gymnasium.spaces.Box) and np.issubdtype(space.dtype, np.floating)):
             raise ValueError(f"ObservationNoise needs a floating-point Box observation space, got {space}")
+        self.indices = None if indices is None else _check_indices(indices, space.shape)
+        self._mask = None
+        if self.indices is not None:
+            self._mask = np.zeros(space.shape)
+            self._mask[list(self.indices)] = 1.0
 
     def _perturb(self, obs: np.ndarray) -> np.ndarray:
         if self.sigma == 0.0:
             return obs
         z = self.noise_rng.normal(0.0, self.sigma, size=np.shape(obs))
+        if self._mask is not None:
+            z = z * self._mask
         return (obs + z).astype(np.asarray(obs).dtype, copy=False)
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
@@ -208,12 +236,14 @@ class FrictionNoise(_NoiseWrapper, RecordConstructorArgs):
         super().close()
 
 
-def noise_kwargs(noise_type: str, sigma: float, friction_target: str = "damping") -> dict[str, Any]:
+def noise_kwargs(noise_type: str, sigma: float, friction_target: str = "damping",
+                 obs_indices: Sequence[int] | None = None) -> dict[str, Any]:
     """Arguments of :func:`make_noisy_env` that apply one noise type with standard deviation ``sigma``.
 
     :param noise_type: one of :data:`NOISE_TYPES`.
     :param sigma: standard deviation of the noise.
     :param friction_target: the friction parameters perturbed by ``"friction"`` noise.
+    :param obs_indices: the observation elements perturbed by ``"obs"`` noise (None: all).
     :return: e.g. ``{"action_noise": 0.1}``.
     """
     if noise_type not in NOISE_TYPES:
@@ -221,6 +251,10 @@ def noise_kwargs(noise_type: str, sigma: float, friction_target: str = "damping"
     kwargs: dict[str, Any] = {f"{noise_type}_noise": _check_sigma(f"{noise_type}_noise", sigma)}
     if noise_type == "friction":
         kwargs["friction_target"] = _check_target(friction_target)
+    if obs_indices is not None:
+        if noise_type != "obs":
+            raise ValueError(f"obs_indices={obs_indices!r} apply to noise type 'obs' only, not {noise_type!r}")
+        kwargs["obs_indices"] = obs_indices
     return kwargs
 
 
@@ -230,6 +264,7 @@ def make_noisy_env(
     action_noise: float = 0.0,
     friction_noise: float = 0.0,
     friction_target: str = "damping",
+    obs_indices: Sequence[int] | None = None,
     **make_kwargs: Any,
 ) -> gymnasium.Env:
     """Make (or take) an environment and wrap it with the noises whose ``sigma`` is non-zero.
@@ -241,6 +276,7 @@ def make_noisy_env(
     :param action_noise: ``sigma`` of :class:`ActionNoise`.
     :param friction_noise: ``sigma`` of :class:`FrictionNoise`.
     :param friction_target: ``target`` of :class:`FrictionNoise`.
+    :param obs_indices: ``indices`` of :class:`ObservationNoise` (None: every element).
     :param make_kwargs: arguments of ``gymnasium.make`` (e.g. ``max_episode_steps``); only with an id.
     :return: the wrapped environment.
     """
@@ -259,7 +295,7 @@ def make_noisy_env(
     if action_noise:
         env = ActionNoise(env, action_noise)
     if obs_noise:
-        env = ObservationNoise(env, obs_noise)
+        env = ObservationNoise(env, obs_noise, indices=obs_indices)
     return env
 
 
@@ -269,6 +305,7 @@ def make_noisy_base_env(
     action_noise: float = 0.0,
     friction_noise: float = 0.0,
     friction_target: str = "damping",
+    obs_indices: Sequence[int] | None = None,
     **env_kwargs: Any,
 ) -> gymnasium.Env:
     """Registration entry point of the noisy ids: ``base_id``'s bare environment class, wrapped with noise.
@@ -282,9 +319,10 @@ def make_noisy_base_env(
     :param action_noise: ``sigma`` of :class:`ActionNoise`.
     :param friction_noise: ``sigma`` of :class:`FrictionNoise`.
     :param friction_target: ``target`` of :class:`FrictionNoise`.
+    :param obs_indices: ``indices`` of :class:`ObservationNoise` (None: every element).
     :param env_kwargs: constructor arguments of the base environment (they override its registered kwargs).
     :return: the wrapped environment.
     """
     spec = gymnasium.spec(base_id)
     env = load_env_creator(spec.entry_point)(**{**spec.kwargs, **env_kwargs})
-    return make_noisy_env(env, obs_noise, action_noise, friction_noise, friction_target)
+    return make_noisy_env(env, obs_noise, action_noise, friction_noise, friction_target, obs_indices)

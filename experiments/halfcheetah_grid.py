@@ -42,6 +42,7 @@ import argparse
 import os
 import subprocess
 import sys
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -143,6 +144,16 @@ def models(args: argparse.Namespace) -> dict[str, Path]:
             if model is not None:
                 found[f"{variant}@{budget_label(budget)}_s{seed}"] = model
     return found
+
+
+def control_models(args: argparse.Namespace) -> Iterator[tuple[str, Path]]:
+    """``(<variant>@<budget>_s<seed>, model)`` for the controls' ``--variants`` and ``--seeds`` (options of
+    :func:`add_control_arguments`) whose runs reached ``--budget``."""
+    for variant in args.variants:
+        for seed in args.seeds:
+            model = model_at(variant, seed, args.budget, args)
+            if model is not None:
+                yield f"{variant}@{budget_label(args.budget)}_s{seed}", model
 
 
 def robustness_command(name: str, model: Path, noise: str, args: argparse.Namespace) -> list[str]:

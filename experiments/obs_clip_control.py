@@ -28,7 +28,7 @@ import gymnasium
 import numpy as np
 import torch
 from fig4_table import auc, fmt, group_of, read_episodes
-from halfcheetah_grid import BASELINES, ENV, HELDOUT_SEED, add_control_arguments, budget_label, model_at
+from halfcheetah_grid import BASELINES, ENV, HELDOUT_SEED, add_control_arguments, control_models
 
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
@@ -100,16 +100,11 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     route_mujoco_warnings()  # HalfCheetah's settotalmass deprecation, once per environment otherwise
-    grid = argparse.Namespace(out=args.out)
-    for variant in args.variants:
-        for seed in args.seeds:
-            name = f"{variant}@{budget_label(args.budget)}_s{seed}"
-            model = model_at(variant, seed, args.budget, grid)
-            done = args.out / "obs_clip" / "robustness" / name / f"robustness_{ENV}_{NOISE}_episodes.csv"
-            if model is None or done.exists():
-                continue
-            print(f"{name}: {model}", flush=True)
-            evaluate(name, model, args)
+    for name, model in control_models(args):
+        if (args.out / "obs_clip" / "robustness" / name / f"robustness_{ENV}_{NOISE}_episodes.csv").exists():
+            continue
+        print(f"{name}: {model}", flush=True)
+        evaluate(name, model, args)
     (args.out / "obs_clip" / "table.md").write_text(table(args))
     print((args.out / "obs_clip" / "table.md").read_text())
     return 0

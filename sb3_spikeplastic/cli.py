@@ -214,6 +214,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--env-kwargs", nargs="+", metavar="KEY=VALUE", help="gymnasium.make arguments of the "
                    "noise-free environment, values as YAML (e.g. max_episode_steps=200)")
     r.add_argument("--friction-target", default="damping", help="damping (default) or geom_friction")
+    r.add_argument("--obs-indices", nargs="+", type=int, metavar="I",
+                   help="obs noise on these observation elements only (default: all)")
     action_mode(r)
     r.add_argument("-o", "--output", default="robustness", help="output folder (default: robustness)")
     r.add_argument("--no-progress", action="store_true", help="no progress bar")

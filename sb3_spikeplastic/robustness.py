@@ -100,6 +100,7 @@ def evaluate_robustness(
     env_kwargs: Mapping[str, Any] | None = None,
     n_envs: int = 1,
     friction_target: str = "damping",
+    obs_indices: Sequence[int] | None = None,
 ) -> list[RobustnessRow]:
     """Mean return of every model under one noise type, for each ``sigma`` (paper Fig. 4 F-H).
 
@@ -122,10 +123,11 @@ def evaluate_robustness(
     :param env_kwargs: arguments of ``gymnasium.make`` for ``env_id`` (e.g. ``max_episode_steps``).
     :param n_envs: environments stepped side by side (batches the policy's forward pass).
     :param friction_target: the friction parameters perturbed by ``"friction"`` noise.
+    :param obs_indices: the observation elements perturbed by ``"obs"`` noise (None: all of them).
     :return: one row per (model, ``sigma``), models in the given order, ``sigma`` increasing, with every episode's
         return (:attr:`RobustnessRow.returns`).
     """
-    noise_kwargs(noise_type, 0.0, friction_target)  # fail on a bad noise type or target before any work
+    noise_kwargs(noise_type, 0.0, friction_target, obs_indices)  # fail on a bad noise type or target before any work
     grid = sorted({0.0, *(float(s) for s in sigmas)})
     for sigma in grid:
         noise_kwargs(noise_type, sigma)
@@ -140,6 +142,8 @@ def evaluate_robustness(
     if unknown:
         raise ValueError(f"vec_normalize_stats names {unknown} that are not in models {sorted(models)}")
     env_kwargs = dict(env_kwargs or {})
+    if obs_indices is not None:  # indices must fit the observation: fail before any work
+        make_noisy_env(env_id, **noise_kwargs(noise_type, 1.0, obs_indices=obs_indices), **env_kwargs).close()
 
     rows: list[RobustnessRow] = []
     with tqdm(
@@ -161,7 +165,8 @@ def evaluate_robustness(
             for sigma in grid:
                 bar.set_postfix(model=name, noise=noise_type, sigma=sigma)
                 venv = _make_eval_env(
-                    env_id, noise_kwargs(noise_type, sigma, friction_target), env_kwargs, n_envs, seed, stats.get(name)
+                    env_id, noise_kwargs(noise_type, sigma, friction_target, obs_indices), env_kwargs, n_envs, seed,
+                    stats.get(name)
                 )
                 if not deterministic:
                     torch.manual_seed(seed)
@@ -292,7 +297,8 @@ def parse_models(specs: Sequence[str]) -> dict[str, RunInfo]:
 def robustness_command(models: Sequence[str], noise: str, env: Optional[str] = None,
                        sigmas: Sequence[float] = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5), episodes: int = 100, seed: int = 0,
                        n_envs: int = 1, env_kwargs: Optional[Sequence[str]] = None,
-                       friction_target: str = "damping", deterministic: bool = True, output: str = "robustness",
+                       friction_target: str = "damping", obs_indices: Optional[Sequence[int]] = None,
+                       deterministic: bool = True, output: str = "robustness",
                        no_progress: bool = False, device: str = "cpu", torch_threads: int = 1) -> Callable[[], int]:
     """``sb3-spikeplastic robustness`` with these options (its long names): the noise is applied to the
     environment once, the models are loaded and checked against it (``ValueError``, nothing written); returns the
@@ -321,7 +327,7 @@ def robustness_command(models: Sequence[str], noise: str, env: Optional[str] = N
     env_id = check_env_id(env_id)
     kwargs = parse_env_kwargs(env_kwargs) or {}
     try:  # the noise must apply to this environment: fail before loading models or writing anything
-        make_noisy_env(env_id, **noise_kwargs(noise, 0.1, friction_target), **kwargs).close()
+        make_noisy_env(env_id, **noise_kwargs(noise, 0.1, friction_target, obs_indices), **kwargs).close()
     except (ValueError, TypeError) as exc:
         raise ValueError(f"{noise} noise cannot be applied to {env_id} (env_kwargs={kwargs}): {exc}") from None
     torch.set_num_threads(torch_threads)
@@ -337,7 +343,8 @@ def robustness_command(models: Sequence[str], noise: str, env: Optional[str] = N
         rows = evaluate_robustness(
             loaded, env_id, noise, sigmas, n_episodes=episodes, seed=seed, deterministic=deterministic,
             vec_normalize_stats={name: info.vecnormalize for name, info in infos.items()},
-            progress_bar=not no_progress, n_envs=n_envs, friction_target=friction_target, env_kwargs=kwargs)
+            progress_bar=not no_progress, n_envs=n_envs, friction_target=friction_target, obs_indices=obs_indices,
+            env_kwargs=kwargs)
         table, paths = write_report(rows, output, env_id, noise, episodes)
         print(table)
         print(f"\nwrote {', '.join(str(p) for p in paths)}")

@@ -208,6 +208,8 @@ def test_bad_robustness_evaluate_and_plot_input(tmaze_run, tmp_path, capsys):
          "unknown noise type 'wind'; accepted: obs, action, friction"),
         (["robustness", "--models", f"a={tmaze_run}", "--noise", "friction", "-o", tmp_path / "r"],
          "friction noise cannot be applied to TMazeCue-v0"),
+        (["robustness", "--models", f"a={tmaze_run}", "--env", "HalfCheetah-v5", "--noise", "obs", "--obs-indices",
+          "3", "17", "-o", tmp_path / "r"], "obs index 17 in [3, 17] is not one of distinct integers in [0, 16]"),
         (["robustness", "--models", f"a={tmp_path / 'nowhere'}", "--noise", "obs", "-o", tmp_path / "r"],
          "no run folder or model file"),
         (["robustness", "--models", f"a={tmaze_run}", "--env", "HalfCheetah-v5", "--noise", "obs", "-o", tmp_path / "r"],

@@ -58,3 +58,11 @@ def test_an_interrupted_run_is_continued_from_its_saved_model_and_not_evaluated(
     command = grid.train_command("static", 0, args)
     assert command[command.index("--trained-agent") + 1] == str(cut)
     assert not any(name.startswith("static") for name in grid.models(args))
+
+
+def test_control_models_are_the_chosen_runs_that_reached_the_budget(grid, tmp_path):
+    reached = fake_run(tmp_path, "mlp_1", 1, 300_000, range(50_000, 300_001, 50_000))
+    fake_run(tmp_path, "mlp_2", 1, 1_000_000, (50_000,), final=False)  # still short of 300k
+    fake_run(tmp_path, "static_1", 1, 300_000, range(50_000, 300_001, 50_000))  # not among the variants
+    args = grid.argparse.Namespace(out=tmp_path, variants=["mlp"], seeds=[0, 1, 2], budget=300_000)
+    assert list(grid.control_models(args)) == [("mlp@300k_s1", reached / "rl_model_300000_steps.zip")]

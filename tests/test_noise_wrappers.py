@@ -118,6 +118,21 @@ def test_observation_noise_adds_gaussian_noise_and_keeps_the_dtype():
     assert abs(z.mean()) < 0.05 and abs(z.std() - 0.5) < 0.03
 
 
+def test_observation_noise_on_some_indices_perturbs_only_those_with_the_all_element_draws():
+    def observations(env):
+        first, _ = env.reset(seed=0)
+        return np.array([first] + [env.step(np.zeros(6, np.float32))[0] for _ in range(50)])
+
+    bare = observations(cheetah())
+    every = observations(ObservationNoise(cheetah(), 0.5)) - bare
+    some = observations(gymnasium.make("NoisyHalfCheetah-v5", obs_noise=0.5, obs_indices=[8, 0, 3])) - bare
+    chosen = np.zeros(17, bool)
+    chosen[[0, 3, 8]] = True
+    assert np.all(some[:, ~chosen] == 0.0)
+    assert np.allclose(some[:, chosen], every[:, chosen], atol=1e-12) and np.all(some[:, chosen] != 0.0)
+    assert ObservationNoise(cheetah(), 0.5, indices=[8, 0, 3]).indices == (0, 3, 8)
+
+
 class _ActionRecorder(gymnasium.Wrapper):
     def __init__(self, env):
         super().__init__(env)
@@ -193,6 +208,7 @@ def test_noise_kwargs_maps_every_noise_type():
     assert noise_kwargs("obs", 0.1) == {"obs_noise": 0.1}
     assert noise_kwargs("action", 0.2) == {"action_noise": 0.2}
     assert noise_kwargs("friction", 0.3, "geom_friction") == {"friction_noise": 0.3, "friction_target": "geom_friction"}
+    assert noise_kwargs("obs", 0.1, obs_indices=[2, 3]) == {"obs_noise": 0.1, "obs_indices": [2, 3]}
 
 
 @pytest.mark.parametrize(
@@ -207,6 +223,11 @@ def test_noise_kwargs_maps_every_noise_type():
         (lambda: make_noisy_env("HalfCheetah-v5", obs_noise=-1), "-1"),
         (lambda: make_noisy_env(cheetah(), max_episode_steps=5), "max_episode_steps"),
         (lambda: noise_kwargs("gravity", 0.1), "'gravity'"),
+        (lambda: noise_kwargs("action", 0.1, obs_indices=[0]), "'action'"),
+        (lambda: ObservationNoise(cheetah(), 0.1, indices=[3, 17]), "17"),
+        (lambda: ObservationNoise(cheetah(), 0.1, indices=[]), "[]"),
+        (lambda: ObservationNoise(cheetah(), 0.1, indices=[1, 1]), "[1, 1]"),
+        (lambda: ObservationNoise(cheetah(), 0.1, indices=[0.5]), "0.5"),
     ],
 )
 def test_bad_arguments_name_the_value(make, bad):
@@ -216,6 +237,8 @@ def test_bad_arguments_name_the_value(make, bad):
     assert bad in message and "\n" not in message
     if "target" in message:
         assert "'damping'" in message and "'geom_friction'" in message
+    if "obs ind" in message:  # a bad index names the accepted range
+        assert "[0, 16]" in message
     if "gravity" in message:
         assert all(repr(name) in message for name in NOISE_TYPES)
 

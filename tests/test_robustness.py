@@ -95,6 +95,15 @@ def test_recurrent_state_is_threaded_and_reset_at_episode_starts(noise_type):
     assert rows[1].mean_return != rows[0].mean_return
 
 
+def test_obs_indices_limit_the_observation_noise_to_those_elements():
+    stub = RecurrentStub()  # constant actions: the trajectory is the same at every sigma
+    evaluate_robustness({"stub": stub}, "HalfCheetah-v5", "obs", [1.0], n_episodes=1, progress_bar=False,
+                        env_kwargs=SHORT, obs_indices=[2, 5])
+    clean, noisy = np.split(np.concatenate(stub.observations), 2)
+    changed = np.flatnonzero((clean != noisy).any(axis=0))
+    assert changed.tolist() == [2, 5]
+
+
 def test_vec_normalize_statistics_are_used_frozen(tmp_path):
     venv = VecNormalize(DummyVecEnv([lambda: gymnasium.make("HalfCheetah-v5")]), clip_obs=10.0)
     venv.obs_rms.mean[:] = 100.0  # far from any observation: normalised observations clip at -10
@@ -115,6 +124,8 @@ def test_vec_normalize_statistics_are_used_frozen(tmp_path):
         ({"n_episodes": 0}, "0"),
         ({"vec_normalize_stats": {"other": None}}, "other"),
         ({"noise_type": "friction", "friction_target": "frictionloss"}, "'frictionloss'"),
+        ({"obs_indices": [4, 17]}, "17"),
+        ({"noise_type": "action", "obs_indices": [4]}, "'action'"),
     ],
 )
 def test_bad_arguments_name_the_value(kwargs, bad):
