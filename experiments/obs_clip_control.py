@@ -105,6 +105,7 @@ def main(argv=None) -> int:
             continue
         print(f"{name}: {model}", flush=True)
         evaluate(name, model, args)
+    (args.out / "obs_clip").mkdir(parents=True, exist_ok=True)  # even when no model reached the budget
     (args.out / "obs_clip" / "table.md").write_text(table(args))
     print((args.out / "obs_clip" / "table.md").read_text())
     return 0

@@ -89,6 +89,7 @@ def main(argv=None) -> int:
                 continue
             print(f"{name}, noise on the {elements}: {model}", flush=True)
             evaluate(name, model, elements, args)
+    (args.out / "obs_groups").mkdir(parents=True, exist_ok=True)  # even when no model reached the budget
     (args.out / "obs_groups" / "table.md").write_text(table(args))
     print((args.out / "obs_groups" / "table.md").read_text())
     return 0
