@@ -39,7 +39,7 @@ import gymnasium
 import numpy as np
 import torch
 from fig4_table import auc, fmt, group_of, mean_return_at, read_episodes
-from halfcheetah_grid import ENV, HELDOUT_SEED, NOISES, add_control_arguments, budget_label
+from halfcheetah_grid import ENV, HELDOUT_SEED, NOISES, add_control_arguments, budget_label, write_control_table
 
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.common.vec_env import VecNormalize
@@ -184,8 +184,7 @@ def main(argv=None) -> int:
             print(name, flush=True)
             model_path, stats_path = train(input_kind, seed, args.out / "encoding" / "runs" / name, args)
             evaluate(name, model_path, stats_path, args)
-    (args.out / "encoding" / "table.md").write_text(table(args))
-    print((args.out / "encoding" / "table.md").read_text())
+    write_control_table(args.out / "encoding", table(args))
     return 0
 
 

@@ -156,6 +156,13 @@ def control_models(args: argparse.Namespace) -> Iterator[tuple[str, Path]]:
                 yield f"{variant}@{budget_label(args.budget)}_s{seed}", model
 
 
+def write_control_table(folder: Path, text: str) -> None:
+    """Write and print a control's ``table.md`` (the folder is made even when no model reached the budget)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "table.md").write_text(text)
+    print(text)
+
+
 def robustness_command(name: str, model: Path, noise: str, args: argparse.Namespace) -> list[str]:
     return [cli(), "robustness", "--env", ENV, "--models", f"{name}={model}", "--noise", noise, "--sigmas",
             *map(str, args.sigmas), "--episodes", str(args.episodes), "--n-envs", str(args.robustness_envs),

@@ -28,7 +28,7 @@ import gymnasium
 import numpy as np
 import torch
 from fig4_table import auc, fmt, group_of, read_episodes
-from halfcheetah_grid import BASELINES, ENV, HELDOUT_SEED, add_control_arguments, control_models
+from halfcheetah_grid import BASELINES, ENV, HELDOUT_SEED, add_control_arguments, control_models, write_control_table
 
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
@@ -105,9 +105,7 @@ def main(argv=None) -> int:
             continue
         print(f"{name}: {model}", flush=True)
         evaluate(name, model, args)
-    (args.out / "obs_clip").mkdir(parents=True, exist_ok=True)  # even when no model reached the budget
-    (args.out / "obs_clip" / "table.md").write_text(table(args))
-    print((args.out / "obs_clip" / "table.md").read_text())
+    write_control_table(args.out / "obs_clip", table(args))
     return 0
 
 

@@ -3,9 +3,10 @@
 Under observation noise on all 17 elements the baselines lose most of their return at sigma 0.1 where the spiking
 networks lose little. The same sigma is a different perturbation for different elements: the 8 positions (root
 height and angle, 6 joint angles) vary over a few tenths, the 9 velocities over units, so in standardised units the
-noise is large on the positions and small on the velocities (most of all on the root's height, s.d. ~0.14). This script evaluates the grid's models again with
-the noise on one group of elements at a time (``ObservationNoise(indices=...)``, which draws the same noise as the
-all-element evaluation for the elements it perturbs), same episode seeds, no retraining.
+noise is large on the positions (most of all on the root's height, s.d. ~0.14) and small on the velocities. This
+script evaluates the grid's models again with the noise on one group of elements at a time
+(``ObservationNoise(indices=...)``, which draws the same noise as the all-element evaluation for the elements it
+perturbs), same episode seeds, no retraining.
 
 Writes ``<out>/obs_groups/<elements>/robustness/<model>/`` (the per-episode returns) and
 ``<out>/obs_groups/table.md``: per group of models the ratio of the return at the largest sigma to R0 with the
@@ -22,7 +23,7 @@ import argparse
 import numpy as np
 import torch
 from fig4_table import fmt, group_of, r0, ratio_at, read_episodes
-from halfcheetah_grid import ENV, HELDOUT_SEED, VARIANTS, add_control_arguments, control_models
+from halfcheetah_grid import ENV, HELDOUT_SEED, VARIANTS, add_control_arguments, control_models, write_control_table
 
 from sb3_spikeplastic.envs import route_mujoco_warnings
 from sb3_spikeplastic.intervals import bootstrap_interval
@@ -89,9 +90,7 @@ def main(argv=None) -> int:
                 continue
             print(f"{name}, noise on the {elements}: {model}", flush=True)
             evaluate(name, model, elements, args)
-    (args.out / "obs_groups").mkdir(parents=True, exist_ok=True)  # even when no model reached the budget
-    (args.out / "obs_groups" / "table.md").write_text(table(args))
-    print((args.out / "obs_groups" / "table.md").read_text())
+    write_control_table(args.out / "obs_groups", table(args))
     return 0
 
 
