@@ -194,7 +194,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     e = sub.add_parser("evaluate", help="mean return (and success rate) of a trained model")
     model_source(e)
-    e.add_argument("--episodes", type=int, default=100, help="episodes (default: 100)")
+    # evaluate, robustness and enjoy take both spellings, so that one command's flag works on the others.
+    e.add_argument("--episodes", "--n-episodes", type=int, default=100, help="episodes (default: 100)")
     action_mode(e)
     e.add_argument("--seed", type=int, default=0, help="environment seed (default: 0)")
     e.add_argument("--n-envs", type=int, default=1, help="environments side by side (default: 1)")
@@ -208,7 +209,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--noise", required=True, help="obs, action or friction")
     r.add_argument("--sigmas", nargs="+", type=float, default=[0.0, 0.1, 0.2, 0.3, 0.4, 0.5],
                    help="noise standard deviations (default: 0 0.1 0.2 0.3 0.4 0.5)")
-    r.add_argument("--episodes", type=int, default=100, help="episodes per model and sigma (default: 100)")
+    r.add_argument("--episodes", "--n-episodes", type=int, default=100,
+                   help="episodes per model and sigma (default: 100)")
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--n-envs", type=int, default=1, help="environments side by side (default: 1)")
     r.add_argument("--env-kwargs", nargs="+", metavar="KEY=VALUE", help="gymnasium.make arguments of the "
@@ -243,7 +245,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "recurrent state carried) and optionally record them: one frame after each reset and each "
                        "step.")
     model_source(y)
-    y.add_argument("--n-episodes", type=int, default=1, help="episodes (default: 1)")
+    y.add_argument("--n-episodes", "--episodes", type=int, default=1, help="episodes (default: 1)")
     action_mode(y)
     y.add_argument("--seed", type=int, help="reset seed of the first episode (default: for a task that reports "
                    "success, the first of seeds 0-9 whose episode ends as most of them do; else 0)")

@@ -321,6 +321,14 @@ def test_help_and_argparse_errors(capsys):
     assert err[-1] == "sb3-spikeplastic: error: the following arguments are required: --env"
 
 
+def test_episode_count_takes_both_spellings():
+    parser = cli.build_parser()
+    for command, dest in (("evaluate", "episodes"), ("robustness", "episodes"), ("enjoy", "n_episodes")):
+        extra = ["--noise", "obs", "--models", "a=b"] if command == "robustness" else ["--run", "r"]
+        for flag in ("--episodes", "--n-episodes"):
+            assert getattr(parser.parse_args([command, *extra, flag, "7"]), dest) == 7
+
+
 def test_console_script_smoke(tmp_path):
     """One real run of the installed console script."""
     script = Path(sys.executable).parent / "sb3-spikeplastic"
