@@ -40,6 +40,8 @@ from sb3_spikeplastic.robustness import return_ratio
 STATIC = "static"
 #: The plastic rule the baselines are compared with: the rule of the HalfCheetah entry.
 PLASTIC_REFERENCE = "dp-oja"
+#: R0 below this: the model did not learn to run (a policy standing still scores about 0, a random one about -280).
+LEARNED_THRESHOLD = 1000.0
 
 
 def read_episodes(out: Path) -> dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
@@ -182,7 +184,7 @@ def verdict(difference: Interval, better: str, worse: str) -> str:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, default=Path("results/halfcheetah/fig4"))
-    parser.add_argument("--learned-threshold", type=float, default=1000.0,
+    parser.add_argument("--learned-threshold", type=float, default=LEARNED_THRESHOLD,
                         help="R0 below this: the model did not learn to run (listed apart)")
     parser.add_argument("--resamples", type=int, default=2000)
     args = parser.parse_args(argv)

@@ -16,7 +16,8 @@ each noise-trained group, of the same baseline trained without noise and of the 
 each group's difference from the static SNN (two-stage bootstrap intervals over seeds and episodes).
 
 Usage: ``python experiments/noise_trained_control.py`` (after the grid's observation-noise evaluations of ``mlp``,
-``mlp_zoo`` and ``static`` at 300k steps; ~1 hour of one core, most of it ``mlp_zoo``'s training).
+``mlp_zoo`` and ``static`` at 300k steps; ~1 hour of one core, most of it ``mlp_zoo``'s training); more seeds of
+one training sigma with ``--train-sigmas 0.4 --seeds 3 4 5`` (the table reads every model evaluated so far).
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
-from fig4_table import auc, fmt, group_of, mean_return_at, read_episodes
+from fig4_table import LEARNED_THRESHOLD, auc, fmt, group_of, mean_return_at, r0, read_episodes
 from grid_common import cli, run_one
 from halfcheetah_grid import ENV, add_control_arguments, budget_label, robustness_command, write_control_table
 
@@ -72,10 +73,14 @@ def table(args: argparse.Namespace) -> str:
     trained = read_episodes(args.out / "noise_trained")
     grid = read_episodes(args.out)
 
+    failed = []
+
     def seeds(data: dict, group: str) -> tuple[np.ndarray, list[np.ndarray]]:
-        """The group's sigmas and its per-seed returns (one row per sigma)."""
+        """The group's sigmas and the per-seed returns (one row per sigma) of its models that learned."""
         names = [m for m in sorted(data) if group_of(m) == group and NOISE in data[m]]
-        return (data[names[0]][NOISE][0] if names else np.array([])), [data[m][NOISE][1] for m in names]
+        failed.extend(f"{m} ({r0(data[m][NOISE][1]):.0f})" for m in names if r0(data[m][NOISE][1]) < LEARNED_THRESHOLD)
+        learned = [data[m][NOISE][1] for m in names if r0(data[m][NOISE][1]) >= LEARNED_THRESHOLD]
+        return (data[names[0]][NOISE][0] if names else np.array([])), learned
 
     static = seeds(grid, f"static@{budget}")
     rows = [(f"static@{budget}", static), *((f"{v}@{budget}", seeds(grid, f"{v}@{budget}")) for v in args.variants)]
@@ -85,7 +90,8 @@ def table(args: argparse.Namespace) -> str:
              "`<variant>+obs<σ>`: trained on NoisyHalfCheetah-v5 with observation noise σ on every element; the "
              f"others from the protocol (trained without noise). {args.episodes} episodes per point, the protocol's "
              "episode seeds; 95 % two-stage bootstrap intervals over seeds and episodes. AUC: area under the "
-             "ratio-to-R0 curve (1 = no loss).", "",
+             f"ratio-to-R0 curve (1 = no loss). Models with R0 < {LEARNED_THRESHOLD:g} did not learn to run: listed "
+             "apart, left out of the rows.", "",
              "| model | seeds | R0 | AUC | return at σ max | AUC − static SNN | return at σ max − static SNN |",
              "|---|---|---|---|---|---|---|"]
     for group, (sigmas, data) in rows:
@@ -98,6 +104,8 @@ def table(args: argparse.Namespace) -> str:
         cells += [fmt(bootstrap_difference(data, static[1], auc(sigmas)), 2),
                   fmt(bootstrap_difference(data, static[1], mean_return_at(top)))] if comparable else ["", ""]
         lines.append(f"| {group} | {len(data)} | " + " | ".join(cells) + " |")
+    if failed:
+        lines += ["", f"Did not learn (R0 < {LEARNED_THRESHOLD:g}): " + ", ".join(failed) + "."]
     return "\n".join(lines) + "\n"
 
 
