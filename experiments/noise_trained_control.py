@@ -17,7 +17,7 @@ each group's difference from the static SNN (two-stage bootstrap intervals over 
 
 Usage: ``python experiments/noise_trained_control.py`` (after the grid's observation-noise evaluations of ``mlp``,
 ``mlp_zoo`` and ``static`` at 300k steps; ~1 hour of one core, most of it ``mlp_zoo``'s training); more seeds of
-one training sigma with ``--train-sigmas 0.4 --seeds 3 4 5`` (the table reads every model evaluated so far).
+one training sigma with ``--train-sigmas 0.4 --seeds 3 4 5 6 7 8`` (the table reads every model evaluated so far).
 """
 
 from __future__ import annotations
