@@ -38,7 +38,7 @@ from pathlib import Path
 import gymnasium
 import numpy as np
 import torch
-from fig4_table import auc, fmt, group_of, mean_return_at, read_episodes
+from fig4_table import group_of, read_episodes, summary_cells
 from halfcheetah_grid import ENV, HELDOUT_SEED, NOISES, add_control_arguments, budget_label, write_control_table
 
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
@@ -48,7 +48,6 @@ from sb3_spikeplastic import config as cfg
 from sb3_spikeplastic.coding import PopulationEncoder, hash32
 from sb3_spikeplastic.envs import route_mujoco_warnings
 from sb3_spikeplastic.experiment import make_train_env
-from sb3_spikeplastic.intervals import bootstrap_difference, bootstrap_interval
 from sb3_spikeplastic.policy import VECTOR_STEPS, SpikePlasticPolicy
 from sb3_spikeplastic.robustness import evaluate_robustness, write_episodes_csv
 
@@ -157,15 +156,11 @@ def table(args: argparse.Namespace) -> str:
         if not plain or not any(seeds(v, noise) for v in VARIANTS.values()):
             continue
         sigmas = next(grid[m][noise][0] for m in grid if noise in grid[m])
-        top = len(sigmas) - 1
         for variant in groups:
             group = seeds(variant, noise)
             if not group:
                 continue
-            cells = [fmt(bootstrap_interval(group, mean_return_at(0))), fmt(bootstrap_interval(group, auc(sigmas)), 2),
-                     fmt(bootstrap_interval(group, mean_return_at(top)))]
-            cells += ["", ""] if variant == "mlp" else [fmt(bootstrap_difference(group, plain, auc(sigmas)), 2),
-                                                        fmt(bootstrap_difference(group, plain, mean_return_at(top)))]
+            cells = summary_cells(group, sigmas, None if variant == "mlp" else plain)
             lines.append(f"| {noise} | {variant}@{budget} | {len(group)} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 

@@ -103,6 +103,18 @@ def fmt(interval: Interval, digits: int = 0) -> str:
     return f"{interval.estimate:.{digits}f} [{interval.low:.{digits}f}, {interval.high:.{digits}f}]"
 
 
+def summary_cells(seeds: list[np.ndarray], sigmas: np.ndarray, reference: list[np.ndarray] | None = None) -> list[str]:
+    """A control table's cells for one group: R0, AUC and the return at the largest sigma, then the AUC and return
+    differences from ``reference`` (empty without one); intervals as everywhere in the protocol."""
+    top = len(sigmas) - 1
+    cells = [fmt(bootstrap_interval(seeds, mean_return_at(0))), fmt(bootstrap_interval(seeds, auc(sigmas)), 2),
+             fmt(bootstrap_interval(seeds, mean_return_at(top)))]
+    if reference is None:
+        return cells + ["", ""]
+    return cells + [fmt(bootstrap_difference(seeds, reference, auc(sigmas)), 2),
+                    fmt(bootstrap_difference(seeds, reference, mean_return_at(top)))]
+
+
 def read_runs(out: Path) -> list[dict]:
     """Per run folder root (``runs/<variant>_<seed>``): steps, wall-clock minutes, late gradient norm."""
     rows = []

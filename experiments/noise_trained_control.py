@@ -28,11 +28,9 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
-from fig4_table import LEARNED_THRESHOLD, auc, fmt, group_of, mean_return_at, r0, read_episodes
+from fig4_table import LEARNED_THRESHOLD, group_of, r0, read_episodes, summary_cells
 from grid_common import cli, run_one
 from halfcheetah_grid import ENV, add_control_arguments, budget_label, robustness_command, write_control_table
-
-from sb3_spikeplastic.intervals import bootstrap_difference, bootstrap_interval
 
 TRAIN_ENV = "NoisyHalfCheetah-v5"
 NOISE = "obs"
@@ -97,12 +95,8 @@ def table(args: argparse.Namespace) -> str:
     for group, (sigmas, data) in rows:
         if not data:
             continue
-        top = len(sigmas) - 1
-        cells = [fmt(bootstrap_interval(data, mean_return_at(0))), fmt(bootstrap_interval(data, auc(sigmas)), 2),
-                 fmt(bootstrap_interval(data, mean_return_at(top)))]
         comparable = group != rows[0][0] and np.array_equal(sigmas, static[0])
-        cells += [fmt(bootstrap_difference(data, static[1], auc(sigmas)), 2),
-                  fmt(bootstrap_difference(data, static[1], mean_return_at(top)))] if comparable else ["", ""]
+        cells = summary_cells(data, sigmas, static[1] if comparable else None)
         lines.append(f"| {group} | {len(data)} | " + " | ".join(cells) + " |")
     if failed:
         lines += ["", f"Did not learn (R0 < {LEARNED_THRESHOLD:g}): " + ", ".join(failed) + "."]
