@@ -41,7 +41,7 @@ PROG = "sb3-spikeplastic"
 COMMANDS = {
     "train": ("experiment", "train_command"),
     "optimize": ("optimize", "optimize_command"),
-    "grid": ("grid", "grid_command"),
+    "study": ("study.engine", "study_command"),
     "evaluate": ("evaluation", "evaluate_command"),
     "robustness": ("robustness", "robustness_command"),
     "plot": ("figures", "plot_command"),
@@ -62,6 +62,12 @@ def _threads(value: str):
         raise argparse.ArgumentTypeError(f"{value!r} is not a positive number of threads or 'auto'")
     return number
 
+
+
+def _packaged_studies() -> list[str]:
+    from sb3_spikeplastic.study.declaration import packaged_studies
+
+    return sorted(packaged_studies())
 
 
 def _count(text: str) -> int:
@@ -178,18 +184,25 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("--search-space", help="search-space file (default: the packaged search_space.yml)")
     common(o)
 
-    g = sub.add_parser("grid", help="train each cell (variant x env x seed) of a grid file once, by workers on any "
-                       "machines sharing an Optuna study", description="A killed worker's cell is run again. "
-                       "Writes <log folder>/grid/<study>/: runs/, grid.csv and grid.md.")
-    study_options(g, "grid", "the grid file's name without .yml")
-    g.add_argument("grid_file", metavar="GRID_FILE", help="the grid (YAML; see docs/cli.md)")
+    g = sub.add_parser("study", help="train and evaluate every cell of a study file once, by workers on any "
+                       "machines sharing an Optuna storage; `study report FILE`: its tables and figures",
+                       description="A study file declares variants x environments x seeds x budgets and what every "
+                       "model is evaluated on (docs/studies.md). `study FILE` runs its cells (a killed worker's cell "
+                       "is taken over by another; running it again continues what is missing: new seeds, budgets, "
+                       "variants, evaluations), then writes the report; `study report FILE` derives every table, "
+                       "verdict and figure from the raw episode files alone. Packaged studies: "
+                       f"{', '.join(_packaged_studies())}.")
+    g.add_argument("study_file", nargs="+", metavar="[report] FILE", help="the study file (YAML), or the name of a "
+                   "packaged study; `report FILE`: only the report")
+    study_options(g, "study", "the study file's name without .yml")
+    g.add_argument("--folder", help="the study's folder (default: <log folder>/study/<study>)")
     g.add_argument("--workers", type=int, default=1, help="worker processes on this machine (default: 1)")
+    g.add_argument("--variants", nargs="+", metavar="NAME", help="only these variants (default: all)")
+    g.add_argument("--seeds", nargs="+", type=int, metavar="SEED", help="only these seeds (default: all)")
     g.add_argument("--heartbeat-interval", type=int, default=60, help="seconds between heartbeats of a running "
                    "cell (default: 60)")
     g.add_argument("--grace-period", type=int, help="seconds without a heartbeat after which a cell is run again "
                    "(default: twice the interval)")
-    g.add_argument("--retry-failed", action="store_true", help="first queue again the cells whose training failed")
-    g.add_argument("--summary-only", action="store_true", help="only write the summary of the study as it stands")
     common(g)
 
     e = sub.add_parser("evaluate", help="mean return (and success rate) of a trained model")

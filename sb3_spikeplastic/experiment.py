@@ -150,6 +150,8 @@ class Experiment:
         self.save_freq, self.keep_checkpoints = save_freq, keep_checkpoints
         self.source = trained_agent
         self.after_eval = after_eval
+        #: more callbacks for ``learn`` (e.g. a study's checkpoints at its budgets)
+        self.extra_callbacks: list = []
         self.model = None
         self.run_dir: Optional[Path] = None
         self.tb_dir: Optional[Path] = None
@@ -255,7 +257,7 @@ class Experiment:
         if self.figure_freq:
             callbacks.append(ActivityFigureCallback(self.env_id, every=self.figure_freq, env_kwargs=self.env_kwargs,
                                                     seed=self.seed))
-        return callbacks
+        return callbacks + list(self.extra_callbacks)
 
     def _environments(self):
         """The training environments (the continued run's statistics too) and the evaluation environment."""

@@ -15,8 +15,9 @@ level) paired.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
-from typing import NamedTuple
+from typing import NamedTuple, Optional
 
 import numpy as np
 
@@ -108,3 +109,84 @@ def bootstrap_difference(groups_a: Sequence[np.ndarray], groups_b: Sequence[np.n
     rng = np.random.default_rng(seed)
     replicates = np.array([statistic(resample(a, rng)) - statistic(resample(b, rng)) for _ in range(n_resamples)])
     return Interval(float(statistic(a) - statistic(b)), *_percentiles(replicates, level))
+
+
+@functools.lru_cache(maxsize=64)
+def _draws(sizes: tuple[tuple[int, int], ...], n_resamples: int, seed: int) -> tuple[tuple[np.ndarray, ...], ...]:
+    """The draws of ``n_resamples`` two-stage resamples in the order of :func:`resample`, for one set of seeds
+    (``bootstrap_interval``) or two drawn in turn (``bootstrap_difference``): for each set of ``k`` seeds of ``n``
+    episodes, the drawn seeds ``(R, k)`` and each drawn seed's episodes ``(R, k, n)``. They depend on the sizes
+    and the seed alone, so every interval of the same sizes shares them."""
+    rng = np.random.default_rng(seed)
+    seeds = [np.empty((n_resamples, k), np.int64) for k, _ in sizes]
+    episodes = [np.empty((n_resamples, k, n), np.int64) for k, n in sizes]
+    for r in range(n_resamples):
+        for i, (k, n) in enumerate(sizes):
+            seeds[i][r] = rng.integers(k, size=k)
+            for j in range(k):
+                episodes[i][r, j] = rng.integers(n, size=n)
+    for array in (*seeds, *episodes):
+        array.flags.writeable = False
+    return tuple(zip(seeds, episodes))
+
+
+def _resampled_means(arrays: Sequence[np.ndarray], seeds: np.ndarray, episodes: np.ndarray) -> np.ndarray:
+    """Each replicate's per-seed means over the resampled episodes, shape ``(R, k, *leading)``."""
+    stacked = np.stack([a.reshape(-1, a.shape[-1]) for a in arrays])  # (k, L, n)
+    rows = np.arange(stacked.shape[1])[None, None, :, None]
+    gathered = stacked[seeds[:, :, None, None], rows, episodes[:, :, None, :]]  # (R, k, L, n), episodes last
+    return gathered.mean(axis=-1).reshape(*seeds.shape, *arrays[0].shape[:-1])
+
+
+def _means(arrays: Sequence[np.ndarray]) -> np.ndarray:
+    return np.stack([a.mean(axis=-1) for a in arrays])
+
+
+def _sizes(arrays: Sequence[np.ndarray]) -> Optional[tuple[int, int]]:
+    """``(seeds, episodes)`` when every seed has the same shape (the vectorised path), else ``None``."""
+    return (len(arrays), arrays[0].shape[-1]) if all(a.shape == arrays[0].shape for a in arrays) else None
+
+
+MeanStatistic = Callable[[np.ndarray], np.ndarray]
+
+
+def bootstrap_mean_intervals(groups: Sequence[np.ndarray], statistics: Sequence[MeanStatistic],
+                             n_resamples: int = 2000, level: float = 0.95, seed: int = 0) -> list[Interval]:
+    """:func:`bootstrap_interval` of statistics of the per-seed mean returns, all replicates at once.
+
+    The draws are those of :func:`bootstrap_interval` with the same ``seed``, so each interval is the same; only
+    the statistics' form differs: each maps per-seed means of shape ``(..., k, *leading)`` (``k`` seeds, the
+    leading axes of each seed's data, e.g. sigma) to shape ``(...)``. The resampled means are computed once for
+    all the statistics.
+
+    :param groups: one array per seed, episodes on the last axis.
+    :param statistics: vectorised functions of the per-seed means.
+    :param n_resamples: bootstrap replicates.
+    :param level: coverage of the intervals.
+    :param seed: seed of the resampling generator.
+    """
+    arrays = _check(groups, n_resamples, level)
+    sizes = _sizes(arrays)
+    if sizes is None:
+        return [bootstrap_interval(arrays, lambda s, f=f: float(f(_means(s))), n_resamples, level, seed)
+                for f in statistics]
+    ((seeds, episodes),) = _draws((sizes,), n_resamples, seed)
+    means, measured = _resampled_means(arrays, seeds, episodes), _means(arrays)
+    return [Interval(float(f(measured)), *_percentiles(np.asarray(f(means), dtype=float), level)) for f in statistics]
+
+
+def bootstrap_mean_differences(groups_a: Sequence[np.ndarray], groups_b: Sequence[np.ndarray],
+                               statistics: Sequence[MeanStatistic], n_resamples: int = 2000, level: float = 0.95,
+                               seed: int = 0) -> list[Interval]:
+    """:func:`bootstrap_difference` of statistics of the per-seed means (see :func:`bootstrap_mean_intervals`),
+    with the same draws as :func:`bootstrap_difference`."""
+    a, b = _check(groups_a, n_resamples, level), _check(groups_b, n_resamples, level)
+    sizes_a, sizes_b = _sizes(a), _sizes(b)
+    if sizes_a is None or sizes_b is None:
+        return [bootstrap_difference(a, b, lambda s, f=f: float(f(_means(s))), n_resamples, level, seed)
+                for f in statistics]
+    (seeds_a, eps_a), (seeds_b, eps_b) = _draws((sizes_a, sizes_b), n_resamples, seed)
+    means_a, means_b = _resampled_means(a, seeds_a, eps_a), _resampled_means(b, seeds_b, eps_b)
+    measured_a, measured_b = _means(a), _means(b)
+    return [Interval(float(f(measured_a) - f(measured_b)),
+                     *_percentiles(np.asarray(f(means_a) - f(means_b), dtype=float), level)) for f in statistics]

@@ -11,7 +11,7 @@ sampled configuration is invalid, or whose training fails, is marked failed with
 
 The study's best trial becomes a hyperparameter file ``best.yml`` (``{env_id: entry}``, the entry's full
 ``n_timesteps``) that ``train --conf`` reads. The study lives in an Optuna storage
-(:mod:`sb3_spikeplastic.studies`), so several processes, on one machine or several, can share it.
+(:mod:`sb3_spikeplastic.study.storage`), so several processes, on one machine or several, can share it.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
 
 from . import config as cfg
-from .studies import (check_model, check_settings, count_states, create_study, describe_storage, open_storage,
+from .study.storage import (check_model, check_settings, count_states, create_study, describe_storage, open_storage,
                       one_line, quiet_optuna, storage_exists, train_command, worker_name)
 
 SAMPLERS = ("tpe", "random")
@@ -471,7 +471,7 @@ def optimize_command(env: str, conf: Optional[str] = None, rule: Optional[str] =
     """``sb3-spikeplastic optimize`` with these options (its long names): everything is checked by
     :func:`prepare` (``ValueError``, nothing written); returns the search (:func:`run`)."""
     from .inputs import check_device, check_int, check_output_path
-    from .studies import check_storage
+    from .study.storage import check_storage
 
     check_int("--torch-threads", torch_threads, 1)
     check_device(device)

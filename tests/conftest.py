@@ -1,3 +1,5 @@
+import os
+
 import pytest
 import torch
 
@@ -41,3 +43,19 @@ def compiled_cuda_ops(monkeypatch):
     if not torch.cuda.is_available():
         pytest.skip("needs a CUDA device")
     return _built(monkeypatch, cuda=True)
+
+
+@pytest.fixture
+def postgres_url(tmp_path):
+    """The URL of a real PostgreSQL server's empty database, started for the test and stopped after it
+    (tests/postgres_server.py). Skips where PostgreSQL is not installed, except in CI (``CI=true``), which installs
+    it: a skip there would hide a failed install."""
+    from postgres_server import find_postgres_bin, postgres_server
+
+    if find_postgres_bin() is None:
+        message = "PostgreSQL server not installed (apt-get install postgresql)"
+        if os.environ.get("CI") == "true":
+            pytest.fail(message)
+        pytest.skip(message)
+    with postgres_server(tmp_path) as url:
+        yield url

@@ -8,7 +8,7 @@ from helpers import TINY_CARTPOLE, run_cli
 
 from sb3_spikeplastic import config as cfg
 from sb3_spikeplastic.optimize import OptimizeSettings, load_search_space, prepare, sample_overrides, searched_space
-from sb3_spikeplastic.studies import default_storage_url
+from sb3_spikeplastic.study.storage import default_storage_url
 
 SMALL_SPACE = """default:
   learning_rate: {log: [1.0e-4, 1.0e-2]}

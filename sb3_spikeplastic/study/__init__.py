@@ -1,0 +1,15 @@
+"""Studies: a declared file of variants x environments x seeds x budgets x evaluations, trained and evaluated by
+workers that share an Optuna storage, and a report derived from the raw episodes alone.
+
+* :mod:`~sb3_spikeplastic.study.declaration` — the study file (:class:`Study`) and its checks
+* :mod:`~sb3_spikeplastic.study.protocol` — the robustness protocol of Fig. 4 (:class:`Protocol`, :data:`FIG4`)
+* :mod:`~sb3_spikeplastic.study.layout` — where the raw data lives and how it is read
+* :mod:`~sb3_spikeplastic.study.engine` — the cells, the shared queue, the workers
+* :mod:`~sb3_spikeplastic.study.report` — tables, intervals, verdicts and figures
+* :mod:`~sb3_spikeplastic.study.storage` — Optuna storages with heartbeats (also used by ``optimize``)
+"""
+
+from .declaration import Study, load_study_file, study_from_dict
+from .protocol import FIG4, Protocol
+
+__all__ = ["FIG4", "Protocol", "Study", "load_study_file", "study_from_dict"]

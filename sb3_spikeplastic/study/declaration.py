@@ -1,0 +1,384 @@
+"""A study file: what is trained (variants x environments x seeds up to budgets), what every model is evaluated
+on, and what the report compares. Every key and value is checked before anything runs.
+
+::
+
+    envs: [HalfCheetah-v5]
+    seeds: [0, 1, 2]
+    budgets: [300000, 1000000]   # one run per (variant, seed); a checkpoint at every budget is a model
+    conf: ppo                    # hyperparameter file of every variant unless it names its own
+    hyperparams: []              # overrides of every variant
+    eval_freq: 50000             # evaluations during training (the training curves); 0: none
+    eval_episodes: 5
+    variants:
+      static: {rule: static, seeds: [0, 1, 2, 3, 4]}   # seeds and budgets of a variant replace the study's
+      dp-oja: {rule: dp-oja}
+      wide: {rule: dp-oja, hyperparams: [policy_kwargs.hidden_sizes=[128]]}
+      mlp: {conf: mlp}                                 # a baseline is a variant like any other
+    evaluations:
+      final: {episodes: 100}                           # kind "final": the noise-free return (and success)
+      robustness: {noises: [friction, action, obs]}    # kind "robustness": the Fig. 4 protocol (Protocol)
+      height: {kind: robustness, noises: [obs], sigmas: [0, 0.1], obs_indices: [0]}
+    report:
+      compare:                                         # differences with intervals, and verdicts
+        - {variants: plastic, against: static, pooled: true}
+        - {variants: baselines, against: [static, dp-oja]}
+
+Variant groups in ``compare``: ``plastic`` (spiking policies with a trace), ``static`` (spiking, no trace),
+``spiking`` (both), ``baselines`` (every other policy), or a list of variant names.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import os
+import re
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Optional, Sequence
+
+from .. import config as cfg
+from .protocol import FIG4, NOISES, Protocol
+
+STUDY_KEYS = ("description", "envs", "seeds", "budgets", "conf", "hyperparams", "eval_freq", "eval_episodes",
+              "variants", "evaluations", "report")
+VARIANT_KEYS = ("rule", "conf", "hyperparams", "seeds", "budgets")
+EVALUATION_KINDS = ("final", "robustness")
+FINAL_KEYS = ("kind", "episodes", "seed", "n_envs", "model")
+ROBUSTNESS_KEYS = ("kind", "noises", "sigmas", "episodes", "seed", "n_envs", "friction_target", "obs_indices",
+                   "model")
+REPORT_KEYS = ("learned_threshold", "resamples", "compare")
+COMPARE_KEYS = ("variants", "against", "pooled")
+GROUPS = ("plastic", "static", "spiking", "baselines")
+#: Which model of a budget an evaluation uses: the checkpoint at that budget, or the run's best evaluated model.
+MODELS = ("budget", "best")
+_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.+-]*$")
+
+
+@dataclass(frozen=True)
+class Variant:
+    """One variant: a rule, a hyperparameter file and overrides, and its own seeds and budgets (each optional)."""
+
+    rule: Optional[str] = None
+    conf: Optional[str] = None
+    hyperparams: tuple[str, ...] = ()
+    seeds: Optional[tuple[int, ...]] = None
+    budgets: Optional[tuple[int, ...]] = None
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """What every model of the study is evaluated on: ``final`` (noise-free episodes) or ``robustness`` (the
+    protocol), on held-out episode seeds.
+
+    :param kind: ``final`` or ``robustness``
+    :param protocol: episodes, seed, environments side by side, and for ``robustness`` the noises and sigmas
+    :param model: ``budget`` (the checkpoint at each budget) or ``best`` (``best_model.zip``, last budget only)
+    """
+
+    kind: str
+    protocol: Protocol
+    model: str = "budget"
+
+    def files(self, name: str) -> list[str]:
+        """The raw files of this evaluation in a model's episode folder."""
+        if self.kind == "final":
+            return [f"{name}.csv"]
+        return [f"{name}_{noise}.csv" for noise in self.protocol.noises]
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """Rows of the verdict table: each of ``variants`` against each reference (the same budget), and the
+    variants pooled when ``pooled``."""
+
+    variants: tuple[str, ...]
+    against: tuple[str, ...]
+    pooled: bool = False
+
+
+@dataclass(frozen=True)
+class Study:
+    """A checked study file (see the module docstring)."""
+
+    envs: tuple[str, ...]
+    seeds: tuple[int, ...]
+    budgets: tuple[int, ...]
+    variants: dict[str, Variant]
+    evaluations: dict[str, Evaluation] = field(default_factory=dict)
+    conf: Optional[str] = None
+    hyperparams: tuple[str, ...] = ()
+    eval_freq: int = 0
+    eval_episodes: int = 5
+    comparisons: tuple[Comparison, ...] = ()
+    learned_threshold: float = FIG4.learned_threshold
+    resamples: int = 2000
+    description: str = ""
+
+    def seeds_of(self, variant: str) -> tuple[int, ...]:
+        return self.variants[variant].seeds or self.seeds
+
+    def budgets_of(self, variant: str) -> tuple[int, ...]:
+        return self.variants[variant].budgets or self.budgets
+
+    def conf_of(self, variant: str) -> Optional[str]:
+        return self.variants[variant].conf or self.conf
+
+    def overrides(self, variant: str) -> list[str]:
+        return [*self.hyperparams, *self.variants[variant].hyperparams]
+
+    def cells(self) -> list[tuple[str, str, int]]:
+        """Every ``(env, variant, seed)``: one training run each, seed first."""
+        seeds = sorted({s for v in self.variants for s in self.seeds_of(v)})
+        return [(env, variant, seed) for seed in seeds for env in self.envs for variant in self.variants
+                if seed in self.seeds_of(variant)]
+
+    def config(self, env_id: str, variant: str) -> dict:
+        """The resolved entry of ``variant`` on ``env_id``, trained to its largest budget (``ValueError`` naming
+        both when it is invalid)."""
+        v = self.variants[variant]
+        try:
+            cfg.check_env_id(env_id, list(cfg.load_hyperparams_file(self.conf_of(variant))))
+            return cfg.resolve_hyperparams(env_id, self.conf_of(variant), self.overrides(variant), rule=v.rule,
+                                           n_timesteps=max(self.budgets_of(variant)))
+        except ValueError as exc:
+            raise ValueError(f"variant {variant!r} on {env_id}: {exc}") from None
+
+    def select(self, variants: Optional[Sequence[str]] = None, seeds: Optional[Sequence[int]] = None) -> "Study":
+        """The study restricted to some variants and seeds (what one worker may take)."""
+        unknown = [v for v in variants or () if v not in self.variants]
+        if unknown:
+            raise ValueError(f"unknown variant {unknown[0]!r}; accepted: {', '.join(self.variants)}")
+        chosen = {name: self.variants[name] for name in (variants or self.variants)}
+        if seeds is not None:
+            chosen = {name: replace(v, seeds=tuple(s for s in self.seeds_of(name) if s in seeds))
+                      for name, v in chosen.items()}
+            chosen = {name: v for name, v in chosen.items() if v.seeds}
+        return replace(self, variants=chosen)
+
+
+def budget_label(steps: int) -> str:
+    """``300k``, ``1M``, ``2.5M``: a budget in a model name."""
+    if steps % 1_000_000 == 0:
+        return f"{steps // 1_000_000}M"
+    if steps % 1000 == 0:
+        return f"{steps // 1000}k"
+    return str(steps)
+
+
+def model_name(variant: str, budget: int, seed: int) -> str:
+    """``<variant>@<budget>_s<seed>``, e.g. ``dp-oja@300k_s0``."""
+    return f"{variant}@{budget_label(budget)}_s{seed}"
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Reading and checking
+
+def _unknown(what: str, key, accepted: Sequence[str], where: str) -> ValueError:
+    close = difflib.get_close_matches(str(key), accepted, n=1)
+    hint = f" (did you mean {close[0]!r}?)" if close else ""
+    return ValueError(f"unknown {what} {key!r} in {where}{hint}; accepted: {', '.join(accepted)}")
+
+
+def _check_keys(what: str, data: dict, accepted: Sequence[str], where: str) -> None:
+    for key in data:
+        if key not in accepted:
+            raise _unknown(what, key, accepted, where)
+
+
+def _int(value, what: str, minimum: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or \
+            not float(value).is_integer() or value < minimum:
+        raise ValueError(f"{what}={value!r} must be an integer >= {minimum}")
+    return int(value)
+
+
+def _ints(value, what: str, minimum: int) -> tuple[int, ...]:
+    if not isinstance(value, list) or not value:
+        raise ValueError(f"{what}={value!r} must be a non-empty list of integers")
+    values = tuple(_int(v, what, minimum) for v in value)
+    if len(set(values)) != len(values):
+        raise ValueError(f"{what}={value!r} must not repeat a value")
+    return values
+
+
+def _overrides(value, what: str) -> tuple[str, ...]:
+    if value is None:
+        return ()
+    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+        raise ValueError(f"{what} must be a list of KEY=VALUE strings, got {value!r}")
+    for item in value:
+        cfg.parse_override(item)
+    return tuple(value)
+
+
+def _conf(value, what: str, base: Path) -> Optional[str]:
+    """A conf name or path; a relative path is read from the study file's folder when it is there."""
+    if value is None:
+        return None
+    if not isinstance(value, str):
+        raise ValueError(f"{what}={value!r} must be a packaged file name or a path")
+    if value not in cfg.PACKAGED_HYPERPARAMS and not Path(value).is_absolute() and (base / value).is_file():
+        value = str((base / value).resolve())
+    cfg.load_hyperparams_file(value)
+    return value
+
+
+def _variant(name, spec, where: str, base: Path) -> Variant:
+    if not isinstance(name, str) or not _NAME.match(name) or "@" in name:
+        raise ValueError(f"variant name {name!r} in {where} must be letters, digits and _ . + - (it names folders)")
+    if not isinstance(spec, dict):
+        raise ValueError(f"variant {name!r} in {where} must be a mapping with {', '.join(VARIANT_KEYS)}")
+    _check_keys(f"key of variant {name!r}", spec, VARIANT_KEYS, where)
+    rule = spec.get("rule")
+    if rule is not None:
+        from ..plasticity import get_rule_class
+
+        get_rule_class(rule)
+    return Variant(rule, _conf(spec.get("conf"), f"conf of variant {name!r}", base),
+                   _overrides(spec.get("hyperparams"), f"hyperparams of variant {name!r}"),
+                   None if spec.get("seeds") is None else _ints(spec["seeds"], f"seeds of variant {name!r}", 0),
+                   None if spec.get("budgets") is None else
+                   tuple(sorted(_ints(spec["budgets"], f"budgets of variant {name!r}", 1))))
+
+
+def _evaluation(name, spec, where: str) -> Evaluation:
+    if not isinstance(name, str) or not _NAME.match(name) or "_" in name:
+        raise ValueError(f"evaluation name {name!r} in {where} must be letters, digits and . + - (it names files)")
+    spec = dict(spec or {})
+    kind = spec.get("kind", name)
+    if kind not in EVALUATION_KINDS:
+        raise _unknown(f"kind of evaluation {name!r}", kind, EVALUATION_KINDS, where)
+    _check_keys(f"key of evaluation {name!r}", spec, FINAL_KEYS if kind == "final" else ROBUSTNESS_KEYS, where)
+    what = f"evaluation {name!r}"
+    model = spec.get("model", "budget")
+    if model not in MODELS:
+        raise _unknown(f"model of {what}", model, MODELS, where)
+    protocol = replace(FIG4, episodes=_int(spec.get("episodes", FIG4.episodes), f"{what} episodes", 1),
+                       seed=_int(spec.get("seed", FIG4.seed), f"{what} seed", 0),
+                       n_envs=_int(spec.get("n_envs", FIG4.n_envs if kind == "robustness" else 1), f"{what} n_envs", 1))
+    if kind == "final":
+        return Evaluation(kind, replace(protocol, noises=(), sigmas=(0.0,)), model)
+    noises = spec.get("noises", list(FIG4.noises))
+    if not isinstance(noises, list) or not noises:
+        raise ValueError(f"noises of {what} in {where} must be a list of {', '.join(NOISES)}")
+    for noise in noises:
+        if noise not in NOISES:
+            raise _unknown(f"noise of {what}", noise, NOISES, where)
+    sigmas = spec.get("sigmas", list(FIG4.sigmas))
+    if not isinstance(sigmas, list) or len(sigmas) < 2 or any(
+            isinstance(s, bool) or not isinstance(s, (int, float)) or not math.isfinite(s) or s < 0 for s in sigmas) \
+            or sigmas[0] != 0 or sorted(set(sigmas)) != sigmas:
+        raise ValueError(f"sigmas={sigmas!r} of {what} in {where} must be increasing numbers >= 0 starting with 0 "
+                         "(R0)")
+    from ..envs.noise import FRICTION_TARGETS
+
+    target = spec.get("friction_target", FIG4.friction_target)
+    if target not in FRICTION_TARGETS:
+        raise _unknown(f"friction_target of {what}", target, FRICTION_TARGETS, where)
+    indices = spec.get("obs_indices")
+    indices = None if indices is None else _ints(indices, f"{what} obs_indices", 0)
+    return Evaluation(kind, replace(protocol, noises=tuple(noises), sigmas=tuple(float(s) for s in sigmas),
+                                    friction_target=target, obs_indices=indices), model)
+
+
+def _comparisons(data, variants: dict[str, Variant], where: str) -> tuple[Comparison, ...]:
+    if not isinstance(data, list):
+        raise ValueError(f"report.compare in {where} must be a list of mappings with {', '.join(COMPARE_KEYS)}")
+    out = []
+    for item in data:
+        if not isinstance(item, dict):
+            raise ValueError(f"report.compare in {where} must be a list of mappings with {', '.join(COMPARE_KEYS)}")
+        _check_keys("key of report.compare", item, COMPARE_KEYS, where)
+        names = {}
+        for key in ("variants", "against"):
+            value = item.get(key)
+            if value is None:
+                raise ValueError(f"report.compare in {where} needs {key!r}")
+            value = [value] if isinstance(value, str) else value
+            for name in value:
+                if name not in variants and name not in GROUPS:
+                    raise _unknown(f"variant in report.compare.{key}", name, [*variants, *GROUPS], where)
+            names[key] = tuple(value)
+        if not isinstance(item.get("pooled", False), bool):
+            raise ValueError(f"report.compare pooled={item['pooled']!r} in {where} must be true or false")
+        out.append(Comparison(names["variants"], names["against"], item.get("pooled", False)))
+    return tuple(out)
+
+
+def study_from_dict(data, where: str = "the study", base: Path = Path(".")) -> Study:
+    """A :class:`Study` from the data of a study file, every key and value checked.
+
+    :param data: the parsed YAML
+    :param where: the file, for messages
+    :param base: the folder relative ``conf`` paths are read from
+    :raises ValueError: one line naming the bad key or value and the accepted ones
+    """
+    if not isinstance(data, dict):
+        raise ValueError(f"{where} must be a mapping with the keys {', '.join(STUDY_KEYS)}")
+    _check_keys("study key", data, STUDY_KEYS, where)
+    for key in ("envs", "variants", "budgets"):
+        if not data.get(key):
+            raise ValueError(f"{where} needs {key!r}")
+    envs = data["envs"]
+    if not isinstance(envs, list) or not all(isinstance(e, str) for e in envs) or len(set(envs)) != len(envs):
+        raise ValueError(f"envs={envs!r} in {where} must be a list of distinct environment ids")
+    if not isinstance(data["variants"], dict):
+        raise ValueError(f"variants in {where} must map names to mappings with {', '.join(VARIANT_KEYS)}")
+    variants = {name: _variant(name, spec, where, base) for name, spec in data["variants"].items()}
+    evaluations = data.get("evaluations") or {}
+    if not isinstance(evaluations, dict):
+        raise ValueError(f"evaluations in {where} must map names to mappings")
+    report = data.get("report") or {}
+    if not isinstance(report, dict):
+        raise ValueError(f"report in {where} must be a mapping with {', '.join(REPORT_KEYS)}")
+    _check_keys("report key", report, REPORT_KEYS, where)
+    threshold = report.get("learned_threshold", FIG4.learned_threshold)
+    if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not math.isfinite(threshold):
+        raise ValueError(f"report.learned_threshold={threshold!r} in {where} must be a number")
+    description = data.get("description", "")
+    if not isinstance(description, str):
+        raise ValueError(f"description in {where} must be text")
+    study = Study(
+        tuple(envs), _ints(data.get("seeds", [0]), "seeds", 0), tuple(sorted(_ints(data["budgets"], "budgets", 1))),
+        variants, {name: _evaluation(name, spec, where) for name, spec in evaluations.items()},
+        _conf(data.get("conf"), "conf", base), _overrides(data.get("hyperparams"), "hyperparams"),
+        _int(data.get("eval_freq", 0), "eval_freq", 0), _int(data.get("eval_episodes", 5), "eval_episodes", 1),
+        _comparisons(report.get("compare", []), variants, where), float(threshold),
+        _int(report.get("resamples", 2000), "report.resamples", 1), description.strip())
+    return study
+
+
+#: The studies installed with the package (``sb3-spikeplastic study NAME``).
+def packaged_studies() -> dict[str, Path]:
+    """Name -> file of the study files shipped in ``sb3_spikeplastic.study_files``."""
+    from importlib.resources import files
+
+    folder = files("sb3_spikeplastic.study_files")
+    return {Path(str(f)).stem: Path(str(f)) for f in folder.iterdir() if str(f).endswith(".yml")}
+
+
+def study_path(name_or_path: os.PathLike | str) -> Path:
+    """A study file: a path, or the name of a packaged study (``fig4``, ``tmaze``)."""
+    path = Path(name_or_path)
+    if path.is_file():
+        return path
+    shipped = packaged_studies()
+    if str(name_or_path) in shipped:
+        return shipped[str(name_or_path)]
+    raise ValueError(f"no study file {str(name_or_path)!r}; give a path or a packaged study: {', '.join(sorted(shipped))}")
+
+
+def load_study_file(name_or_path: os.PathLike | str) -> tuple[Study, Path]:
+    """Read and check a study file (:func:`study_from_dict`); returns the study and its path."""
+    path = study_path(name_or_path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ValueError(f"cannot read study file {str(path)!r}: {exc.strerror or exc}") from None
+    try:
+        data = cfg.yaml_load(text)
+    except Exception as exc:
+        raise ValueError(f"study file {str(path)!r} is not valid YAML: {' '.join(str(exc).split())}") from None
+    return study_from_dict(data, f"study file {str(path)!r}", path.parent), path

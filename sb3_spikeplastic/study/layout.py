@@ -1,0 +1,99 @@
+"""Where a study keeps its raw data, and how it is read back.
+
+::
+
+    <folder>/runs/<env>/<variant>_s<seed>/ppo/<env>_<n>/    training runs (a run continued later adds a folder)
+    <folder>/training/<env>/<variant>_s<seed>.csv           every evaluation during training: timesteps, episode,
+                                                            return
+    <folder>/episodes/<env>/<variant>@<budget>_s<seed>/     every evaluation's episodes:
+        <evaluation>.csv                                    final: episode, return, length, success
+        <evaluation>_<noise>.csv                            robustness: model, noise_type, sigma, episode, return
+
+Raw per-episode returns are the study's only data: :mod:`sb3_spikeplastic.study.report` derives every table,
+interval and figure from them. Every file is written whole (into a temporary file, then renamed), so a killed
+worker never leaves half a file.
+"""
+
+from __future__ import annotations
+
+import csv
+import re
+from collections import defaultdict
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from .declaration import model_name
+
+_CHECKPOINT = re.compile(r"rl_model_(\d+)_steps\.zip")
+
+
+class StudyFolder:
+    """The folders and files of one study (see the module docstring).
+
+    :param root: the study's folder
+    """
+
+    def __init__(self, root: Path):
+        self.root = Path(root)
+
+    def run_root(self, env: str, variant: str, seed: int) -> Path:
+        return self.root / "runs" / env / f"{variant}_s{seed}"
+
+    def run_folders(self, env: str, variant: str, seed: int) -> list[Path]:
+        """The run folders of a cell, oldest first (a later one continues an earlier one)."""
+        return sorted(self.run_root(env, variant, seed).glob(f"ppo/{env}_*"),
+                      key=lambda p: int(p.name.rsplit("_", 1)[1]))
+
+    def checkpoints(self, env: str, variant: str, seed: int) -> dict[int, Path]:
+        """Steps -> checkpoint, over every run folder of the cell (a later folder's wins)."""
+        found = {}
+        for folder in self.run_folders(env, variant, seed):
+            for path in folder.glob("rl_model_*_steps.zip"):
+                if match := _CHECKPOINT.fullmatch(path.name):
+                    found[int(match.group(1))] = path
+        return found
+
+    def model_at(self, env: str, variant: str, seed: int, budget: int) -> Optional[Path]:
+        """The checkpoint saved when the cell's training reached ``budget`` steps (the first at or after it)."""
+        after = sorted((steps, path) for steps, path in self.checkpoints(env, variant, seed).items() if steps >= budget)
+        return after[0][1] if after else None
+
+    def training_file(self, env: str, variant: str, seed: int) -> Path:
+        return self.root / "training" / env / f"{variant}_s{seed}.csv"
+
+    def episodes_dir(self, env: str, variant: str, budget: int, seed: int) -> Path:
+        return self.root / "episodes" / env / model_name(variant, budget, seed)
+
+    def has_data(self) -> bool:
+        return (self.root / "episodes").is_dir() or (self.root / "training").is_dir()
+
+
+def read_robustness(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """A robustness file: ``(sigmas, returns of shape (n_sigma, n_episodes))``, episodes in file order of their
+    index (the same seeded episode at every sigma)."""
+    by_sigma: dict[float, list[tuple[int, float]]] = defaultdict(list)
+    with open(path) as f:
+        for row in csv.DictReader(f):
+            by_sigma[float(row["sigma"])].append((int(row["episode"]), float(row["return"])))
+    sigmas = np.array(sorted(by_sigma))
+    return sigmas, np.array([[r for _, r in sorted(by_sigma[s])] for s in sigmas])
+
+
+def read_final(path: Path) -> dict[str, np.ndarray]:
+    """A final-evaluation file: ``return``, ``length`` and ``success`` (NaN where the task reports none)."""
+    with open(path) as f:
+        rows = list(csv.DictReader(f))
+    return {key: np.array([float(r[key]) if r[key] != "" else np.nan for r in rows])
+            for key in ("return", "length", "success")}
+
+
+def read_training(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """A training-curve file: ``(timesteps, mean return of each evaluation)``, in step order."""
+    returns: dict[int, list[float]] = defaultdict(list)
+    with open(path) as f:
+        for row in csv.DictReader(f):
+            returns[int(row["timesteps"])].append(float(row["return"]))
+    steps = np.array(sorted(returns))
+    return steps, np.array([np.mean(returns[s]) for s in steps])

@@ -1,0 +1,464 @@
+"""``sb3-spikeplastic study report FILE``: every table, interval, verdict and figure of a study, derived from its
+raw episode files (:mod:`sb3_spikeplastic.study.layout`) and nothing else.
+
+A group is ``<variant>@<budget>`` (its models are the seeds). Intervals are two-stage bootstrap 95 % intervals over
+seeds, then episodes (:mod:`sb3_spikeplastic.intervals`; seeded, so a report is reproducible). Written into the
+study's folder (with one environment; with several, each file name starts with ``<env>_``):
+
+* ``table.md`` — per final evaluation: each group's mean return (and success rate) per seed and with its interval;
+  per robustness evaluation (the protocol of :mod:`sb3_spikeplastic.study.protocol`): R0 per seed and per group,
+  and per noise type the return at every sigma beside its ratio to R0 and the area under the ratio curve. Models
+  with R0 below the learned threshold are listed apart and left out of every ratio and comparison. Last, what is
+  missing: cells not trained, evaluations not run.
+* ``verdicts.md``, ``verdicts.csv`` — the comparisons the study file declares (``report.compare``), per budget:
+  differences (model minus reference) of the AUC, of R0 and of the return at the largest sigma (robustness), or of
+  the mean return and success rate (final), with intervals, and a verdict only where the interval excludes 0.
+* ``points.csv`` (every group x noise x sigma: return and ratio with intervals), ``<evaluation>.png`` (return and
+  ratio against sigma: Fig. 4 F-H), ``curves.csv`` and ``training_curves.png`` (Fig. 4 E: the deterministic
+  evaluations during training, mean and range over seeds).
+"""
+
+from __future__ import annotations
+
+import csv
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from ..intervals import Interval, bootstrap_mean_differences, bootstrap_mean_intervals
+from .declaration import Evaluation, Study, budget_label, model_name
+from .layout import StudyFolder, read_final, read_robustness, read_training
+from .protocol import auc, ratio_to_r0
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Statistics of per-seed means (shape (..., seeds, sigmas)), vectorised over bootstrap replicates
+
+def mean_at(j: int) -> Callable[[np.ndarray], np.ndarray]:
+    """The mean over seeds of each seed's mean return at sigma index ``j``."""
+    return lambda means: means[..., j].mean(axis=-1)
+
+
+def ratio_at(j: int) -> Callable[[np.ndarray], np.ndarray]:
+    """The mean over seeds of each seed's return ratio to R0 at sigma index ``j``."""
+    return lambda means: ratio_to_r0(means)[..., j].mean(axis=-1)
+
+
+def auc_of(sigmas) -> Callable[[np.ndarray], np.ndarray]:
+    """The mean over seeds of each seed's area under the ratio curve."""
+    return lambda means: auc(ratio_to_r0(means), sigmas).mean(axis=-1)
+
+
+def fmt(interval: Interval, digits: int = 0) -> str:
+    return f"{interval.estimate:.{digits}f} [{interval.low:.{digits}f}, {interval.high:.{digits}f}]"
+
+
+def verdict(difference: Interval, better: str, worse: str) -> str:
+    if difference.low > 0:
+        return better
+    if difference.high < 0:
+        return worse
+    return "not resolved"
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# The raw data of a study
+
+@dataclass
+class StudyData:
+    """What a study's folder holds, read once.
+
+    :param robustness: (env, evaluation) -> model -> noise -> (sigmas, returns (n_sigma, n_episodes))
+    :param final: (env, evaluation) -> model -> {"return", "length", "success"}
+    :param training: env -> (variant, seed) -> (timesteps, mean return)
+    :param missing: one line per missing cell or evaluation file
+    """
+
+    robustness: dict = field(default_factory=dict)
+    final: dict = field(default_factory=dict)
+    training: dict = field(default_factory=dict)
+    missing: list = field(default_factory=list)
+
+
+def read_study(study: Study, folder: Path) -> StudyData:
+    """Every raw file the study declares, and the list of those not there."""
+    layout, data = StudyFolder(folder), StudyData()
+    for env, variant, seed in study.cells():
+        path = layout.training_file(env, variant, seed)
+        if path.is_file():
+            data.training.setdefault(env, {})[(variant, seed)] = read_training(path)
+        elif study.eval_freq:
+            data.missing.append(f"{env} {variant} seed {seed}: training curve")
+        for budget in study.budgets_of(variant):
+            model = model_name(variant, budget, seed)
+            episodes = layout.episodes_dir(env, variant, budget, seed)
+            for name, evaluation in study.evaluations.items():
+                if evaluation.model == "best" and budget != study.budgets_of(variant)[-1]:
+                    continue
+                for file in evaluation.files(name):
+                    path = episodes / file
+                    if not path.is_file():
+                        data.missing.append(f"{env} {model}: {file}")
+                    elif evaluation.kind == "final":
+                        data.final.setdefault((env, name), {})[model] = read_final(path)
+                    else:
+                        noise = file[len(name) + 1:-len(".csv")]
+                        data.robustness.setdefault((env, name), {}).setdefault(model, {})[noise] = read_robustness(path)
+    return data
+
+
+def group_of(model: str) -> str:
+    return model.rsplit("_s", 1)[0]
+
+
+def variant_of(group: str) -> str:
+    return group.split("@")[0]
+
+
+def groups_of(study: Study) -> list[str]:
+    """``<variant>@<budget>`` in report order: budgets ascending, then the study file's order of variants."""
+    budgets = sorted({b for v in study.variants for b in study.budgets_of(v)})
+    return [f"{v}@{budget_label(b)}" for b in budgets for v in study.variants if b in study.budgets_of(v)]
+
+
+def kinds(study: Study) -> dict[str, str]:
+    """Variant -> ``plastic``, ``static`` or ``baselines``, from its resolved entry (the study's first env)."""
+    out = {}
+    for variant in study.variants:
+        config = study.config(study.envs[0], variant)
+        if config.get("policy") != "SpikePlasticPolicy":
+            out[variant] = "baselines"
+        else:
+            rule = (config.get("policy_kwargs") or {}).get("rule", "dp-oja")
+            out[variant] = "static" if rule == "static" else "plastic"
+    return out
+
+
+def members(names: tuple[str, ...], kind: dict[str, str]) -> list[str]:
+    """Variant names and groups (``plastic``, ``static``, ``spiking``, ``baselines``) -> variants."""
+    out: list[str] = []
+    for name in names:
+        if name in kind:
+            chosen = [name]
+        elif name == "spiking":
+            chosen = [v for v, k in kind.items() if k != "baselines"]
+        else:
+            chosen = [v for v, k in kind.items() if k == name]
+        out += [v for v in chosen if v not in out]
+    return out
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Tables
+
+def robustness_section(env: str, name: str, evaluation: Evaluation, models: dict, study: Study,
+                       kind: dict[str, str], boot: dict, heading: str) -> tuple[list[str], list[dict], list[dict], object]:
+    """The robustness evaluation's tables, points, verdict rows and figure."""
+    import matplotlib.pyplot as plt
+
+    noises = [n for n in evaluation.protocol.noises if any(n in d for d in models.values())]
+    first = {m: d[noises[0]][1] for m, d in models.items() if noises[0] in d}
+    learned = {m for m, d in first.items() if d[0].mean() >= study.learned_threshold}
+    groups = [g for g in groups_of(study) if any(group_of(m) == g for m in models)]
+
+    def seeds_of(group: str, noise: str) -> list[np.ndarray]:
+        return [models[m][noise][1] for m in sorted(models) if group_of(m) == group and noise in models[m]
+                and m in learned]
+
+    episodes = next(iter(first.values())).shape[-1]
+    lines = [heading, "",
+             f"R0 and every noise level: {episodes} deterministic episodes per seed, the same episode seeds for every "
+             "model and sigma; [95 % interval]: two-stage bootstrap over seeds and episodes; models with R0 < "
+             f"{study.learned_threshold:g} are listed apart and excluded below.", "",
+             "| model | seeds | R0 per seed | R0 [95 % interval] |", "|---|---|---|---|"]
+    for group in groups:
+        mine = [m for m in sorted(models) if group_of(m) == group and m in first]
+        kept = [first[m] for m in mine if m in learned]
+        per_seed = " / ".join(f"{first[m][0].mean():.0f}" + ("" if m in learned else " (did not learn)") for m in mine)
+        lines.append(f"| {group} | {len(kept)} of {len(mine)} | {per_seed} | "
+                     f"{fmt(bootstrap_mean_intervals(kept, [mean_at(0)], **boot)[0]) if kept else '-'} |")
+    failed = sorted(m for m in first if m not in learned)
+    if failed:
+        lines += ["", f"Did not learn (R0 < {study.learned_threshold:g}): " + ", ".join(failed) + "."]
+
+    points, verdicts = [], []
+    fig, axes = plt.subplots(2, len(noises), figsize=(5 * len(noises), 8), squeeze=False)
+    for col, noise in enumerate(noises):
+        sigmas = next(d[noise][0] for d in models.values() if noise in d)
+        lines += ["", f"## {noise} noise", "",
+                  "Absolute return (ratio to R0) at each sigma, and the area under the ratio curve.", "",
+                  "| model | seeds | " + " | ".join(f"sigma {s:g}" for s in sigmas) + " | AUC [95 % interval] |",
+                  "|---|---|" + "---|" * len(sigmas) + "---|"]
+        for group in groups:
+            seeds = seeds_of(group, noise)
+            if not seeds:
+                continue
+            n = len(sigmas)
+            *intervals, area = bootstrap_mean_intervals(
+                seeds, [*map(mean_at, range(n)), *map(ratio_at, range(n)), auc_of(sigmas)], **boot)
+            returns, ratios = intervals[:n], intervals[n:]
+            for sigma, ret, rat in zip(sigmas, returns, ratios):
+                points.append(dict(env=env, evaluation=name, group=group, noise=noise, sigma=sigma, seeds=len(seeds),
+                                   **{f"return_{k}": round(v, 1) for k, v in ret._asdict().items()},
+                                   **{f"ratio_{k}": round(v, 4) for k, v in rat._asdict().items()}))
+            lines.append(f"| {group} | {len(seeds)} | " + " | ".join(
+                f"{ret.estimate:.0f} ({rat.estimate:.2f})" for ret, rat in zip(returns, ratios)) + f" | {fmt(area, 2)} |")
+            for row, values in ((0, returns), (1, ratios)):
+                axes[row, col].errorbar(sigmas, [v.estimate for v in values],
+                                        yerr=[[v.estimate - v.low for v in values], [v.high - v.estimate for v in values]],
+                                        capsize=3, marker="o", ms=3, label=f"{group} (n={len(seeds)})")
+        axes[0, col].set(title=f"{noise} noise", ylabel="return")
+        axes[1, col].set(xlabel="sigma", ylabel="return ratio to sigma = 0")
+        axes[1, col].axhline(1.0, color="0.6", ls=":", lw=0.8)
+        axes[0, col].legend(fontsize=7)
+
+        top = len(sigmas) - 1
+        for label, reference, compared in comparisons(study, kind, groups, lambda g: bool(seeds_of(g, noise))):
+            seeds, ref = [s for g in compared for s in seeds_of(g, noise)], seeds_of(reference, noise)
+            d_auc, d_top, d_r0 = bootstrap_mean_differences(seeds, ref, [auc_of(sigmas), mean_at(top), mean_at(0)],
+                                                            **boot)
+            verdicts.append(dict(
+                env=env, evaluation=name, noise=noise, model=label, reference=reference, seeds=len(seeds),
+                reference_seeds=len(ref), **{f"auc_difference_{k}": round(v, 4) for k, v in d_auc._asdict().items()},
+                **{f"return_at_sigma_{sigmas[top]:g}_difference_{k}": round(v, 1) for k, v in d_top._asdict().items()},
+                **{f"r0_difference_{k}": round(v, 1) for k, v in d_r0._asdict().items()},
+                auc_verdict=verdict(d_auc, "loses less", "loses more"), return_verdict=verdict(d_top, "higher", "lower")))
+    fig.tight_layout()
+    return lines, points, verdicts, fig
+
+
+def comparisons(study: Study, kind: dict[str, str], groups: list[str],
+                has_data: Callable[[str], bool]) -> list[tuple[str, str, list[str]]]:
+    """``(label, reference group, groups compared)`` of every declared comparison, budget by budget: each variant
+    against each reference of the same budget, then the variants pooled (when declared and more than one)."""
+    rows = []
+    for budget in dict.fromkeys(g.split("@")[1] for g in groups):
+        at_budget = {variant_of(g): g for g in groups if g.split("@")[1] == budget and has_data(g)}
+        for comparison in study.comparisons:
+            chosen = [v for v in members(comparison.variants, kind) if v in at_budget]
+            for ref_variant in members(comparison.against, kind):
+                if ref_variant not in at_budget:
+                    continue
+                reference = at_budget[ref_variant]
+                mine = [v for v in chosen if v != ref_variant]
+                rows += [(at_budget[v], reference, [at_budget[v]]) for v in mine]
+                if comparison.pooled and len(mine) > 1:
+                    rows.append((f"{' + '.join(comparison.variants)}@{budget} (pooled: {', '.join(mine)})", reference,
+                                 [at_budget[v] for v in mine]))
+    return rows
+
+
+def final_section(env: str, name: str, models: dict, study: Study, kind: dict[str, str],
+                  boot: dict, heading: str) -> tuple[list[str], list[dict]]:
+    """The final evaluation's table and verdict rows (mean return and success rate)."""
+    groups = [g for g in groups_of(study) if any(group_of(m) == g for m in models)]
+    has_success = any(np.isfinite(d["success"]).all() for d in models.values())
+
+    def seeds_of(group: str, key: str = "return") -> list[np.ndarray]:
+        return [models[m][key][None] for m in sorted(models) if group_of(m) == group]
+
+    episodes = next(iter(models.values()))["return"].size
+    mean = lambda m: m[..., 0].mean(axis=-1)  # noqa: E731  (per-seed means of one level)
+    head = "| model | seeds | return per seed | return [95 % interval] |"
+    lines = [heading, "", f"{episodes} deterministic episodes per seed on held-out episode seeds; [95 % interval]: "
+             "two-stage bootstrap over seeds and episodes.", ""]
+    lines += [head + (" success per seed | success [95 % interval] |" if has_success else ""),
+              "|---|---|---|---|" + ("---|---|" if has_success else "")]
+    for group in groups:
+        mine = [m for m in sorted(models) if group_of(m) == group]
+        per_seed = {key: " / ".join(f"{models[m][key].mean():{spec}}" for m in mine)
+                    for key, spec in (("return", ".4g"), ("success", ".3f"))}
+        row = (f"| {group} | {len(mine)} | {per_seed['return']} | "
+               f"{fmt(bootstrap_mean_intervals(seeds_of(group), [mean], **boot)[0], 3)} |")
+        if has_success:
+            row += (f" {per_seed['success']} | "
+                    f"{fmt(bootstrap_mean_intervals(seeds_of(group, 'success'), [mean], **boot)[0], 3)} |")
+        lines.append(row)
+    verdicts = []
+    for label, reference, compared in comparisons(study, kind, groups, lambda g: bool(seeds_of(g))):
+        seeds = [s for g in compared for s in seeds_of(g)]
+        (d_return,) = bootstrap_mean_differences(seeds, seeds_of(reference), [mean], **boot)
+        row = dict(env=env, evaluation=name, noise="", model=label, reference=reference, seeds=len(seeds),
+                   reference_seeds=len(seeds_of(reference)),
+                   **{f"return_difference_{k}": round(v, 4) for k, v in d_return._asdict().items()},
+                   return_verdict=verdict(d_return, "higher", "lower"))
+        if has_success:
+            success = [s for g in compared for s in seeds_of(g, "success")]
+            (d_success,) = bootstrap_mean_differences(success, seeds_of(reference, "success"), [mean], **boot)
+            row.update({f"success_difference_{k}": round(v, 4) for k, v in d_success._asdict().items()},
+                       success_verdict=verdict(d_success, "higher", "lower"))
+        verdicts.append(row)
+    return lines, verdicts
+
+
+def verdict_table(rows: list[dict]) -> list[str]:
+    """The verdicts of one evaluation as Markdown, per noise type."""
+    lines = []
+    for noise in dict.fromkeys(r["noise"] for r in rows):
+        mine = [r for r in rows if r["noise"] == noise]
+
+        def ival(r, prefix, digits):
+            return fmt(Interval(r[f"{prefix}_estimate"], r[f"{prefix}_low"], r[f"{prefix}_high"]), digits)
+
+        if noise == "":
+            has_success = "success_verdict" in mine[0]
+            lines += ["| model | reference | seeds | return difference | return |"
+                      + (" success difference | success |" if has_success else ""),
+                      "|---|---|---|---|---|" + ("---|---|" if has_success else "")]
+            for r in mine:
+                lines.append(f"| {r['model']} | {r['reference']} | {r['seeds']} vs {r['reference_seeds']} | "
+                             f"{ival(r, 'return_difference', 3)} | {r['return_verdict']} |" + (
+                                 f" {ival(r, 'success_difference', 3)} | {r['success_verdict']} |" if has_success else ""))
+            lines.append("")
+            continue
+        top_key = next(k for k in mine[0] if k.startswith("return_at_sigma_")).split("_difference")[0]
+        lines += [f"## {noise} noise", "",
+                  f"| model | reference | seeds | AUC difference | relative loss | R0 difference | "
+                  f"{top_key.replace('_', ' ')} difference | absolute return under noise |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for r in mine:
+            lines.append(f"| {r['model']} | {r['reference']} | {r['seeds']} vs {r['reference_seeds']} | "
+                         f"{ival(r, 'auc_difference', 3)} | {r['auc_verdict']} | {ival(r, 'r0_difference', 0)} | "
+                         f"{ival(r, top_key + '_difference', 0)} | {r['return_verdict']} |")
+        lines.append("")
+    return lines
+
+
+def training_curves(study: Study, env: str, curves: dict, path: Path) -> list[dict]:
+    """Fig. 4 E: every variant's deterministic evaluation return against steps (mean and range over seeds)."""
+    import matplotlib.pyplot as plt
+
+    rows = []
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for variant in study.variants:
+        data = [curves[(variant, s)] for s in study.seeds_of(variant) if (variant, s) in curves]
+        if not data:
+            continue
+        grid = np.unique(np.concatenate([s for s, _ in data]))
+        # A seed counts only up to its own last evaluation: the runs of a variant may have different lengths.
+        ys = np.stack([np.where(grid <= s[-1], np.interp(grid, s, y), np.nan) for s, y in data])
+        n = np.isfinite(ys).sum(0)
+        mean, low, high = np.nanmean(ys, 0), np.nanmin(ys, 0), np.nanmax(ys, 0)
+        line, = ax.plot(grid, mean, label=f"{variant} (n={len(data)})")
+        ax.fill_between(grid, low, high, alpha=0.2, color=line.get_color())
+        rows += [dict(env=env, variant=variant, steps=int(s), seeds=int(k), mean=round(float(m), 1),
+                      low=round(float(lo), 1), high=round(float(hi), 1))
+                 for s, k, m, lo, hi in zip(grid, n, mean, low, high)]
+    ax.set(title=f"{env}: deterministic evaluation return during training", xlabel="environment steps",
+           ylabel="mean return")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return rows
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Writing
+
+def _write_csv(path: Path, rows: list[dict]) -> Path:
+    from ..run_folder import atomic_write
+
+    fields = list(dict.fromkeys(k for r in rows for k in r))
+
+    def write(f):
+        writer = csv.DictWriter(f, fieldnames=fields)
+        writer.writeheader()
+        writer.writerows(rows)
+
+    return atomic_write(path, write, binary=False)
+
+
+def _write_text(path: Path, text: str) -> Path:
+    from ..run_folder import atomic_write
+
+    return atomic_write(path, lambda f: f.write(text), binary=False)
+
+
+def write_report(study: Study, folder: Path, log: Optional[Callable[[str], None]] = print) -> list[Path]:
+    """Derive every table, verdict and figure of ``study`` from the raw files in ``folder``; returns the files
+    written. ``ValueError`` when the folder holds no raw data of a study."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    folder = Path(folder)
+    if not StudyFolder(folder).has_data():
+        raise ValueError(f"{str(folder)!r} holds no study (no episodes/ or training/ folder); run "
+                         "`sb3-spikeplastic study FILE` first, or pass the study's folder with --folder")
+    data = read_study(study, folder)
+    kind, boot = kinds(study), dict(n_resamples=study.resamples)
+    written: list[Path] = []
+    for env in study.envs:
+        prefix = "" if len(study.envs) == 1 else f"{env}_"
+        lines, verdict_lines, points, verdict_rows = [], [f"# {env}: verdicts", "",
+                                                         "Differences (model minus reference) with two-stage "
+                                                         "bootstrap 95 % intervals; a verdict is given only when the "
+                                                         "interval excludes 0. AUC: area under the ratio-to-R0 curve "
+                                                         "(relative loss); return at the largest sigma: absolute. "
+                                                         "Generated by `sb3-spikeplastic study report`.", ""], [], []
+        for name, evaluation in study.evaluations.items():
+            if evaluation.kind == "final" and (env, name) in data.final:
+                section, rows = final_section(env, name, data.final[(env, name)], study, kind, boot,
+                                              f"# {env}: evaluation {name!r}")
+                lines += section + [""]
+                if rows:
+                    verdict_lines += [f"## evaluation {name!r}", "", *verdict_table(rows)]
+                verdict_rows += rows
+            elif evaluation.kind == "robustness" and (env, name) in data.robustness:
+                heading = (f"# {env}: return under noise, one protocol for every model" if name == "robustness"
+                           else f"# {env}: return under noise, evaluation {name!r}")
+                section, pts, rows, fig = robustness_section(env, name, evaluation, data.robustness[(env, name)],
+                                                             study, kind, boot, heading)
+                lines += section + [""]
+                points += pts
+                if name != "robustness":
+                    verdict_lines += [f"# evaluation {name!r}", ""]
+                verdict_lines += verdict_table(rows)
+                verdict_rows += rows
+                written.append(folder / f"{prefix}{name}.png")
+                fig.savefig(written[-1], dpi=120)
+                plt.close(fig)
+        if env in data.training:
+            written.append(folder / f"{prefix}training_curves.png")
+            written.append(_write_csv(folder / f"{prefix}curves.csv",
+                                      training_curves(study, env, data.training[env], written[-1])))
+        missing = [m for m in data.missing if m.startswith(f"{env} ")]
+        if missing:
+            lines += ["## Missing", "", f"{len(missing)} raw file(s) not there yet:", "",
+                      *[f"* {m}" for m in missing], ""]
+        if lines:
+            written.append(_write_text(folder / f"{prefix}table.md", "\n".join(lines).rstrip("\n") + "\n"))
+        if points:
+            written.append(_write_csv(folder / f"{prefix}points.csv", points))
+        if verdict_rows:
+            written.append(_write_csv(folder / f"{prefix}verdicts.csv", verdict_rows))
+            written.append(_write_text(folder / f"{prefix}verdicts.md", "\n".join(verdict_lines).rstrip("\n") + "\n"))
+        if log is not None:
+            log("\n".join(lines).rstrip())
+    if log is not None and data.missing:
+        log(f"missing: {len(data.missing)} raw file(s) (listed in table.md)")
+    return written
+
+
+def report_command(study_file: str, folder: Optional[str] = None, log_folder: str = "logs",
+                   name: Optional[str] = None) -> Callable[[], int]:
+    """``sb3-spikeplastic study report FILE``: the study file is checked (``ValueError``); returns the work."""
+    from .declaration import load_study_file
+
+    study, path = load_study_file(study_file)
+    where = Path(folder) if folder else Path(log_folder) / "study" / (name or path.stem)
+    if not StudyFolder(where).has_data():
+        raise ValueError(f"{str(where)!r} holds no study (no episodes/ or training/ folder); run "
+                         "`sb3-spikeplastic study FILE` first, or pass the study's folder with --folder")
+
+    def work() -> int:
+        paths = write_report(study, where)
+        print(f"wrote {', '.join(str(p) for p in paths)}")
+        return 0
+
+    return work
