@@ -33,6 +33,7 @@ import sys
 from typing import Callable, Optional, Sequence
 
 from sb3_spikeplastic.envs import route_mujoco_warnings
+from sb3_spikeplastic.study.protocol import FIG4
 
 PROG = "sb3-spikeplastic"
 
@@ -220,12 +221,15 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--models", nargs="+", required=True, metavar="NAME=RUN_OR_ZIP", help="models to compare")
     r.add_argument("--env", help="noise-free environment id (default: the runs')")
     r.add_argument("--noise", required=True, help="obs, action or friction")
-    r.add_argument("--sigmas", nargs="+", type=float, default=[0.0, 0.1, 0.2, 0.3, 0.4, 0.5],
-                   help="noise standard deviations (default: 0 0.1 0.2 0.3 0.4 0.5)")
-    r.add_argument("--episodes", "--n-episodes", type=int, default=100,
-                   help="episodes per model and sigma (default: 100)")
-    r.add_argument("--seed", type=int, default=0)
-    r.add_argument("--n-envs", type=int, default=1, help="environments side by side (default: 1)")
+    # The defaults are the protocol of every HalfCheetah result (sb3_spikeplastic.study.protocol.FIG4).
+    r.add_argument("--sigmas", nargs="+", type=float, default=list(FIG4.sigmas),
+                   help=f"noise standard deviations (default: {' '.join(f'{s:g}' for s in FIG4.sigmas)})")
+    r.add_argument("--episodes", "--n-episodes", type=int, default=FIG4.episodes,
+                   help=f"episodes per model and sigma (default: {FIG4.episodes})")
+    r.add_argument("--seed", type=int, default=FIG4.seed, help=f"first environment seed (default: {FIG4.seed}, "
+                   "held out from training)")
+    r.add_argument("--n-envs", type=int, default=FIG4.n_envs, help="environments side by side; with the seed they "
+                   f"fix the episode seeds (default: {FIG4.n_envs})")
     r.add_argument("--env-kwargs", nargs="+", metavar="KEY=VALUE", help="gymnasium.make arguments of the "
                    "noise-free environment, values as YAML (e.g. max_episode_steps=200)")
     r.add_argument("--friction-target", default="damping", help="damping (default) or geom_friction")

@@ -1,4 +1,5 @@
-"""Robustness to noise after training: the protocol of the paper's Fig. 4 F-H (§3.2).
+"""Robustness to noise after training: the measurement of the paper's Fig. 4 F-H (§3.2); its protocol (sigma grid,
+episodes, held-out seed) is :data:`sb3_spikeplastic.study.protocol.FIG4`, the defaults of ``robustness``.
 
 For one noise type and a grid of standard deviations ``sigma``, every model's mean return over ``n_episodes``
 episodes is measured and reported as a ratio to the same model's mean return without noise (``sigma = 0``, always
@@ -34,6 +35,7 @@ from sb3_spikeplastic.envs.noise import FRICTION_TARGETS, NOISE_TYPES, make_nois
 
 from .inputs import check_int, check_output_path, parse_env_kwargs
 from .run_folder import RunInfo, atomic_write, load_model, locate_run
+from .study.protocol import FIG4
 
 
 @dataclasses.dataclass(frozen=True)
@@ -295,8 +297,8 @@ def parse_models(specs: Sequence[str]) -> dict[str, RunInfo]:
 
 
 def robustness_command(models: Sequence[str], noise: str, env: Optional[str] = None,
-                       sigmas: Sequence[float] = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5), episodes: int = 100, seed: int = 0,
-                       n_envs: int = 1, env_kwargs: Optional[Sequence[str]] = None,
+                       sigmas: Sequence[float] = FIG4.sigmas, episodes: int = FIG4.episodes, seed: int = FIG4.seed,
+                       n_envs: int = FIG4.n_envs, env_kwargs: Optional[Sequence[str]] = None,
                        friction_target: str = "damping", obs_indices: Optional[Sequence[int]] = None,
                        deterministic: bool = True, output: str = "robustness",
                        no_progress: bool = False, device: str = "cpu", torch_threads: int = 1) -> Callable[[], int]:

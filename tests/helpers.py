@@ -1,9 +1,5 @@
 """Shared test helpers (importable from the test modules: pytest puts tests/ on sys.path)."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv
@@ -62,16 +58,3 @@ def run_cli(capsys, *argv):
     code = cli.main([str(a) for a in argv])
     out, err = capsys.readouterr()
     return code, out, err
-
-
-EXPERIMENTS = Path(__file__).resolve().parent.parent / "experiments"
-
-
-def load_experiment(name):
-    """The script ``experiments/<name>.py`` as a module, importing its neighbours as when run from there."""
-    if str(EXPERIMENTS) not in sys.path:
-        sys.path.insert(0, str(EXPERIMENTS))
-    spec = importlib.util.spec_from_file_location(name, EXPERIMENTS / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
