@@ -94,7 +94,7 @@ class StudyJob:
         """The Optuna study (created if new), its declaration merged with this one's."""
         import optuna
 
-        storage = open_storage(self.storage, self.folder, self.heartbeat_interval, self.grace_period, retry=True)
+        storage = open_storage(self.storage, self.folder, self.heartbeat_interval, self.grace_period, retry=False)
         study = optuna.create_study(storage=storage, study_name=self.name, direction="maximize",
                                     sampler=optuna.samplers.RandomSampler(seed=0), load_if_exists=True)
         merged = merge_declarations(study.user_attrs.get(DECLARATION_KEY), self.declaration, self.name,

@@ -13,6 +13,7 @@ study's folder (with one environment; with several, each file name starts with `
 * ``verdicts.md``, ``verdicts.csv`` — the comparisons the study file declares (``report.compare``), per budget:
   differences (model minus reference) of the AUC, of R0 and of the return at the largest sigma (robustness), or of
   the mean return and success rate (final), with intervals, and a verdict only where the interval excludes 0.
+* ``summary.md`` — one row per group of each robustness evaluation: seeds, R0 and the AUC of every noise type.
 * ``points.csv`` (every group x noise x sigma: return and ratio with intervals), ``<evaluation>.png`` (return and
   ratio against sigma: Fig. 4 F-H), ``curves.csv`` and ``training_curves.png`` (Fig. 4 E: the deterministic
   evaluations during training, mean and range over seeds).
@@ -155,8 +156,9 @@ def members(names: tuple[str, ...], kind: dict[str, str]) -> list[str]:
 # Tables
 
 def robustness_section(env: str, name: str, evaluation: Evaluation, models: dict, study: Study,
-                       kind: dict[str, str], boot: dict, heading: str) -> tuple[list[str], list[dict], list[dict], object]:
-    """The robustness evaluation's tables, points, verdict rows and figure."""
+                       kind: dict[str, str], boot: dict, heading: str):
+    """The robustness evaluation's tables, points, verdict rows, figure and summary table (one row per group:
+    seeds that learned, R0 and the AUC of every noise type)."""
     import matplotlib.pyplot as plt
 
     noises = [n for n in evaluation.protocol.noises if any(n in d for d in models.values())]
@@ -184,6 +186,10 @@ def robustness_section(env: str, name: str, evaluation: Evaluation, models: dict
     if failed:
         lines += ["", f"Did not learn (R0 < {study.learned_threshold:g}): " + ", ".join(failed) + "."]
 
+    summary = {g: [f"{sum(group_of(m) == g and m in learned for m in first)} of "
+                   f"{sum(group_of(m) == g for m in first)}",
+                   fmt(bootstrap_mean_intervals(seeds_of(g, noises[0]), [mean_at(0)], **boot)[0])
+                   if seeds_of(g, noises[0]) else "-"] for g in groups}
     points, verdicts = [], []
     fig, axes = plt.subplots(2, len(noises), figsize=(5 * len(noises), 8), squeeze=False)
     for col, noise in enumerate(noises):
@@ -206,6 +212,7 @@ def robustness_section(env: str, name: str, evaluation: Evaluation, models: dict
                                    **{f"ratio_{k}": round(v, 4) for k, v in rat._asdict().items()}))
             lines.append(f"| {group} | {len(seeds)} | " + " | ".join(
                 f"{ret.estimate:.0f} ({rat.estimate:.2f})" for ret, rat in zip(returns, ratios)) + f" | {fmt(area, 2)} |")
+            summary[group].append(fmt(area, 2))
             for row, values in ((0, returns), (1, ratios)):
                 axes[row, col].errorbar(sigmas, [v.estimate for v in values],
                                         yerr=[[v.estimate - v.low for v in values], [v.high - v.estimate for v in values]],
@@ -227,7 +234,11 @@ def robustness_section(env: str, name: str, evaluation: Evaluation, models: dict
                 **{f"r0_difference_{k}": round(v, 1) for k, v in d_r0._asdict().items()},
                 auc_verdict=verdict(d_auc, "loses less", "loses more"), return_verdict=verdict(d_top, "higher", "lower")))
     fig.tight_layout()
-    return lines, points, verdicts, fig
+    summary_lines = ["| model | seeds | R0 [95 % interval] | " + " | ".join(f"AUC {n} noise" for n in noises) + " |",
+                     "|---|---|---|" + "---|" * len(noises)]
+    summary_lines += [f"| {g} | " + " | ".join(cells + ["-"] * (2 + len(noises) - len(cells))) + " |"
+                      for g, cells in summary.items()]
+    return lines, points, verdicts, fig, summary_lines
 
 
 def comparisons(study: Study, kind: dict[str, str], groups: list[str],
@@ -395,6 +406,7 @@ def write_report(study: Study, folder: Path, log: Optional[Callable[[str], None]
     written: list[Path] = []
     for env in study.envs:
         prefix = "" if len(study.envs) == 1 else f"{env}_"
+        summary: list[str] = []
         lines, verdict_lines, points, verdict_rows = [], [f"# {env}: verdicts", "",
                                                          "Differences (model minus reference) with two-stage "
                                                          "bootstrap 95 % intervals; a verdict is given only when the "
@@ -412,8 +424,14 @@ def write_report(study: Study, folder: Path, log: Optional[Callable[[str], None]
             elif evaluation.kind == "robustness" and (env, name) in data.robustness:
                 heading = (f"# {env}: return under noise, one protocol for every model" if name == "robustness"
                            else f"# {env}: return under noise, evaluation {name!r}")
-                section, pts, rows, fig = robustness_section(env, name, evaluation, data.robustness[(env, name)],
-                                                             study, kind, boot, heading)
+                section, pts, rows, fig, short = robustness_section(
+                    env, name, evaluation, data.robustness[(env, name)], study, kind, boot, heading)
+                summary += [f"# {env}: evaluation {name!r}", "",
+                            f"R0: noise-free return; AUC: area under the ratio-to-R0 curve, sigma "
+                            f"{evaluation.protocol.sigmas[0]:g}-{evaluation.protocol.sigmas[-1]:g} (1: no loss); "
+                            f"{evaluation.protocol.episodes} episodes per point and seed, 95 % intervals. From "
+                            "`sb3-spikeplastic study report`; every noise level and comparison: table.md, "
+                            "verdicts.md.", "", *short, ""]
                 lines += section + [""]
                 points += pts
                 if name != "robustness":
@@ -435,6 +453,7 @@ def write_report(study: Study, folder: Path, log: Optional[Callable[[str], None]
             written.append(_write_text(folder / f"{prefix}table.md", "\n".join(lines).rstrip("\n") + "\n"))
         if points:
             written.append(_write_csv(folder / f"{prefix}points.csv", points))
+            written.append(_write_text(folder / f"{prefix}summary.md", "\n".join(summary).rstrip("\n") + "\n"))
         if verdict_rows:
             written.append(_write_csv(folder / f"{prefix}verdicts.csv", verdict_rows))
             written.append(_write_text(folder / f"{prefix}verdicts.md", "\n".join(verdict_lines).rstrip("\n") + "\n"))
