@@ -56,12 +56,16 @@ def _check(groups: Sequence[np.ndarray], n_resamples: int, level: float) -> list
 
 def resample(groups: Sequence[np.ndarray], rng: np.random.Generator) -> list[np.ndarray]:
     """One two-stage resample: as many seeds as given, drawn with replacement, each with its episodes (last axis)
-    drawn with replacement, the same indices for every leading index."""
+    drawn with replacement, the same indices for every leading index.
+
+    Each drawn array is C-contiguous, episodes last, as in :func:`bootstrap_mean_intervals`: indexing the last axis
+    of a 2-D array gives a Fortran-ordered one, whose mean over episodes numpy sums in another order (a different
+    last bit), and the two would not give the same intervals."""
     drawn = rng.integers(len(groups), size=len(groups))
     out = []
     for k in drawn:
         data = groups[k]
-        out.append(data[..., rng.integers(data.shape[-1], size=data.shape[-1])])
+        out.append(np.ascontiguousarray(data[..., rng.integers(data.shape[-1], size=data.shape[-1])]))
     return out
 
 

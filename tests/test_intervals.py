@@ -4,7 +4,8 @@ widens it by the spread between seeds, coverage of a known mean, paired resampli
 import numpy as np
 import pytest
 
-from sb3_spikeplastic.intervals import Interval, bootstrap_difference, bootstrap_interval, resample
+from sb3_spikeplastic.intervals import (Interval, bootstrap_difference, bootstrap_interval, bootstrap_mean_differences,
+                                         bootstrap_mean_intervals, resample)
 
 
 def grand_mean(groups):
@@ -77,3 +78,74 @@ def test_bad_arguments_name_the_value(kwargs, bad):
     arguments = {"groups": [np.ones(3)], "statistic": grand_mean, **kwargs}
     with pytest.raises(ValueError, match=bad.replace("(", r"\(").replace(")", r"\)")):
         bootstrap_interval(**arguments)
+
+
+# bootstrap_mean_intervals / bootstrap_mean_differences: the intervals of bootstrap_interval / bootstrap_difference,
+# all replicates at once. Statistics of per-seed means (shape (..., seeds, sigmas)), written for one replicate below.
+
+SIGMAS = np.array([0.0, 0.1, 0.2, 0.4, 0.6])
+
+
+def vectorised(j):
+    return [lambda m: m[..., j].mean(axis=-1),
+            lambda m: (1.0 + (m[..., j] - m[..., 0]) / np.abs(m[..., 0])).mean(axis=-1),
+            lambda m: (np.trapezoid(1.0 + (m - m[..., :1]) / np.abs(m[..., :1]), SIGMAS, axis=-1)
+                       / (SIGMAS[-1] - SIGMAS[0])).mean(axis=-1)]
+
+
+def per_replicate(j):
+    """The same statistics as functions of one resample (a list of seeds, each (sigmas, episodes))."""
+    def means(seeds):
+        return np.array([s.mean(axis=-1) for s in seeds])
+
+    return [lambda s: float(means(s)[:, j].mean()),
+            lambda s: float((1.0 + (means(s)[:, j] - means(s)[:, 0]) / np.abs(means(s)[:, 0])).mean()),
+            lambda s: float((np.trapezoid(1.0 + (means(s) - means(s)[:, :1]) / np.abs(means(s)[:, :1]), SIGMAS,
+                                          axis=-1) / (SIGMAS[-1] - SIGMAS[0])).mean())]
+
+
+def seeds(rng, k, episodes=50, loc=100.0):
+    """``k`` seeds of returns at every sigma (falling with sigma), ``episodes`` each (a list: one count per seed)."""
+    episodes = [episodes] * k if np.isscalar(episodes) else episodes
+    return [rng.normal(loc + rng.normal(0, 20), 10, size=(len(SIGMAS), n)) - 50 * SIGMAS[:, None] for n in episodes]
+
+
+@pytest.mark.parametrize("k, j, seed", [(3, 4, 0), (4, 2, 11), (5, 3, 0)])
+def test_mean_intervals_are_those_of_bootstrap_interval(k, j, seed):
+    groups = seeds(np.random.default_rng(k), k)
+    fast = bootstrap_mean_intervals(groups, vectorised(j), n_resamples=300, seed=seed)
+    slow = [bootstrap_interval(groups, f, n_resamples=300, seed=seed) for f in per_replicate(j)]
+    assert fast == slow
+    assert all(i.low < i.estimate < i.high for i in fast)  # not degenerate: the comparison says something
+    assert bootstrap_mean_intervals(groups, vectorised(j), n_resamples=300, seed=seed + 1) != fast
+
+
+@pytest.mark.parametrize("k_a, k_b, j", [(3, 5, 4), (5, 4, 1), (4, 4, 3)])
+def test_mean_differences_are_those_of_bootstrap_difference(k_a, k_b, j):
+    rng = np.random.default_rng(10 * k_a + k_b)
+    a, b = seeds(rng, k_a), seeds(rng, k_b, loc=90.0)
+    fast = bootstrap_mean_differences(a, b, vectorised(j), n_resamples=300, seed=3)
+    slow = [bootstrap_difference(a, b, f, n_resamples=300, seed=3) for f in per_replicate(j)]
+    assert fast == slow
+    assert all(i.low < i.estimate < i.high for i in fast)
+
+
+def test_seeds_with_different_episode_counts_take_the_same_intervals():
+    rng = np.random.default_rng(7)
+    ragged, even = seeds(rng, 4, episodes=[50, 40, 50, 30]), seeds(rng, 3)
+    assert bootstrap_mean_intervals(ragged, vectorised(3), n_resamples=200) == \
+        [bootstrap_interval(ragged, f, n_resamples=200) for f in per_replicate(3)]
+    for a, b in ((ragged, even), (even, ragged)):
+        assert bootstrap_mean_differences(a, b, vectorised(2), n_resamples=200) == \
+            [bootstrap_difference(a, b, f, n_resamples=200) for f in per_replicate(2)]
+
+
+def test_one_sigma_row_and_a_single_seed():
+    """Seeds of shape (episodes,) (a final evaluation) and one seed: the same intervals too."""
+    rng = np.random.default_rng(8)
+    flat = [rng.normal(5, 1, size=50) for _ in range(3)]
+    mean = lambda m: m.mean(axis=-1)  # noqa: E731
+    assert bootstrap_mean_intervals(flat, [mean], n_resamples=200) == \
+        [bootstrap_interval(flat, grand_mean, n_resamples=200)]
+    assert bootstrap_mean_intervals(flat[:1], [mean], n_resamples=200) == \
+        [bootstrap_interval(flat[:1], grand_mean, n_resamples=200)]

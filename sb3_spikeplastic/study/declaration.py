@@ -43,11 +43,12 @@ from .protocol import FIG4, NOISES, Protocol
 
 STUDY_KEYS = ("description", "envs", "seeds", "budgets", "conf", "hyperparams", "eval_freq", "eval_episodes",
               "variants", "evaluations", "report")
-VARIANT_KEYS = ("rule", "conf", "hyperparams", "seeds", "budgets")
+VARIANT_KEYS = ("rule", "conf", "hyperparams", "seeds", "budgets", "train_env", "noises")
 EVALUATION_KINDS = ("final", "robustness")
-FINAL_KEYS = ("kind", "episodes", "seed", "n_envs", "model")
+FINAL_KEYS = ("kind", "episodes", "seed", "n_envs", "model", "variants", "seeds", "budgets")
+FILTER_KEYS = ("variants", "seeds", "budgets")
 ROBUSTNESS_KEYS = ("kind", "noises", "sigmas", "episodes", "seed", "n_envs", "friction_target", "obs_indices",
-                   "model")
+                   "clip_obs", "model", *FILTER_KEYS)
 REPORT_KEYS = ("learned_threshold", "resamples", "compare")
 COMPARE_KEYS = ("variants", "against", "pooled")
 GROUPS = ("plastic", "static", "spiking", "baselines")
@@ -58,13 +59,17 @@ _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.+-]*$")
 
 @dataclass(frozen=True)
 class Variant:
-    """One variant: a rule, a hyperparameter file and overrides, and its own seeds and budgets (each optional)."""
+    """One variant: a rule, a hyperparameter file and overrides, its own seeds and budgets, the environment it is
+    trained on when not the study's (e.g. ``NoisyHalfCheetah-v5``, evaluated on ``HalfCheetah-v5``), and the noises
+    of the robustness evaluations it is evaluated on when not all (each optional)."""
 
     rule: Optional[str] = None
     conf: Optional[str] = None
     hyperparams: tuple[str, ...] = ()
     seeds: Optional[tuple[int, ...]] = None
     budgets: Optional[tuple[int, ...]] = None
+    train_env: Optional[str] = None
+    noises: Optional[tuple[str, ...]] = None
 
 
 @dataclass(frozen=True)
@@ -75,17 +80,28 @@ class Evaluation:
     :param kind: ``final`` or ``robustness``
     :param protocol: episodes, seed, environments side by side, and for ``robustness`` the noises and sigmas
     :param model: ``budget`` (the checkpoint at each budget) or ``best`` (``best_model.zip``, last budget only)
+    :param variants: only these variants' models (``None``: all), likewise ``seeds`` and ``budgets``
+    :param clip_obs: evaluate with the model's frozen ``VecNormalize`` statistics clipping the standardised
+        observation at this bound instead of their own (``None``: as trained)
     """
 
     kind: str
     protocol: Protocol
     model: str = "budget"
+    variants: Optional[tuple[str, ...]] = None
+    seeds: Optional[tuple[int, ...]] = None
+    budgets: Optional[tuple[int, ...]] = None
+    clip_obs: Optional[float] = None
 
-    def files(self, name: str) -> list[str]:
-        """The raw files of this evaluation in a model's episode folder."""
+    def applies(self, variant: str, seed: int, budget: int) -> bool:
+        return all(chosen is None or value in chosen for chosen, value in
+                   ((self.variants, variant), (self.seeds, seed), (self.budgets, budget)))
+
+    def files(self, name: str, noises: Optional[Sequence[str]] = None) -> list[str]:
+        """The raw files of this evaluation in a model's episode folder (``noises``: the variant's narrowing)."""
         if self.kind == "final":
             return [f"{name}.csv"]
-        return [f"{name}_{noise}.csv" for noise in self.protocol.noises]
+        return [f"{name}_{noise}.csv" for noise in self.protocol.noises if noises is None or noise in noises]
 
 
 @dataclass(frozen=True)
@@ -128,6 +144,17 @@ class Study:
     def overrides(self, variant: str) -> list[str]:
         return [*self.hyperparams, *self.variants[variant].hyperparams]
 
+    def train_env(self, env: str, variant: str) -> str:
+        """The environment a variant's models are trained on (evaluated on ``env``)."""
+        return self.variants[variant].train_env or env
+
+    def evaluations_of(self, variant: str, seed: int, budget: int) -> list[tuple[str, Evaluation, list[str]]]:
+        """``(name, evaluation, raw files)`` of every evaluation of one model."""
+        last = budget == self.budgets_of(variant)[-1]
+        return [(name, e, e.files(name, self.variants[variant].noises)) for name, e in self.evaluations.items()
+                if e.applies(variant, seed, budget) and (e.model == "budget" or last)
+                and e.files(name, self.variants[variant].noises)]
+
     def cells(self) -> list[tuple[str, str, int]]:
         """Every ``(env, variant, seed)``: one training run each, seed first."""
         seeds = sorted({s for v in self.variants for s in self.seeds_of(v)})
@@ -138,9 +165,10 @@ class Study:
         """The resolved entry of ``variant`` on ``env_id``, trained to its largest budget (``ValueError`` naming
         both when it is invalid)."""
         v = self.variants[variant]
+        train_env = self.train_env(env_id, variant)
         try:
-            cfg.check_env_id(env_id, list(cfg.load_hyperparams_file(self.conf_of(variant))))
-            return cfg.resolve_hyperparams(env_id, self.conf_of(variant), self.overrides(variant), rule=v.rule,
+            cfg.check_env_id(train_env, list(cfg.load_hyperparams_file(self.conf_of(variant))))
+            return cfg.resolve_hyperparams(train_env, self.conf_of(variant), self.overrides(variant), rule=v.rule,
                                            n_timesteps=max(self.budgets_of(variant)))
         except ValueError as exc:
             raise ValueError(f"variant {variant!r} on {env_id}: {exc}") from None
@@ -236,14 +264,42 @@ def _variant(name, spec, where: str, base: Path) -> Variant:
         from ..plasticity import get_rule_class
 
         get_rule_class(rule)
+    train_env = spec.get("train_env")
+    if train_env is not None and not isinstance(train_env, str):
+        raise ValueError(f"train_env={train_env!r} of variant {name!r} in {where} must be an environment id")
+    noises = spec.get("noises")
+    if noises is not None:
+        if not isinstance(noises, list) or not noises:
+            raise ValueError(f"noises of variant {name!r} in {where} must be a list of {', '.join(NOISES)}")
+        for noise in noises:
+            if noise not in NOISES:
+                raise _unknown(f"noise of variant {name!r}", noise, NOISES, where)
     return Variant(rule, _conf(spec.get("conf"), f"conf of variant {name!r}", base),
                    _overrides(spec.get("hyperparams"), f"hyperparams of variant {name!r}"),
                    None if spec.get("seeds") is None else _ints(spec["seeds"], f"seeds of variant {name!r}", 0),
                    None if spec.get("budgets") is None else
-                   tuple(sorted(_ints(spec["budgets"], f"budgets of variant {name!r}", 1))))
+                   tuple(sorted(_ints(spec["budgets"], f"budgets of variant {name!r}", 1))),
+                   train_env, None if noises is None else tuple(noises))
 
 
-def _evaluation(name, spec, where: str) -> Evaluation:
+def _filters(spec: dict, what: str, variants: dict) -> dict:
+    """An evaluation's ``variants``, ``seeds`` and ``budgets`` (``None``: all)."""
+    out = {}
+    chosen = spec.get("variants")
+    if chosen is not None:
+        if not isinstance(chosen, list) or not chosen:
+            raise ValueError(f"variants of {what} must be a non-empty list of variant names")
+        for v in chosen:
+            if v not in variants:
+                raise _unknown(f"variant of {what}", v, list(variants), "the study file")
+        out["variants"] = tuple(chosen)
+    for key, minimum in (("seeds", 0), ("budgets", 1)):
+        if spec.get(key) is not None:
+            out[key] = _ints(spec[key], f"{key} of {what}", minimum)
+    return out
+
+
+def _evaluation(name, spec, where: str, variants: dict) -> Evaluation:
     if not isinstance(name, str) or not _NAME.match(name) or "_" in name:
         raise ValueError(f"evaluation name {name!r} in {where} must be letters, digits and . + - (it names files)")
     spec = dict(spec or {})
@@ -258,8 +314,9 @@ def _evaluation(name, spec, where: str) -> Evaluation:
     protocol = replace(FIG4, episodes=_int(spec.get("episodes", FIG4.episodes), f"{what} episodes", 1),
                        seed=_int(spec.get("seed", FIG4.seed), f"{what} seed", 0),
                        n_envs=_int(spec.get("n_envs", FIG4.n_envs if kind == "robustness" else 1), f"{what} n_envs", 1))
+    filters = _filters(spec, what, variants)
     if kind == "final":
-        return Evaluation(kind, replace(protocol, noises=(), sigmas=(0.0,)), model)
+        return Evaluation(kind, replace(protocol, noises=(), sigmas=(0.0,)), model, **filters)
     noises = spec.get("noises", list(FIG4.noises))
     if not isinstance(noises, list) or not noises:
         raise ValueError(f"noises of {what} in {where} must be a list of {', '.join(NOISES)}")
@@ -279,8 +336,13 @@ def _evaluation(name, spec, where: str) -> Evaluation:
         raise _unknown(f"friction_target of {what}", target, FRICTION_TARGETS, where)
     indices = spec.get("obs_indices")
     indices = None if indices is None else _ints(indices, f"{what} obs_indices", 0)
+    clip = spec.get("clip_obs")
+    if clip is not None and (isinstance(clip, bool) or not isinstance(clip, (int, float)) or not math.isfinite(clip)
+                             or clip <= 0):
+        raise ValueError(f"clip_obs={clip!r} of {what} in {where} must be a number > 0")
     return Evaluation(kind, replace(protocol, noises=tuple(noises), sigmas=tuple(float(s) for s in sigmas),
-                                    friction_target=target, obs_indices=indices), model)
+                                    friction_target=target, obs_indices=indices), model,
+                      clip_obs=None if clip is None else float(clip), **filters)
 
 
 def _comparisons(data, variants: dict[str, Variant], where: str) -> tuple[Comparison, ...]:
@@ -342,7 +404,7 @@ def study_from_dict(data, where: str = "the study", base: Path = Path(".")) -> S
         raise ValueError(f"description in {where} must be text")
     study = Study(
         tuple(envs), _ints(data.get("seeds", [0]), "seeds", 0), tuple(sorted(_ints(data["budgets"], "budgets", 1))),
-        variants, {name: _evaluation(name, spec, where) for name, spec in evaluations.items()},
+        variants, {name: _evaluation(name, spec, where, variants) for name, spec in evaluations.items()},
         _conf(data.get("conf"), "conf", base), _overrides(data.get("hyperparams"), "hyperparams"),
         _int(data.get("eval_freq", 0), "eval_freq", 0), _int(data.get("eval_episodes", 5), "eval_episodes", 1),
         _comparisons(report.get("compare", []), variants, where), float(threshold),

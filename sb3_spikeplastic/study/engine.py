@@ -81,9 +81,10 @@ class StudyJob:
         s = self.study
         return _plain({
             "training": {"eval_freq": s.eval_freq, "eval_episodes": s.eval_episodes},
-            "variants": {f"{env} {variant}": {k: v for k, v in config.items() if k != "n_timesteps"}
+            "variants": {f"{env} {variant}": {"train_env": s.train_env(env, variant),
+                                              **{k: v for k, v in config.items() if k != "n_timesteps"}}
                          for (env, variant), config in self.configs.items()},
-            "evaluations": {name: {"kind": e.kind, "model": e.model, **e.protocol.as_dict()}
+            "evaluations": {name: {"kind": e.kind, "model": e.model, "clip_obs": e.clip_obs, **e.protocol.as_dict()}
                             for name, e in s.evaluations.items()}})
 
     def work(self, variant: str) -> dict:
@@ -94,7 +95,7 @@ class StudyJob:
         """The Optuna study (created if new), its declaration merged with this one's."""
         import optuna
 
-        storage = open_storage(self.storage, self.folder, self.heartbeat_interval, self.grace_period, retry=False)
+        storage = open_storage(self.storage, self.folder, self.heartbeat_interval, self.grace_period, retry=True)
         study = optuna.create_study(storage=storage, study_name=self.name, direction="maximize",
                                     sampler=optuna.samplers.RandomSampler(seed=0), load_if_exists=True)
         merged = merge_declarations(study.user_attrs.get(DECLARATION_KEY), self.declaration, self.name,
@@ -341,13 +342,13 @@ def _budget_checkpoints(budgets, run_dir: Path):
     return BudgetCheckpoints()
 
 
-def trained_steps(layout: StudyFolder, env: str, variant: str, seed: int) -> int:
+def trained_steps(layout: StudyFolder, env: str, variant: str, seed: int, train_env: str) -> int:
     """How far the cell's training got: its latest checkpoint, or a run's final model (one that ended, or that
     was interrupted and saved)."""
     steps = max(layout.checkpoints(env, variant, seed), default=0)
     for folder in layout.run_folders(env, variant, seed):
-        if (folder / f"{env}.zip").is_file():
-            steps = max(steps, _final_steps(folder, env))
+        if (folder / f"{train_env}.zip").is_file():
+            steps = max(steps, _final_steps(folder, train_env))
     return steps
 
 
@@ -366,21 +367,21 @@ def train_cell(job: StudyJob, env: str, variant: str, seed: int, trial=None) -> 
     from ..experiment import Experiment, continued_run
 
     layout, study = job.layout, job.study
-    budgets = study.budgets_of(variant)
-    if trained_steps(layout, env, variant, seed) >= max(budgets):
+    budgets, train_env = study.budgets_of(variant), study.train_env(env, variant)
+    if trained_steps(layout, env, variant, seed, train_env) >= max(budgets):
         return
     source, folders = None, layout.run_folders(env, variant, seed)
     for folder in reversed(folders):
-        if (folder / f"{env}.zip").is_file() or any(folder.glob("rl_model_*_steps.zip")):
-            source = continued_run(str(folder), env)
+        if (folder / f"{train_env}.zip").is_file() or any(folder.glob("rl_model_*_steps.zip")):
+            source = continued_run(str(folder), train_env)
             break
     config = job.configs[(env, variant)]
-    experiment = Experiment(env, config, seed, layout.run_root(env, variant, seed), verbose=0, device=job.device,
+    experiment = Experiment(train_env, config, seed, layout.run_root(env, variant, seed), verbose=0, device=job.device,
                             eval_freq=study.eval_freq, eval_episodes=study.eval_episodes, progress=False,
                             trained_agent=source)
     experiment.setup()
     v = study.variants[variant]
-    command = train_command(env, study.conf_of(variant), v.rule, study.overrides(variant), seed, max(budgets),
+    command = train_command(train_env, study.conf_of(variant), v.rule, study.overrides(variant), seed, max(budgets),
                             study.eval_freq, study.eval_episodes)
     run_dir = experiment.create_run_folder(command, dict(study=job.name, variant=variant,
                                                          trial=None if trial is None else trial.number))
@@ -416,22 +417,50 @@ def write_training_curve(layout: StudyFolder, env: str, variant: str, seed: int)
     return atomic_write(path, write, binary=False)
 
 
+def clipped_statistics(source: Path, target: Path, env: str, clip: float) -> Path:
+    """A copy of the ``VecNormalize`` statistics ``source`` that clips the standardised observation at ``clip``."""
+    import gymnasium
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    stats = VecNormalize.load(str(source), DummyVecEnv([lambda: gymnasium.make(env)]))
+    stats.clip_obs = clip
+    stats.save(str(target))
+    stats.close()
+    return target
+
+
 def evaluate_model_file(job: StudyJob, env: str, name: str, evaluation: Evaluation, model_path: Path,
-                        folder: Path, eval_name: str) -> int:
-    """Run one evaluation of one model, writing each of its missing raw files whole; returns how many."""
+                        folder: Path, files: list[str], eval_name: str, same_env: bool = True) -> int:
+    """Run one evaluation of one model on ``env``, writing each of its missing raw ``files`` whole; returns how
+    many. ``same_env``: the model was trained on ``env`` (its ``env_kwargs`` apply), else on another environment
+    (evaluated on ``env`` as registered)."""
+    import tempfile
+
+    missing = [f for f in files if not (folder / f).is_file()]
+    if not missing:
+        return 0
+    folder.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        return _evaluate(job, env, name, evaluation, model_path, folder, missing, eval_name, same_env, Path(tmp))
+
+
+def _evaluate(job: StudyJob, env: str, name: str, evaluation: Evaluation, model_path: Path, folder: Path,
+              missing: list[str], eval_name: str, same_env: bool, tmp: Path) -> int:
     from ..evaluation import evaluate_model
     from ..robustness import evaluate_robustness, write_episodes_csv
     from ..run_folder import atomic_write, load_model, locate_run, make_eval_env
 
-    missing = [f for f in evaluation.files(eval_name) if not (folder / f).is_file()]
-    if not missing:
-        return 0
-    folder.mkdir(parents=True, exist_ok=True)
     info = locate_run(model_path)
     model = load_model(info, job.device)
+    env_kwargs = info.env_kwargs if same_env else {}
+    statistics = info.vecnormalize
+    if evaluation.clip_obs is not None:
+        if statistics is None:
+            raise ValueError(f"{name}: clip_obs needs VecNormalize statistics beside {model_path}")
+        statistics = clipped_statistics(Path(statistics), tmp / "vecnormalize.pkl", env, evaluation.clip_obs)
     p = evaluation.protocol
     if evaluation.kind == "final":
-        venv = make_eval_env(env, p.n_envs, p.seed, info.env_kwargs, info.vecnormalize)
+        venv = make_eval_env(env, p.n_envs, p.seed, env_kwargs, statistics)
         try:
             result = evaluate_model(model, venv, p.episodes, deterministic=True, seed=p.seed)
         finally:
@@ -449,8 +478,8 @@ def evaluate_model_file(job: StudyJob, env: str, name: str, evaluation: Evaluati
     for file in missing:
         noise = file[len(eval_name) + 1:-len(".csv")]
         rows = evaluate_robustness({name: model}, env, noise, p.sigmas, n_episodes=p.episodes, seed=p.seed,
-                                   vec_normalize_stats={name: info.vecnormalize}, progress_bar=False,
-                                   env_kwargs=info.env_kwargs, n_envs=p.n_envs, friction_target=p.friction_target,
+                                   vec_normalize_stats={name: statistics}, progress_bar=False,
+                                   env_kwargs=env_kwargs, n_envs=p.n_envs, friction_target=p.friction_target,
                                    obs_indices=p.obs_indices)
         tmp = folder / f".{file}.tmp"
         write_episodes_csv(rows, tmp)
@@ -464,10 +493,10 @@ def run_cell(job: StudyJob, env: str, variant: str, seed: int, trial=None) -> in
     layout, study = job.layout, job.study
     train_cell(job, env, variant, seed, trial)
     written = int(write_training_curve(layout, env, variant, seed) is not None)
-    budgets = study.budgets_of(variant)
-    for eval_name, evaluation in study.evaluations.items():
-        for budget in budgets if evaluation.model == "budget" else budgets[-1:]:
-            name = model_name(variant, budget, seed)
+    same_env = study.train_env(env, variant) == env
+    for budget in study.budgets_of(variant):
+        name = model_name(variant, budget, seed)
+        for eval_name, evaluation, files in study.evaluations_of(variant, seed, budget):
             if evaluation.model == "best":
                 folders = [f for f in layout.run_folders(env, variant, seed) if (f / "best_model.zip").is_file()]
                 if not folders:
@@ -479,7 +508,8 @@ def run_cell(job: StudyJob, env: str, variant: str, seed: int, trial=None) -> in
                     raise ValueError(f"{env} {name}: no checkpoint at {budget} steps under "
                                      f"{layout.run_root(env, variant, seed)}")
             written += evaluate_model_file(job, env, name, evaluation, model,
-                                           layout.episodes_dir(env, variant, budget, seed), eval_name)
+                                           layout.episodes_dir(env, variant, budget, seed), files, eval_name,
+                                           same_env)
     return written
 
 

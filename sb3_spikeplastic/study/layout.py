@@ -27,6 +27,7 @@ import numpy as np
 from .declaration import model_name
 
 _CHECKPOINT = re.compile(r"rl_model_(\d+)_steps\.zip")
+_RUN = re.compile(r".+_\d+")
 
 
 class StudyFolder:
@@ -42,8 +43,9 @@ class StudyFolder:
         return self.root / "runs" / env / f"{variant}_s{seed}"
 
     def run_folders(self, env: str, variant: str, seed: int) -> list[Path]:
-        """The run folders of a cell, oldest first (a later one continues an earlier one)."""
-        return sorted(self.run_root(env, variant, seed).glob(f"ppo/{env}_*"),
+        """The run folders of a cell (``ppo/<training env>_<n>``), oldest first (a later one continues an earlier
+        one)."""
+        return sorted((p for p in self.run_root(env, variant, seed).glob("ppo/*") if _RUN.fullmatch(p.name)),
                       key=lambda p: int(p.name.rsplit("_", 1)[1]))
 
     def checkpoints(self, env: str, variant: str, seed: int) -> dict[int, Path]:

@@ -96,10 +96,8 @@ def read_study(study: Study, folder: Path) -> StudyData:
         for budget in study.budgets_of(variant):
             model = model_name(variant, budget, seed)
             episodes = layout.episodes_dir(env, variant, budget, seed)
-            for name, evaluation in study.evaluations.items():
-                if evaluation.model == "best" and budget != study.budgets_of(variant)[-1]:
-                    continue
-                for file in evaluation.files(name):
+            for name, evaluation, files in study.evaluations_of(variant, seed, budget):
+                for file in files:
                     path = episodes / file
                     if not path.is_file():
                         data.missing.append(f"{env} {model}: {file}")
@@ -162,7 +160,8 @@ def robustness_section(env: str, name: str, evaluation: Evaluation, models: dict
     import matplotlib.pyplot as plt
 
     noises = [n for n in evaluation.protocol.noises if any(n in d for d in models.values())]
-    first = {m: d[noises[0]][1] for m, d in models.items() if noises[0] in d}
+    # R0 (sigma = 0: the same episodes under every noise type) from the first noise a model was evaluated on.
+    first = {m: d[next(n for n in noises if n in d)][1] for m, d in models.items()}
     learned = {m for m, d in first.items() if d[0].mean() >= study.learned_threshold}
     groups = [g for g in groups_of(study) if any(group_of(m) == g for m in models)]
 
@@ -176,22 +175,25 @@ def robustness_section(env: str, name: str, evaluation: Evaluation, models: dict
              "model and sigma; [95 % interval]: two-stage bootstrap over seeds and episodes; models with R0 < "
              f"{study.learned_threshold:g} are listed apart and excluded below.", "",
              "| model | seeds | R0 per seed | R0 [95 % interval] |", "|---|---|---|---|"]
+    summary = {}
     for group in groups:
         mine = [m for m in sorted(models) if group_of(m) == group and m in first]
         kept = [first[m] for m in mine if m in learned]
         per_seed = " / ".join(f"{first[m][0].mean():.0f}" + ("" if m in learned else " (did not learn)") for m in mine)
-        lines.append(f"| {group} | {len(kept)} of {len(mine)} | {per_seed} | "
-                     f"{fmt(bootstrap_mean_intervals(kept, [mean_at(0)], **boot)[0]) if kept else '-'} |")
+        summary[group] = [f"{len(kept)} of {len(mine)}",
+                          fmt(bootstrap_mean_intervals(kept, [mean_at(0)], **boot)[0]) if kept else "-"]
+        lines.append(f"| {group} | {summary[group][0]} | {per_seed} | {summary[group][1]} |")
     failed = sorted(m for m in first if m not in learned)
     if failed:
         lines += ["", f"Did not learn (R0 < {study.learned_threshold:g}): " + ", ".join(failed) + "."]
 
-    summary = {g: [f"{sum(group_of(m) == g and m in learned for m in first)} of "
-                   f"{sum(group_of(m) == g for m in first)}",
-                   fmt(bootstrap_mean_intervals(seeds_of(g, noises[0]), [mean_at(0)], **boot)[0])
-                   if seeds_of(g, noises[0]) else "-"] for g in groups}
     points, verdicts = [], []
-    fig, axes = plt.subplots(2, len(noises), figsize=(5 * len(noises), 8), squeeze=False)
+    fig, axes = plt.subplots(2, len(noises), figsize=(5 * len(noises) + 3, 8), squeeze=False)
+    # A variant keeps its colour at every budget; the larger budgets are dashed.
+    variants = list(dict.fromkeys(variant_of(g) for g in groups))
+    colours = {g: plt.cm.tab20(variants.index(variant_of(g)) % 20) for g in groups}
+    first_budget = groups[0].split("@")[1] if groups else ""
+    styles = {g: "-" if g.split("@")[1] == first_budget else "--" for g in groups}
     for col, noise in enumerate(noises):
         sigmas = next(d[noise][0] for d in models.values() if noise in d)
         lines += ["", f"## {noise} noise", "",
@@ -216,11 +218,14 @@ def robustness_section(env: str, name: str, evaluation: Evaluation, models: dict
             for row, values in ((0, returns), (1, ratios)):
                 axes[row, col].errorbar(sigmas, [v.estimate for v in values],
                                         yerr=[[v.estimate - v.low for v in values], [v.high - v.estimate for v in values]],
-                                        capsize=3, marker="o", ms=3, label=f"{group} (n={len(seeds)})")
+                                        capsize=3, marker="o", ms=3, color=colours[group], ls=styles[group],
+                                        label=f"{group} (n={len(seeds)})")
+        for group in groups:
+            if not seeds_of(group, noise):
+                summary[group].append("-")
         axes[0, col].set(title=f"{noise} noise", ylabel="return")
         axes[1, col].set(xlabel="sigma", ylabel="return ratio to sigma = 0")
         axes[1, col].axhline(1.0, color="0.6", ls=":", lw=0.8)
-        axes[0, col].legend(fontsize=7)
 
         top = len(sigmas) - 1
         for label, reference, compared in comparisons(study, kind, groups, lambda g: bool(seeds_of(g, noise))):
@@ -233,11 +238,17 @@ def robustness_section(env: str, name: str, evaluation: Evaluation, models: dict
                 **{f"return_at_sigma_{sigmas[top]:g}_difference_{k}": round(v, 1) for k, v in d_top._asdict().items()},
                 **{f"r0_difference_{k}": round(v, 1) for k, v in d_r0._asdict().items()},
                 auc_verdict=verdict(d_auc, "loses less", "loses more"), return_verdict=verdict(d_top, "higher", "lower")))
-    fig.tight_layout()
+    # One legend for the whole figure (a group's label once, with the seeds of its first panel), right of the panels.
+    handles = {}
+    for ax in axes[0]:
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            handles.setdefault(label.split(" (n=")[0], (handle, label))
+    fig.legend([h for h, _ in handles.values()], [lab for _, lab in handles.values()], loc="center right",
+               fontsize=7)
+    fig.tight_layout(rect=(0, 0, 1 - 3 / (5 * len(noises) + 3), 1))
     summary_lines = ["| model | seeds | R0 [95 % interval] | " + " | ".join(f"AUC {n} noise" for n in noises) + " |",
                      "|---|---|---|" + "---|" * len(noises)]
-    summary_lines += [f"| {g} | " + " | ".join(cells + ["-"] * (2 + len(noises) - len(cells))) + " |"
-                      for g, cells in summary.items()]
+    summary_lines += [f"| {g} | " + " | ".join(cells) + " |" for g, cells in summary.items()]
     return lines, points, verdicts, fig, summary_lines
 
 
