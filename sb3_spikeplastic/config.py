@@ -50,12 +50,13 @@ _PPO_EXCLUDED = ("self", "policy", "env", "policy_kwargs", "tensorboard_log", "v
                  "_init_setup_model", "rollout_buffer_class", "rollout_buffer_kwargs")
 #: PPO arguments that accept rl-zoo's ``lin_<value>`` linear schedules.
 SCHEDULE_KEYS = ("learning_rate", "clip_range", "clip_range_vf")
-#: Policy arguments naming a class: accepted as a name (``ReLU``, ``nn.ReLU``, ``th.optim.AdamW``...).
-_CLASS_KEYS = {"activation_fn": "torch.nn", "optimizer_class": "torch.optim"}
+#: Policy arguments naming a class: accepted as a name (``ReLU``, ``nn.ReLU``, ``th.optim.AdamW``,
+#: ``PlaceCellFeatures``...).
+_CLASS_KEYS = {"activation_fn": "torch.nn", "optimizer_class": "torch.optim",
+               "features_extractor_class": "sb3_spikeplastic.encoder_features"}
 #: Policy arguments of SB3's ActorCriticPolicy that SpikePlasticPolicy passes on and that make sense for it.
 _SPIKE_EXTRA_POLICY_KEYS = ("optimizer_class", "optimizer_kwargs")
-_UNSETTABLE_POLICY_KEYS = ("self", "observation_space", "action_space", "lr_schedule", "kwargs",
-                           "features_extractor_class")
+_UNSETTABLE_POLICY_KEYS = ("self", "observation_space", "action_space", "lr_schedule", "kwargs")
 
 
 def packaged_hyperparams_path(name: str = "ppo") -> Path:
@@ -415,12 +416,20 @@ def policy_kwarg_hints(policy: str = "SpikePlasticPolicy", algo: str = "ppo") ->
 
 
 def resolve_class_name(name: str, key: str) -> type:
-    """A class named in ``activation_fn`` / ``optimizer_class`` (``ReLU``, ``nn.ReLU``, ``th.optim.AdamW``)."""
+    """A class named in ``activation_fn`` / ``optimizer_class`` (``ReLU``, ``nn.ReLU``, ``th.optim.AdamW``) or
+    ``features_extractor_class`` (:mod:`sb3_spikeplastic.encoder_features`: ``PlaceCellFeatures``...)."""
     import torch
 
     module_name = _CLASS_KEYS[key]
-    module = torch.nn if module_name == "torch.nn" else torch.optim
-    base = torch.nn.Module if module_name == "torch.nn" else torch.optim.Optimizer
+    if module_name == "sb3_spikeplastic.encoder_features":
+        from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
+
+        from . import encoder_features as module
+
+        base = BaseFeaturesExtractor
+    else:
+        module = torch.nn if module_name == "torch.nn" else torch.optim
+        base = torch.nn.Module if module_name == "torch.nn" else torch.optim.Optimizer
     prefix, _, short = name.rpartition(".")
     candidate = getattr(module, short, None) if (not prefix or _DOTTED_PREFIXES.get(prefix) == module_name) else None
     if not (isinstance(candidate, type) and issubclass(candidate, base)):
@@ -443,8 +452,8 @@ def _validate_policy_kwargs(policy: str, kwargs: Any, algo: str = "ppo") -> dict
     for key, value in kwargs.items():
         if key in _CLASS_KEYS:
             if not isinstance(value, str):
-                raise ValueError(f"policy_kwargs.{key}={value!r} must be a class name such as "
-                                 f"{'nn.ReLU' if key == 'activation_fn' else 'th.optim.AdamW'}")
+                example = {"activation_fn": "nn.ReLU", "optimizer_class": "th.optim.AdamW"}.get(key, "PlaceCellFeatures")
+                raise ValueError(f"policy_kwargs.{key}={value!r} must be a class name such as {example}")
             resolve_class_name(value, key)
             out[key] = value
             continue

@@ -76,7 +76,8 @@ def ratios(means):
 
 def area(means):
     r = ratios(means)
-    return sum((r[i] + r[i + 1]) / 2 * (SIGMAS[i + 1] - SIGMAS[i]) for i in range(len(r) - 1)) / (SIGMAS[-1] - SIGMAS[0])
+    trapezoids = sum((r[i] + r[i + 1]) / 2 * (SIGMAS[i + 1] - SIGMAS[i]) for i in range(len(r) - 1))
+    return trapezoids / (SIGMAS[-1] - SIGMAS[0])
 
 
 def group(variant, value, seeds=(0, 1)):

@@ -44,9 +44,10 @@ from .protocol import FIG4, NOISES, Protocol
 STUDY_KEYS = ("description", "envs", "seeds", "budgets", "conf", "hyperparams", "eval_freq", "eval_episodes",
               "variants", "evaluations", "report")
 VARIANT_KEYS = ("rule", "conf", "hyperparams", "seeds", "budgets", "train_env", "noises")
-EVALUATION_KINDS = ("final", "robustness")
+EVALUATION_KINDS = ("final", "robustness", "sensitivity")
 FINAL_KEYS = ("kind", "episodes", "seed", "n_envs", "model", "variants", "seeds", "budgets")
 FILTER_KEYS = ("variants", "seeds", "budgets")
+SENSITIVITY_KEYS = ("kind", "shift", "seed", "groups", "model", *FILTER_KEYS)
 ROBUSTNESS_KEYS = ("kind", "noises", "sigmas", "episodes", "seed", "n_envs", "friction_target", "obs_indices",
                    "clip_obs", "model", *FILTER_KEYS)
 REPORT_KEYS = ("learned_threshold", "resamples", "compare")
@@ -83,6 +84,9 @@ class Evaluation:
     :param variants: only these variants' models (``None``: all), likewise ``seeds`` and ``budgets``
     :param clip_obs: evaluate with the model's frozen ``VecNormalize`` statistics clipping the standardised
         observation at this bound instead of their own (``None``: as trained)
+    :param shift: ``sensitivity``: the shift of one raw observation element (:mod:`~sb3_spikeplastic.study.probes`)
+    :param groups: ``sensitivity``: named groups of observation elements the report averages (``None``: each
+        element)
     """
 
     kind: str
@@ -92,6 +96,8 @@ class Evaluation:
     seeds: Optional[tuple[int, ...]] = None
     budgets: Optional[tuple[int, ...]] = None
     clip_obs: Optional[float] = None
+    shift: Optional[float] = None
+    groups: Optional[tuple[tuple[str, tuple[int, ...]], ...]] = None
 
     def applies(self, variant: str, seed: int, budget: int) -> bool:
         return all(chosen is None or value in chosen for chosen, value in
@@ -99,7 +105,7 @@ class Evaluation:
 
     def files(self, name: str, noises: Optional[Sequence[str]] = None) -> list[str]:
         """The raw files of this evaluation in a model's episode folder (``noises``: the variant's narrowing)."""
-        if self.kind == "final":
+        if self.kind in ("final", "sensitivity"):
             return [f"{name}.csv"]
         return [f"{name}_{noise}.csv" for noise in self.protocol.noises if noises is None or noise in noises]
 
@@ -187,7 +193,8 @@ class Study:
 
 
 def budget_label(steps: int) -> str:
-    """``300k``, ``1M``, ``2.5M``: a budget in a model name."""
+    """``300k``, ``1M``, ``2500k``, ``1500``: a budget in a model name (whole millions, else whole thousands,
+    else the steps)."""
     if steps % 1_000_000 == 0:
         return f"{steps // 1_000_000}M"
     if steps % 1000 == 0:
@@ -306,7 +313,8 @@ def _evaluation(name, spec, where: str, variants: dict) -> Evaluation:
     kind = spec.get("kind", name)
     if kind not in EVALUATION_KINDS:
         raise _unknown(f"kind of evaluation {name!r}", kind, EVALUATION_KINDS, where)
-    _check_keys(f"key of evaluation {name!r}", spec, FINAL_KEYS if kind == "final" else ROBUSTNESS_KEYS, where)
+    accepted = {"final": FINAL_KEYS, "robustness": ROBUSTNESS_KEYS, "sensitivity": SENSITIVITY_KEYS}[kind]
+    _check_keys(f"key of evaluation {name!r}", spec, accepted, where)
     what = f"evaluation {name!r}"
     model = spec.get("model", "budget")
     if model not in MODELS:
@@ -317,6 +325,17 @@ def _evaluation(name, spec, where: str, variants: dict) -> Evaluation:
     filters = _filters(spec, what, variants)
     if kind == "final":
         return Evaluation(kind, replace(protocol, noises=(), sigmas=(0.0,)), model, **filters)
+    if kind == "sensitivity":
+        shift = spec.get("shift", 0.1)
+        if isinstance(shift, bool) or not isinstance(shift, (int, float)) or not math.isfinite(shift) or shift == 0:
+            raise ValueError(f"shift={shift!r} of {what} in {where} must be a non-zero number")
+        groups = spec.get("groups")
+        if groups is not None:
+            if not isinstance(groups, dict) or not groups:
+                raise ValueError(f"groups of {what} in {where} must map names to lists of observation indices")
+            groups = tuple((str(g), _ints(idx, f"group {g!r} of {what}", 0)) for g, idx in groups.items())
+        return Evaluation(kind, replace(protocol, episodes=1, n_envs=1, noises=(), sigmas=(0.0,)), model,
+                          shift=float(shift), groups=groups, **filters)
     noises = spec.get("noises", list(FIG4.noises))
     if not isinstance(noises, list) or not noises:
         raise ValueError(f"noises of {what} in {where} must be a list of {', '.join(NOISES)}")

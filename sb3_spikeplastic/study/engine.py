@@ -84,8 +84,8 @@ class StudyJob:
             "variants": {f"{env} {variant}": {"train_env": s.train_env(env, variant),
                                               **{k: v for k, v in config.items() if k != "n_timesteps"}}
                          for (env, variant), config in self.configs.items()},
-            "evaluations": {name: {"kind": e.kind, "model": e.model, "clip_obs": e.clip_obs, **e.protocol.as_dict()}
-                            for name, e in s.evaluations.items()}})
+            "evaluations": {name: {"kind": e.kind, "model": e.model, "clip_obs": e.clip_obs, "shift": e.shift,
+                                   **e.protocol.as_dict()} for name, e in s.evaluations.items()}})
 
     def work(self, variant: str) -> dict:
         """What a cell of ``variant`` is queued to do: train to its largest budget, run these evaluations."""
@@ -459,6 +459,22 @@ def _evaluate(job: StudyJob, env: str, name: str, evaluation: Evaluation, model_
             raise ValueError(f"{name}: clip_obs needs VecNormalize statistics beside {model_path}")
         statistics = clipped_statistics(Path(statistics), tmp / "vecnormalize.pkl", env, evaluation.clip_obs)
     p = evaluation.protocol
+    if evaluation.kind == "sensitivity":
+        from .probes import action_sensitivity, observation_sd
+
+        venv = make_eval_env(env, 1, p.seed, env_kwargs, statistics)
+        try:
+            values, sd = action_sensitivity(model, venv, evaluation.shift), observation_sd(venv)
+        finally:
+            venv.close()
+
+        def write_sensitivity(f):
+            writer = csv.writer(f)
+            writer.writerow(["element", "sensitivity", "obs_sd"])
+            writer.writerows((i, f"{v:.6g}", f"{d:.6g}") for i, (v, d) in enumerate(zip(values, sd)))
+
+        atomic_write(folder / missing[0], write_sensitivity, binary=False)
+        return 1
     if evaluation.kind == "final":
         venv = make_eval_env(env, p.n_envs, p.seed, env_kwargs, statistics)
         try:

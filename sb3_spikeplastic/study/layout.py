@@ -8,6 +8,7 @@
     <folder>/episodes/<env>/<variant>@<budget>_s<seed>/     every evaluation's episodes:
         <evaluation>.csv                                    final: episode, return, length, success
         <evaluation>_<noise>.csv                            robustness: model, noise_type, sigma, episode, return
+        <evaluation>.csv                                    sensitivity: element, sensitivity, obs_sd
 
 Raw per-episode returns are the study's only data: :mod:`sb3_spikeplastic.study.report` derives every table,
 interval and figure from them. Every file is written whole (into a temporary file, then renamed), so a killed
@@ -99,3 +100,12 @@ def read_training(path: Path) -> tuple[np.ndarray, np.ndarray]:
             returns[int(row["timesteps"])].append(float(row["return"]))
     steps = np.array(sorted(returns))
     return steps, np.array([np.mean(returns[s]) for s in steps])
+
+
+def read_sensitivity(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """A sensitivity file: ``(sensitivity per element, the element's s.d. in the model's observation statistics)``
+    (NaN where not recorded)."""
+    with open(path) as f:
+        rows = sorted(csv.DictReader(f), key=lambda r: int(r["element"]))
+    return (np.array([float(r["sensitivity"]) for r in rows]),
+            np.array([float(r["obs_sd"]) if r.get("obs_sd") not in (None, "") else np.nan for r in rows]))

@@ -31,7 +31,7 @@ import numpy as np
 
 from ..intervals import Interval, bootstrap_mean_differences, bootstrap_mean_intervals
 from .declaration import Evaluation, Study, budget_label, model_name
-from .layout import StudyFolder, read_final, read_robustness, read_training
+from .layout import StudyFolder, read_final, read_robustness, read_sensitivity, read_training
 from .protocol import auc, ratio_to_r0
 
 
@@ -74,12 +74,14 @@ class StudyData:
 
     :param robustness: (env, evaluation) -> model -> noise -> (sigmas, returns (n_sigma, n_episodes))
     :param final: (env, evaluation) -> model -> {"return", "length", "success"}
+    :param sensitivity: (env, evaluation) -> model -> (sensitivity per element, observation s.d. per element)
     :param training: env -> (variant, seed) -> (timesteps, mean return)
     :param missing: one line per missing cell or evaluation file
     """
 
     robustness: dict = field(default_factory=dict)
     final: dict = field(default_factory=dict)
+    sensitivity: dict = field(default_factory=dict)
     training: dict = field(default_factory=dict)
     missing: list = field(default_factory=list)
 
@@ -103,6 +105,8 @@ def read_study(study: Study, folder: Path) -> StudyData:
                         data.missing.append(f"{env} {model}: {file}")
                     elif evaluation.kind == "final":
                         data.final.setdefault((env, name), {})[model] = read_final(path)
+                    elif evaluation.kind == "sensitivity":
+                        data.sensitivity.setdefault((env, name), {})[model] = read_sensitivity(path)
                     else:
                         noise = file[len(name) + 1:-len(".csv")]
                         data.robustness.setdefault((env, name), {}).setdefault(model, {})[noise] = read_robustness(path)
@@ -316,6 +320,35 @@ def final_section(env: str, name: str, models: dict, study: Study, kind: dict[st
     return lines, verdicts
 
 
+def sensitivity_section(env: str, name: str, evaluation: Evaluation, models: dict, study: Study,
+                        heading: str) -> list[str]:
+    """The action sensitivity of every group: the mean over seeds (range) per element or element group, the
+    first group's over the second's, and the s.d. of the first group's first element in the models' observation
+    statistics (which sets how large the shift is in the units the policy reads)."""
+    n = next(iter(models.values()))[0].size
+    groups = dict(evaluation.groups or ((str(i), (i,)) for i in range(n)))
+    names = list(groups)
+
+    def cell(values, digits: int = 3) -> str:
+        return f"{np.mean(values):.{digits}f} ({np.min(values):.{digits}f}-{np.max(values):.{digits}f})"
+
+    ratio = len(names) > 1
+    first = groups[names[0]][0]
+    lines = [heading, "", f"Mean absolute change of the clipped action when one raw observation element is shifted by "
+             f"{evaluation.shift:g}, averaged over the action's dimensions and one noise-free episode (episode seed "
+             f"{evaluation.protocol.seed}); mean over seeds (range). A group's column averages its elements.", "",
+             "| model | seeds | " + " | ".join(names) + (f" | {names[0]} / {names[1]}" if ratio else "")
+             + f" | s.d. of element {first} |", "|---|---|" + "---|" * (len(names) + ratio + 1)]
+    for group in [g for g in groups_of(study) if any(group_of(m) == g for m in models)]:
+        mine = [m for m in sorted(models) if group_of(m) == group]
+        per_group = {g: [models[m][0][list(idx)].mean() for m in mine] for g, idx in groups.items()}
+        row = f"| {group} | {len(mine)} | " + " | ".join(cell(v) for v in per_group.values())
+        if ratio:
+            row += f" | {cell([a / b for a, b in zip(per_group[names[0]], per_group[names[1]])], 1)}"
+        lines.append(row + f" | {cell([models[m][1][first] for m in mine])} |")
+    return lines
+
+
 def verdict_table(rows: list[dict]) -> list[str]:
     """The verdicts of one evaluation as Markdown, per noise type."""
     lines = []
@@ -432,6 +465,9 @@ def write_report(study: Study, folder: Path, log: Optional[Callable[[str], None]
                 if rows:
                     verdict_lines += [f"## evaluation {name!r}", "", *verdict_table(rows)]
                 verdict_rows += rows
+            elif evaluation.kind == "sensitivity" and (env, name) in data.sensitivity:
+                lines += sensitivity_section(env, name, evaluation, data.sensitivity[(env, name)], study,
+                                             f"# {env}: evaluation {name!r}, action sensitivity") + [""]
             elif evaluation.kind == "robustness" and (env, name) in data.robustness:
                 heading = (f"# {env}: return under noise, one protocol for every model" if name == "robustness"
                            else f"# {env}: return under noise, evaluation {name!r}")
