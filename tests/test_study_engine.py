@@ -101,6 +101,7 @@ def test_two_workers_run_every_cell_once(tiny):
     layout = StudyFolder(folder)
     for variant, seed in CELLS:
         (run,) = layout.run_folders(ENV, variant, seed)  # trained once, to the largest budget
+        assert (run / f"{ENV}.zip").is_file()
         assert sorted(layout.checkpoints(ENV, variant, seed)) == [128, 256]
         steps, _ = read_training(layout.training_file(ENV, variant, seed))
         assert steps.tolist() == [64, 128, 192, 256]

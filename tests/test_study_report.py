@@ -12,6 +12,7 @@ from helpers import TINY_CARTPOLE
 
 from sb3_spikeplastic.study import load_study_file, study_from_dict
 from sb3_spikeplastic.study.layout import StudyFolder
+from sb3_spikeplastic.study.protocol import auc, ratio_to_r0
 from sb3_spikeplastic.study.report import write_report
 
 ENV = "CartPole-v1"
@@ -105,10 +106,9 @@ def test_r0_ratio_and_auc_of_each_group(report):
             assert float(point["ratio_estimate"]) == pytest.approx(group(variant, lambda m: ratios(m)[j], seeds),
                                                                    abs=5e-5)
             assert float(point["return_low"]) <= float(point["return_estimate"]) <= float(point["return_high"])
-        auc = group(variant, area, seeds)
         returns = " | ".join(f"{group(variant, lambda m: m[j], seeds):.0f} "
                              f"({group(variant, lambda m: ratios(m)[j], seeds):.2f})" for j in range(len(SIGMAS)))
-        assert f"| {variant}@1k | {len(seeds)} | {returns} | {auc:.2f} [" in table
+        assert f"| {variant}@1k | {len(seeds)} | {returns} | {group(variant, area, seeds):.2f} [" in table
     # the model that did not learn is left out of its group's ratios (with it, weak's R0 would be 70)
     assert float(points[("weak@1k", 0.4)]["return_estimate"]) == 75.0
     assert "## Missing" not in table
@@ -173,6 +173,16 @@ def test_a_missing_file_is_listed(report):
     assert "1 raw file(s) not there yet" in missing and f"* {ENV} good@1k_s1: final.csv" in missing
     assert "| good@1k | 1 | 300 | 300.000 [" in table  # the final table has the seed that is there
     assert "| good@1k | 2 of 2 | 200 / 220 |" in table  # its robustness file is still read
+
+
+def test_ratio_to_r0_and_auc():
+    """A loss is a ratio below 1 whatever R0's sign (a negative R0 that falls further is worse, not better)."""
+    np.testing.assert_allclose(ratio_to_r0(np.array([[100.0, 80.0, 50.0], [-100.0, -150.0, -50.0]])),
+                               [[1.0, 0.8, 0.5], [1.0, 0.5, 1.5]])
+    assert np.isnan(ratio_to_r0(np.array([0.0, 10.0]))).all()  # no ratio to a zero return
+    # trapezoids over unequal steps, divided by the sigma range: (0.1 * 0.9 + 0.3 * 0.65) / 0.4
+    assert auc(np.array([1.0, 0.8, 0.5]), [0.0, 0.1, 0.4]) == pytest.approx(0.7125)
+    assert auc(np.ones(5), SIGMAS + [0.6, 0.8]) == pytest.approx(1.0)
 
 
 def test_a_folder_without_study_data(tmp_path):

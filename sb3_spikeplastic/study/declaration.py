@@ -248,7 +248,7 @@ def _overrides(value, what: str) -> tuple[str, ...]:
     return tuple(value)
 
 
-def _conf(value, what: str, base: Path) -> Optional[str]:
+def _conf(value, what: str, base: Path, where: str = "the study file") -> Optional[str]:
     """A conf name or path; a relative path is read from the study file's folder when it is there."""
     if value is None:
         return None
@@ -256,7 +256,10 @@ def _conf(value, what: str, base: Path) -> Optional[str]:
         raise ValueError(f"{what}={value!r} must be a packaged file name or a path")
     if value not in cfg.PACKAGED_HYPERPARAMS and not Path(value).is_absolute() and (base / value).is_file():
         value = str((base / value).resolve())
-    cfg.load_hyperparams_file(value)
+    try:
+        cfg.load_hyperparams_file(value)
+    except ValueError as exc:
+        raise ValueError(f"{what}: {exc}") from None
     return value
 
 
@@ -268,9 +271,12 @@ def _variant(name, spec, where: str, base: Path) -> Variant:
     _check_keys(f"key of variant {name!r}", spec, VARIANT_KEYS, where)
     rule = spec.get("rule")
     if rule is not None:
-        from ..plasticity import get_rule_class
+        from ..plasticity import available_rules, get_rule_class
 
-        get_rule_class(rule)
+        try:
+            get_rule_class(rule)
+        except ValueError:
+            raise _unknown("rule", rule, list(available_rules()), f"variant {name!r} of {where}") from None
     train_env = spec.get("train_env")
     if train_env is not None and not isinstance(train_env, str):
         raise ValueError(f"train_env={train_env!r} of variant {name!r} in {where} must be an environment id")

@@ -58,6 +58,8 @@ class StudyJob:
     :param grace_period: seconds without a heartbeat after which a running cell is failed and queued again
     :param device: torch device of the models
     :param torch_threads: ``torch.set_num_threads`` of each worker
+    :param declared: the whole study file when ``study`` is a part of it (``--variants``, ``--seeds``): the report
+        covers the whole study
     """
 
     study: Study
@@ -69,6 +71,7 @@ class StudyJob:
     grace_period: Optional[int] = None
     device: str = "cpu"
     torch_threads: int = 1
+    declared: Optional[Study] = None
 
     @property
     def layout(self) -> StudyFolder:
@@ -569,7 +572,7 @@ def run(job: StudyJob, workers: int = 1, log: Callable[[str], None] = print) -> 
     for row in rows:
         if row["state"] == "failed":
             log(f"failed: {row['env']} {row['variant']} seed {row['seed']}: {row['error']}")
-    paths = write_report(job.study, job.folder, log=log)
+    paths = write_report(job.declared or job.study, job.folder, log=log)
     log(f"wrote {', '.join(str(p) for p in paths)}")
     return status
 
@@ -597,11 +600,10 @@ def study_command(study_file: list[str], workers: int = 1, heartbeat_interval: i
     check_device(device)
     check_output_path(folder or log_folder, "--folder" if folder else "-f/--log-folder", directory=True)
     check_storage(storage)
-    study, path = load_study_file(study_file[0])
-    if variants or seeds:
-        study = study.select(variants, seeds)
+    declared, path = load_study_file(study_file[0])
+    study = declared.select(variants, seeds) if variants or seeds else declared
     name = study_name or path.stem
     job = prepare(study, Path(folder) if folder else Path(log_folder) / "study" / name, name, storage,
                   heartbeat_interval=heartbeat_interval, grace_period=grace_period, device=device,
-                  torch_threads=torch_threads)
+                  torch_threads=torch_threads, declared=declared)
     return lambda: run(job, workers)
