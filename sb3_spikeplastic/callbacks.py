@@ -1,14 +1,16 @@
 """Training callbacks of ``sb3-spikeplastic train``: atomic checkpoints with pruning, the best model written
-atomically, a progress bar that counts wall time and a one-line summary every tenth of the run."""
+atomically, a progress bar that counts wall time, and the terminal's lines: a summary every tenth of the run, one
+per evaluation and one saying when ``-n`` is rounded up to whole rollouts."""
 
 from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import Iterator, Optional
 
 import numpy as np
 
-from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.callbacks import BaseCallback, EvalCallback
 
 from .run_folder import checkpoint_statistics, save_model, save_vecnormalize
 
@@ -56,18 +58,41 @@ class SaveBest(BaseCallback):
         return True
 
 
+def rollout_size(model) -> int:
+    """Environment steps of one rollout: ``n_steps x n_envs`` (SB3's on-policy algorithms train on whole ones)."""
+    return getattr(model, "n_steps", 1) * model.n_envs
+
+
+def steps_to_train(model, total_timesteps: int) -> int:
+    """The environment steps that ``model.learn`` takes to reach ``total_timesteps`` from ``model.num_timesteps``:
+    whole rollouts (:func:`rollout_size`), so the last one may run past the total."""
+    remaining = max(total_timesteps - model.num_timesteps, 0)
+    return -(-remaining // rollout_size(model)) * rollout_size(model)
+
+
+def rounding_note(model, total_timesteps: int) -> Optional[str]:
+    """The line that says how far ``-n`` is rounded up to whole rollouts (``None`` when it is not): ``trains
+    2,048 steps: -n is rounded up to whole rollouts of n_steps x n_envs = 2,048``."""
+    steps = steps_to_train(model, total_timesteps)
+    if steps == max(total_timesteps - model.num_timesteps, 0):
+        return None
+    more = f" (to {model.num_timesteps + steps:,})" if model.num_timesteps else ""
+    return (f"trains {steps:,} steps{more}: -n is rounded up to whole rollouts of n_steps x n_envs = "
+            f"{rollout_size(model):,}")
+
+
 class WallClockProgress(BaseCallback):
     """A progress bar over environment steps whose rate is steps per second of wall time, updates included (SB3's
-    bar moves only during rollouts, so its rate is the rollout's alone); it stops at the run's total."""
+    bar moves only during rollouts, so its rate is the rollout's alone); its total is the steps trained, ``-n``
+    rounded up to whole rollouts (:func:`steps_to_train`)."""
 
     def _on_training_start(self) -> None:
         from tqdm.auto import tqdm
 
-        self.remaining = self.locals["total_timesteps"] - self.model.num_timesteps
+        self.remaining = steps_to_train(self.model, self.locals["total_timesteps"])
         self.bar = tqdm(total=self.remaining, unit="step", unit_scale=True, smoothing=0, dynamic_ncols=True)
 
     def _on_step(self) -> bool:
-        # The last rollout may run past the total (whole rollouts of n_envs x n_steps); the bar does not.
         self.bar.update(min(self.training_env.num_envs, self.remaining - self.bar.n))
         return True
 
@@ -75,12 +100,26 @@ class WallClockProgress(BaseCallback):
         self.bar.close()
 
 
-class TrainingSummary(BaseCallback):
-    """One line at the first rollout end past every ``every`` environment steps, and at the end: the mean return
-    and success rate of the last 100 episodes (SB3's episode buffers: the Monitor's raw returns) and the
-    environment steps per second of wall time since the start, updates included.
+def _callbacks_in(callback) -> Iterator[BaseCallback]:
+    """``callback`` and, depth first, the callbacks that a ``CallbackList`` of it holds."""
+    if callback is not None:
+        yield callback
+        for child in getattr(callback, "callbacks", ()):
+            yield from _callbacks_in(child)
 
-    :param every: environment steps between lines
+
+class TrainingSummary(BaseCallback):
+    """The terminal's lines of a run (``train -v 1``):
+
+    * at the start, whether ``-n`` is rounded up to whole rollouts (:func:`rounding_note`);
+    * after the first update past every ``every`` environment steps, and at the end: the mean return and success
+      rate of the last 100 episodes (SB3's episode buffers: the Monitor's raw returns; "no episode finished yet"
+      before the first) and the environment steps per second of wall time since the start, updates included (a
+      line written before an update would show the rollout's rate alone);
+    * after each evaluation of an ``EvalCallback`` of the same run (with a ``log_path``): its step, the mean return
+      ± standard deviation over its episodes and, where the environment reports it, the success rate.
+
+    :param every: environment steps between summary lines
     """
 
     def __init__(self, every: int):
@@ -90,17 +129,28 @@ class TrainingSummary(BaseCallback):
     def _on_training_start(self) -> None:
         self.start_steps, self.start_time = self.model.num_timesteps, time.perf_counter()
         self.next_line, self.written_at = self.start_steps + self.every, None
+        note = rounding_note(self.model, self.locals["total_timesteps"])
+        if note is not None:
+            self._print(note)
+        # SB3 hands its callbacks learn's locals: "callback" is the run's whole list, evaluations included.
+        self.evaluations = [c for c in _callbacks_in(self.locals.get("callback")) if isinstance(c, EvalCallback)]
+        self.reported = [len(c.evaluations_timesteps) for c in self.evaluations]
 
     def _on_step(self) -> bool:
+        self._report_evaluations()
         return True
 
     def _on_rollout_end(self) -> None:
+        self._report_evaluations()
+
+    def _on_rollout_start(self) -> None:  # the previous rollout's update is done: the rate counts it
         if self.model.num_timesteps >= self.next_line:
             self._write()
             while self.next_line <= self.model.num_timesteps:
                 self.next_line += self.every
 
     def _on_training_end(self) -> None:
+        self._report_evaluations()
         if self.written_at != self.model.num_timesteps:
             self._write()
 
@@ -109,14 +159,39 @@ class TrainingSummary(BaseCallback):
         parts = [f"{steps:>11,} steps"]
         if self.model.ep_info_buffer:
             parts.append(f"return {np.mean([info['r'] for info in self.model.ep_info_buffer]):.4g}")
+        else:
+            parts.append("no episode finished yet")
         if self.model.ep_success_buffer:
             parts.append(f"success {np.mean(self.model.ep_success_buffer):.2f}")
         rate = (steps - self.start_steps) / max(time.perf_counter() - self.start_time, 1e-9)
         parts.append(f"{rate:,.0f} steps/s")
         return " | ".join(parts)
 
-    def _write(self) -> None:
+    @staticmethod
+    def evaluation_line(evaluation: EvalCallback) -> str:
+        """The line of ``evaluation``'s latest result, e.g. ``  4,096 steps | evaluation: return 0.62 ± 0.31 over 20
+        episodes | success 0.81``."""
+        returns = np.asarray(evaluation.evaluations_results[-1], dtype=float)
+        parts = [f"{evaluation.evaluations_timesteps[-1]:>11,} steps",
+                 f"evaluation: return {returns.mean():.4g} ± {returns.std():.4g} over {returns.size} "
+                 f"episode{'s' if returns.size != 1 else ''}"]
+        successes = evaluation.evaluations_successes
+        if len(successes) == len(evaluation.evaluations_timesteps) and len(successes[-1]):
+            parts.append(f"success {np.mean(successes[-1]):.2f}")
+        return " | ".join(parts)
+
+    def _report_evaluations(self) -> None:
+        for index, evaluation in enumerate(self.evaluations):
+            if len(evaluation.evaluations_timesteps) > self.reported[index]:
+                self.reported[index] = len(evaluation.evaluations_timesteps)
+                self._print(self.evaluation_line(evaluation))
+
+    @staticmethod
+    def _print(line: str) -> None:
         from tqdm.auto import tqdm
 
-        tqdm.write(self.summary())  # above a progress bar, if one is shown
+        tqdm.write(line)  # above a progress bar, if one is shown
+
+    def _write(self) -> None:
+        self._print(self.summary())
         self.written_at = self.model.num_timesteps

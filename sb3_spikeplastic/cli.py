@@ -32,6 +32,7 @@ import shlex
 import sys
 from typing import Callable, Optional, Sequence
 
+from sb3_spikeplastic import __version__
 from sb3_spikeplastic.envs import route_mujoco_warnings
 from sb3_spikeplastic.study.protocol import FIG4
 
@@ -82,15 +83,22 @@ def _count(text: str) -> int:
     return int(value)
 
 
+def _algo(value: str) -> str:
+    """``--algo`` (rl-zoo's): ``ppo``, the one algorithm here (the entry's ``algo`` key picks RecurrentPPO)."""
+    if value != "ppo":
+        raise argparse.ArgumentTypeError(f"{value!r} is not available; accepted: ppo (RecurrentPPO: --conf ppo_lstm)")
+    return value
+
+
 class _Parser(argparse.ArgumentParser):
-    def error(self, message: str):  # one line, like every other bad-input error (argparse adds the usage line)
-        self.print_usage(sys.stderr)
+    def error(self, message: str):  # one line, like every other bad-input error (no usage: --help has it)
         self.exit(2, f"{PROG}: error: {message}\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog=PROG, description="Train and study spiking neural network policies with differentiable "
                      "plasticity (SpikePropamine) with Stable-Baselines3's PPO.")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
 
     def common(p: argparse.ArgumentParser, auto_threads: bool = False) -> None:
@@ -98,11 +106,18 @@ def build_parser() -> argparse.ArgumentParser:
                        help="torch device: cpu (default), cuda[:n] (the spike kernel and CUDA graphs; an error "
                             "where there is no GPU), mps, or auto (cuda when available)")
         if auto_threads:
-            p.add_argument("--torch-threads", type=_threads, default="auto",
+            p.add_argument("--torch-threads", "--num-threads", type=_threads, default="auto",
                            help="torch.set_num_threads: a number, or auto (default): every core for policies big "
                                 "enough to gain from it (the HalfCheetah entries, LSTMs), one for small ones")
         else:
-            p.add_argument("--torch-threads", type=int, default=1, help="torch.set_num_threads (default: 1)")
+            p.add_argument("--torch-threads", "--num-threads", type=int, default=1,
+                           help="torch.set_num_threads (default: 1)")
+
+    def progress(p: argparse.ArgumentParser) -> None:
+        bar = p.add_mutually_exclusive_group()
+        bar.add_argument("-P", "--progress", action="store_true", help="show the progress bar, also where stderr "
+                         "is not a terminal (default: shown on a terminal)")
+        bar.add_argument("--no-progress", action="store_true", help="no progress bar")
 
     def study_options(p: argparse.ArgumentParser, command: str, default_name: str) -> None:
         p.add_argument("--storage", help="RDB URL (sqlite:///f.db, postgresql://...) or journal file path, shared by "
@@ -110,14 +125,23 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--study-name", help=f"default: {default_name}; an existing study is continued")
         p.add_argument("-f", "--log-folder", default="logs", help="log folder (default: logs)")
 
+    # KEY=VALUE options given twice (rl-zoo's --hyperparams a:1 -params b:2) add up: action="extend".
     def model_source(p: argparse.ArgumentParser) -> None:
         p.add_argument("--run", help="run folder written by `train` (uses its <EnvId>.zip, config, VecNormalize)")
         p.add_argument("--model", help="a model .zip (with --env); VecNormalize statistics beside it are found")
         p.add_argument("--env", help="environment id (default: the run's)")
         p.add_argument("--vecnormalize", help="VecNormalize statistics for --model (default: found beside it)")
-        p.add_argument("--best", action="store_true", help="with --run: use best_model.zip")
-        p.add_argument("--env-kwargs", nargs="+", metavar="KEY=VALUE", help="gymnasium.make arguments, values as "
-                       "YAML (default: the run's env_kwargs), e.g. max_episode_steps=200")
+        p.add_argument("--best", "--load-best", action="store_true", help="of the run: best_model.zip")
+        p.add_argument("--env-kwargs", nargs="+", action="extend", metavar="KEY=VALUE",
+                       help="gymnasium.make arguments, KEY=VALUE or KEY:VALUE, values as YAML (default: the run's "
+                            "env_kwargs), e.g. max_episode_steps=200 or noise:high")
+        # rl-zoo's way of naming a run and its model (enjoy.py)
+        p.add_argument("-f", "--folder", help="rl-zoo style: the log folder of `train -f`; with --env ID the run "
+                       "is <folder>/ppo/<ID>_<exp-id>")
+        p.add_argument("--exp-id", type=int, default=0, help="with -f: the run's number (default: 0, the latest)")
+        p.add_argument("--load-checkpoint", type=int, metavar="STEPS", help="of the run: the checkpoint "
+                       "rl_model_<STEPS>_steps.zip")
+        p.add_argument("--load-last-checkpoint", action="store_true", help="of the run: its latest checkpoint")
 
     def action_mode(p: argparse.ArgumentParser) -> None:
         p.add_argument("--deterministic", dest="deterministic", action="store_true", default=True,
@@ -133,30 +157,39 @@ def build_parser() -> argparse.ArgumentParser:
                                             "recorded in <EnvId>/args.yml)")
     t.add_argument("-f", "--log-folder", default="logs", help="log folder (default: logs); runs go to "
                    "<folder>/ppo/<EnvId>_<n>")
-    t.add_argument("--tensorboard-log", help="TensorBoard root (default: events in the run folder)")
-    t.add_argument("--hyperparams", nargs="+", metavar="KEY=VALUE", help="overrides, values as YAML: "
-                   "n_steps=128 policy_kwargs.rule=dp-bcm policy_kwargs.hidden_sizes=[32]")
-    t.add_argument("--env-kwargs", nargs="+", metavar="KEY=VALUE", help="gymnasium.make arguments, values as YAML "
-                   "(the same as --hyperparams env_kwargs.KEY=VALUE), e.g. max_episode_steps=200 action_noise=0.1")
-    t.add_argument("--conf", help="hyperparameter file, or a packaged one by name: ppo (default), paper, mlp, "
-                   "ppo_lstm, mlp_zoo, ppo_lstm_zoo")
+    t.add_argument("-tb", "--tensorboard-log", help="TensorBoard root (default: events in the run folder)")
+    t.add_argument("--hyperparams", "-params", nargs="+", action="extend", metavar="KEY=VALUE",
+                   help="overrides, KEY=VALUE or rl-zoo's KEY:VALUE, values as YAML: n_steps=128 "
+                        "policy_kwargs.rule=dp-bcm policy_kwargs.hidden_sizes=[32]; a whole mapping "
+                        "(policy_kwargs=dict(...)) replaces the entry's, and a line names the keys it drops")
+    t.add_argument("--env-kwargs", nargs="+", action="extend", metavar="KEY=VALUE",
+                   help="gymnasium.make arguments, KEY=VALUE or KEY:VALUE, values as YAML (the same as "
+                        "--hyperparams env_kwargs.KEY=VALUE), e.g. max_episode_steps=200 action_noise=0.1")
+    t.add_argument("--conf", "--conf-file", "-conf", dest="conf", help="hyperparameter file, or a packaged one by "
+                   "name: ppo (default), paper, mlp, ppo_lstm, mlp_zoo, ppo_lstm_zoo")
+    t.add_argument("--algo", type=_algo, default="ppo", help="rl-zoo's option: ppo, the only one (the default)")
     t.add_argument("--n-envs", type=int, help="number of environments (default: the file's)")
-    t.add_argument("--vec-env", choices=("dummy", "subproc"), default="dummy", help="step the environments in this "
+    # The run options below default to None: with -i they default to the continued run's (its args.yml).
+    t.add_argument("--vec-env", choices=("dummy", "subproc"), help="step the environments in this "
                    "process (dummy, default) or each in its own (subproc: for slow environments)")
-    t.add_argument("--eval-freq", type=int, default=0, help="evaluate every N environment steps (0: never)")
-    t.add_argument("--eval-episodes", type=int, default=20, help="episodes per evaluation (default: 20)")
+    t.add_argument("--eval-freq", type=int, help="evaluate every N environment steps (0: never, default)")
+    t.add_argument("--eval-episodes", type=int, help="episodes per evaluation (default: 20)")
     t.add_argument("--save-freq", type=int, help="checkpoint every N environment steps (0: never; default: every "
                    "tenth of n_timesteps for runs of 100k steps or more, else never)")
-    t.add_argument("--keep-checkpoints", type=int, default=2, help="keep only the latest N checkpoints (0: all; "
+    t.add_argument("--keep-checkpoints", type=int, help="keep only the latest N checkpoints (0: all; "
                    "default 2)")
-    t.add_argument("--figure-freq", type=int, default=0, help="TensorBoard activity figure every N rollouts "
-                   "(0: never)")
+    t.add_argument("--figure-freq", type=int, help="TensorBoard activity figure every N rollouts "
+                   "(0: never, default)")
     t.add_argument("-i", "--trained-agent", help="continue training this model (a run folder, its final .zip or "
-                   "a --save-freq checkpoint) with its VecNormalize statistics, step counter, schedules and "
-                   "TensorBoard run, up to -n total steps (default: the run's n_timesteps); writes a new run folder")
+                   "a checkpoint) with its VecNormalize statistics, step counter and schedules, its seed and its "
+                   "run options (evaluations, checkpoints, figures, TensorBoard root) unless given, up to -n total "
+                   "steps (default: the run's n_timesteps); writes a new run folder beside it, with its own "
+                   "TensorBoard events")
     t.add_argument("-v", "--verbose", type=int, default=1, help="0: quiet, 1: a summary line (return, success, "
-                   "steps/s) every tenth of the run (default), 2: SB3's table every rollout")
-    t.add_argument("--no-progress", action="store_true", help="no progress bar")
+                   "steps/s) every tenth of the run and one per evaluation (default), 2: SB3's table every rollout")
+    t.add_argument("--log-interval", type=int, help="SB3's log_interval: write the logged scalars (progress.csv, "
+                   "TensorBoard, -v 2's table) every N rollouts (default: 1)")
+    progress(t)
     common(t, auto_threads=True)
 
     o = sub.add_parser("optimize", help="hyperparameter search with Optuna (rl-zoo style); writes the best trial "
@@ -166,7 +199,8 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("--env", required=True, help="Gymnasium id")
     o.add_argument("--conf", help="hyperparameter file the trials start from (default: ppo)")
     o.add_argument("--rule", help="fixed plasticity rule (default: the rule is searched)")
-    o.add_argument("--hyperparams", nargs="+", metavar="KEY=VALUE", help="fixed overrides (not searched)")
+    o.add_argument("--hyperparams", "-params", nargs="+", action="extend", metavar="KEY=VALUE",
+                   help="fixed overrides (not searched), KEY=VALUE or KEY:VALUE")
     o.add_argument("-n", "--n-timesteps", type=_count, help="environment steps per trial and seed (default: the "
                    "entry's)")
     o.add_argument("--n-trials", type=int, default=20, help="trials this process runs (default: 20)")
@@ -214,7 +248,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--seed", type=int, default=0, help="environment seed (default: 0)")
     e.add_argument("--n-envs", type=int, default=1, help="environments side by side (default: 1)")
     e.add_argument("-o", "--output", help="also write the result as JSON to this file")
-    e.add_argument("--no-progress", action="store_true", help="no progress bar")
+    progress(e)
     common(e)
 
     r = sub.add_parser("robustness", help="return ratio under noise for several models (paper Fig. 4 F-H)")
@@ -230,14 +264,15 @@ def build_parser() -> argparse.ArgumentParser:
                    "held out from training)")
     r.add_argument("--n-envs", type=int, default=FIG4.n_envs, help="environments side by side; with the seed they "
                    f"fix the episode seeds (default: {FIG4.n_envs})")
-    r.add_argument("--env-kwargs", nargs="+", metavar="KEY=VALUE", help="gymnasium.make arguments of the "
-                   "noise-free environment, values as YAML (e.g. max_episode_steps=200)")
+    r.add_argument("--env-kwargs", nargs="+", action="extend", metavar="KEY=VALUE",
+                   help="gymnasium.make arguments of the noise-free environment, values as YAML (e.g. "
+                        "max_episode_steps=200)")
     r.add_argument("--friction-target", default="damping", help="damping (default) or geom_friction")
     r.add_argument("--obs-indices", nargs="+", type=int, metavar="I",
                    help="obs noise on these observation elements only (default: all)")
     action_mode(r)
     r.add_argument("-o", "--output", default="robustness", help="output folder (default: robustness)")
-    r.add_argument("--no-progress", action="store_true", help="no progress bar")
+    progress(r)
     common(r)
 
     p = sub.add_parser("plot", help="training curves from the Monitor files of run folders")
@@ -254,7 +289,7 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--seed", type=int, default=0, help="episode seed (default: 0)")
     i.add_argument("--max-steps", type=int, help="environment steps shown (default: about 1 s of network time)")
     action_mode(i)
-    i.add_argument("--no-progress", action="store_true", help="no progress bar")
+    progress(i)
     common(i)
 
     y = sub.add_parser("enjoy", help="play a trained model, print each episode and record a video",
@@ -262,7 +297,12 @@ def build_parser() -> argparse.ArgumentParser:
                        "recurrent state carried) and optionally record them: one frame after each reset and each "
                        "step.")
     model_source(y)
-    y.add_argument("--n-episodes", "--episodes", type=int, default=1, help="episodes (default: 1)")
+    y.add_argument("--n-episodes", "--episodes", type=int, help="episodes (default: 1; with -n as many as fit)")
+    y.add_argument("-n", "--n-timesteps", type=_count, help="rl-zoo style: play N environment steps in all, episode "
+                   "after episode (the last one cut at N)")
+    y.add_argument("--algo", type=_algo, default="ppo", help="rl-zoo's option: ppo, the only one (the default)")
+    y.add_argument("--no-render", action="store_true", help="rl-zoo's option, accepted: enjoy opens no window "
+                   "(--video records the episodes)")
     action_mode(y)
     y.add_argument("--seed", type=int, help="reset seed of the first episode (default: for a task that reports "
                    "success, the first of seeds 0-9 whose episode ends as most of them do; else 0)")
@@ -275,18 +315,44 @@ def build_parser() -> argparse.ArgumentParser:
                    "env's, 480 480 for MuJoCo)")
     y.add_argument("--raster", action="store_true", help="draw the hidden layers' spikes of the last 200 ms beside "
                    "each frame (SpikePlasticPolicy)")
-    y.add_argument("--no-progress", action="store_true", help="no progress bar")
+    progress(y)
     common(y)
     return parser
 
 
+#: rl-zoo's options that name what is the case here anyway (``--algo ppo``, ``--no-render``): checked by the
+#: parser, not passed on.
+_ZOO_ONLY = ("algo", "no_render")
+
+
+def _progress_bar(options: dict) -> None:
+    """``no_progress`` as the command functions take it: ``-P/--progress`` forces the bar, ``--no-progress`` hides
+    it, and by default it shows where stderr is a terminal (redrawn into a file or a pipe, it is only noise)."""
+    forced = options.pop("progress", False)
+    if "no_progress" in options:
+        options["no_progress"] = options["no_progress"] or not (forced or sys.stderr.isatty())
+
+
 def prepare(args: argparse.Namespace, argv: Sequence[str]) -> Callable[[], int]:
-    """The parsed command's work, its options checked (``ValueError``: bad input, nothing written)."""
+    """The parsed command's work, its options checked (``ValueError``: bad input, nothing written); a line for
+    each ``--hyperparams`` override that drops keys of the entry (a whole mapping replaced)."""
+    from sb3_spikeplastic.inputs import parse_env_kwargs
+
     module, name = COMMANDS[args.command]
-    options = {k: v for k, v in vars(args).items() if k != "command"}
+    options = {k: v for k, v in vars(args).items() if k != "command" and k not in _ZOO_ONLY}
+    _progress_bar(options)
     if args.command == "train":  # recorded in the run folder
         options["command_line"] = shlex.join([PROG, *argv])
-    return getattr(importlib.import_module(f"sb3_spikeplastic.{module}"), name)(**options)
+        if options.get("log_interval") is None:
+            options.pop("log_interval", None)
+        parse_env_kwargs(args.env_kwargs)  # a malformed entry's error names --env-kwargs
+    work = getattr(importlib.import_module(f"sb3_spikeplastic.{module}"), name)(**options)
+    if args.command in ("train", "optimize") and args.hyperparams and not getattr(args, "trained_agent", None):
+        from sb3_spikeplastic.config import replaced_mappings
+
+        for line in replaced_mappings(args.env, args.conf, args.hyperparams, args.rule):
+            print(f"{PROG}: {line}")
+    return work
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:

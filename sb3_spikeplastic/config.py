@@ -62,7 +62,8 @@ _UNSETTABLE_POLICY_KEYS = ("self", "observation_space", "action_space", "lr_sche
 def packaged_hyperparams_path(name: str = "ppo") -> Path:
     """The hyperparameter file ``<name>.yml`` shipped with the package (found both in editable installs and in
     wheels): ``ppo`` (the default), ``paper`` (the paper's HalfCheetah network), ``mlp`` and ``ppo_lstm`` (the
-    MlpPolicy and RecurrentPPO baselines, trained with the spiking entry's PPO settings)."""
+    MlpPolicy and RecurrentPPO baselines, trained with the spiking entry's PPO settings), ``mlp_zoo`` and
+    ``ppo_lstm_zoo`` (the same baselines with rl-baselines3-zoo's tuned HalfCheetah settings)."""
     try:
         return Path(str(importlib.resources.files("sb3_spikeplastic.hyperparams").joinpath(f"{name}.yml")))
     except ModuleNotFoundError:  # an editable install made before the data package existed: the source tree's copy
@@ -199,23 +200,25 @@ def parse_python_literal(text: str, what: str = "value") -> Any:
 _KEY_PATTERN = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
 
 
-def parse_override(text: str) -> tuple[tuple[str, ...], Any]:
-    """Parse one ``key=value`` override: the (dotted) key path and the value read as YAML.
+def parse_override(text: str, what: str = "hyperparameter override",
+                   example: str = "n_steps=128 or policy_kwargs.rule=dp-bcm") -> tuple[tuple[str, ...], Any]:
+    """Parse one ``key=value`` override, or rl-zoo's ``key:value``: the (dotted) key path and the value read as
+    YAML. The key ends at the first ``=`` or ``:`` (keys have neither), so values may hold both.
 
-    ``n_steps=128`` -> ``(("n_steps",), 128)``; ``policy_kwargs.hidden_sizes=[32, 32]`` ->
+    ``n_steps=128`` and ``n_steps:128`` -> ``(("n_steps",), 128)``; ``policy_kwargs.hidden_sizes=[32, 32]`` ->
     ``(("policy_kwargs", "hidden_sizes"), [32, 32])``.
+
+    :param what: what ``text`` is, for error messages (``"--env-kwargs entry"``...).
+    :param example: valid overrides shown by the error message.
     """
-    key, sep, raw = text.partition("=")
+    key, sep, raw = re.match(r"([^=:]*)([=:]?)(.*)", text, re.S).groups()
     key = key.strip()
     if not sep or not _KEY_PATTERN.match(key):
-        raise ValueError(
-            f"malformed hyperparameter override {text!r}; expected key=value (e.g. n_steps=128 or "
-            "policy_kwargs.rule=dp-bcm)"
-        )
+        raise ValueError(f"malformed {what} {text!r}; expected key=value or key:value (e.g. {example})")
     try:
         value = yaml_load(raw) if raw.strip() else None
     except yaml.YAMLError:
-        raise ValueError(f"cannot parse the value of override {text!r} as YAML") from None
+        raise ValueError(f"cannot parse the value of {what} {text!r} as YAML") from None
     return tuple(key.split(".")), value
 
 
@@ -438,6 +441,26 @@ def resolve_class_name(name: str, key: str) -> type:
     return candidate
 
 
+def _check_rule_values(rule: str, rule_kwargs: dict) -> None:
+    """The rule's own checks of ``rule_kwargs`` (rates in (0, 1)...), run on a 1 x 1 layer so that a bad value is
+    named by its key (``policy_kwargs.rule_kwargs.eta_init=2.0 must lie in (0, 1)``) before any model is built.
+    The global torch random state is left as it was."""
+    import torch
+
+    from .plasticity import get_rule_class
+
+    try:
+        with torch.random.fork_rng(devices=[]):
+            get_rule_class(rule)(1, 1, **rule_kwargs)
+    except TypeError:  # a registered rule with other required arguments: left to the model's construction
+        return
+    except ValueError as exc:
+        message = str(exc)
+        if message.partition("=")[0] in rule_kwargs:  # the rule named the argument
+            raise ValueError(f"policy_kwargs.rule_kwargs.{message}") from None
+        raise ValueError(f"policy_kwargs.rule_kwargs={rule_kwargs!r} for rule {rule!r}: {message}") from None
+
+
 def _validate_policy_kwargs(policy: str, kwargs: Any, algo: str = "ppo") -> dict:
     from .plasticity import get_rule_class
 
@@ -472,6 +495,7 @@ def _validate_policy_kwargs(policy: str, kwargs: Any, algo: str = "ppo") -> dict
                         f" for rule {out_rule!r}")
             out["rule_kwargs"] = {k: _check_value(f"policy_kwargs.rule_kwargs.{k}", v, rule_hints[k])
                                   for k, v in out["rule_kwargs"].items()}
+            _check_rule_values(out_rule, out["rule_kwargs"])
     if out.get("neuron"):
         from .neurons import SRMParameters
 
@@ -566,6 +590,70 @@ def validate_entry(entry: Mapping[str, Any]) -> dict:
     return dict(sorted(out.items()))
 
 
+def _get_path(entry: Mapping, path: Sequence[str]) -> Any:
+    node: Any = entry
+    for depth, key in enumerate(path):
+        if isinstance(node, str):
+            node = _as_mapping(node, ".".join(path[:depth]))
+        if not isinstance(node, Mapping):
+            return None
+        node = node.get(key)
+    return _as_mapping(node, ".".join(path)) if isinstance(node, str) and path[-1] in _MAPPING_KEYS else node
+
+
+#: Entry keys (and policy_kwargs keys) whose values are mappings, also in rl-zoo's string form.
+_MAPPING_KEYS = ("policy_kwargs", "normalize", "env_kwargs", "rule_kwargs", "neuron", "optimizer_kwargs")
+
+
+def _overridden_entry(env_id: str, conf: Union[str, Path, None], parsed: Sequence[tuple[tuple[str, ...], Any]],
+                      rule: Optional[str], replaced: Optional[list] = None) -> dict:
+    """The file's ``default`` and ``env_id`` entries merged, with the parsed overrides and ``rule`` applied (not
+    validated). ``replaced`` collects ``(index, path, keys)`` for each override that replaces a whole mapping."""
+    data = load_hyperparams_file(conf)
+    where = str(default_hyperparams_path() if conf is None else conf)
+    if env_id not in data and "default" not in data:
+        raise ValueError(f"no hyperparameters for {env_id!r} in {where} and no 'default' entry; "
+                         f"entries: {', '.join(data) or 'none'}")
+    base = data.get("default", {})
+    entry = deep_merge(base, data.get(env_id, {}))
+    for key in ("policy_kwargs", "normalize", "env_kwargs"):  # string forms, before dotted overrides reach in
+        if isinstance(entry.get(key), str):
+            entry[key] = _as_mapping(entry[key], key)
+    for index, (path, value) in enumerate(parsed):
+        if replaced is not None:
+            old = _get_path(entry, path)
+            if isinstance(old, Mapping) and old:
+                replaced.append((index, path, list(old)))
+        _set_path(entry, path, value)
+    if rule is not None:
+        _set_path(entry, ("policy_kwargs", "rule"), rule)
+    return entry
+
+
+def replaced_mappings(env_id: str, conf: Union[str, Path, None] = None, overrides: Sequence[str] = (),
+                      rule: Optional[str] = None, option: str = "--hyperparams") -> list[str]:
+    """One line for each override that replaces a whole mapping of the entry and so drops some of its keys
+    (``policy_kwargs=dict(hidden_sizes=[32])`` drops the entry's other ``policy_kwargs``, whose defaults then
+    apply), naming them; a dotted key (``policy_kwargs.hidden_sizes=[32]``) sets one key and keeps the others.
+    Keys set again by later overrides or ``rule`` are not dropped. ``[]`` when nothing is dropped.
+
+    :param option: the option the overrides came from, for the lines.
+    """
+    parsed = [parse_override(o) for o in overrides]
+    replaced: list = []
+    entry = _overridden_entry(env_id, conf, parsed, rule, replaced)
+    lines = []
+    for index, path, keys in replaced:
+        final = _get_path(entry, path)
+        dropped = [k for k in keys if not (isinstance(final, Mapping) and k in final)]
+        if dropped:
+            name = ".".join(path)
+            lines.append(f"{option} {overrides[index]} replaces the entry's whole {name}, dropping its "
+                         f"{', '.join(map(str, dropped))} (their defaults apply; {name}.KEY=VALUE sets one key and "
+                         "keeps the others)")
+    return lines
+
+
 def resolve_hyperparams(
     env_id: str,
     conf: Union[str, Path, None] = None,
@@ -592,20 +680,7 @@ def resolve_hyperparams(
     parsed = [parse_override(o) for o in overrides]  # syntax first: cheap and independent of the file
     if rule is not None:
         get_rule_class(rule)  # a one-line error for an unknown name
-    data = load_hyperparams_file(conf)
-    where = str(default_hyperparams_path() if conf is None else conf)
-    if env_id not in data and "default" not in data:
-        raise ValueError(f"no hyperparameters for {env_id!r} in {where} and no 'default' entry; "
-                         f"entries: {', '.join(data) or 'none'}")
-    base = data.get("default", {})
-    entry = deep_merge(base, data.get(env_id, {}))
-    for key in ("policy_kwargs", "normalize", "env_kwargs"):  # string forms, before dotted overrides reach in
-        if isinstance(entry.get(key), str):
-            entry[key] = _as_mapping(entry[key], key)
-    for path, value in parsed:
-        _set_path(entry, path, value)
-    if rule is not None:
-        _set_path(entry, ("policy_kwargs", "rule"), rule)
+    entry = _overridden_entry(env_id, conf, parsed, rule)
     if n_timesteps is not None:
         entry["n_timesteps"] = n_timesteps
     if n_envs is not None:

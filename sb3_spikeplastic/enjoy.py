@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import itertools
 import os
 import subprocess
 import sys
@@ -255,7 +256,7 @@ class Episode:
     :param episode_return: sum of the environment's (raw, unnormalised) rewards.
     :param length: steps taken.
     :param success: ``info["is_success"]`` of its last step, ``None`` when the environment reports none.
-    :param cut: stopped by ``max_steps`` before the environment ended it.
+    :param cut: stopped by ``max_steps`` (or ``total_steps``) before the environment ended it.
     """
 
     episode_return: float
@@ -264,10 +265,11 @@ class Episode:
     cut: bool
 
 
-def play(model, env: gymnasium.Env, n_episodes: int = 1, deterministic: bool = True, seed: Optional[int] = 0,
-         max_steps: Optional[int] = None, obs_transform: Optional[Callable[[np.ndarray], np.ndarray]] = None,
+def play(model, env: gymnasium.Env, n_episodes: Optional[int] = 1, deterministic: bool = True,
+         seed: Optional[int] = 0, max_steps: Optional[int] = None,
+         obs_transform: Optional[Callable[[np.ndarray], np.ndarray]] = None,
          on_frame: Optional[Callable[[np.ndarray], None]] = None, on_step: Optional[Callable[[], None]] = None,
-         on_reset: Optional[Callable[[], None]] = None) -> Iterator[Episode]:
+         on_reset: Optional[Callable[[], None]] = None, total_steps: Optional[int] = None) -> Iterator[Episode]:
     """Play ``n_episodes`` episodes of ``model`` on ``env``, yielding each :class:`Episode` as it ends.
 
     The policy's recurrent state is carried through ``model.predict(obs, state=..., episode_start=...)`` and reset
@@ -276,7 +278,7 @@ def play(model, env: gymnasium.Env, n_episodes: int = 1, deterministic: bool = T
 
     :param model: an SB3 algorithm (``sb3_spikeplastic.PPO``, SB3's or sb3-contrib's).
     :param env: a single (not vectorised) environment with the model's spaces.
-    :param n_episodes: episodes to play.
+    :param n_episodes: episodes to play (``None``: as many as ``total_steps`` allows).
     :param deterministic: mean / arg-max actions, else sampled ones.
     :param seed: ``env.reset(seed=seed)`` before the first episode (the next ones continue its random stream).
     :param max_steps: stop an episode after this many steps (``None``: when the environment ends it).
@@ -285,10 +287,15 @@ def play(model, env: gymnasium.Env, n_episodes: int = 1, deterministic: bool = T
     :param on_frame: called with ``env.render()`` after each reset and each step (see the module's frame rule).
     :param on_step: called after each step (e.g. a progress bar).
     :param on_reset: called after each reset, before its frame.
+    :param total_steps: at most this many steps in all (rl-zoo's ``enjoy -n``): the episode it ends is cut.
     """
     masked = bool(getattr(model, "use_action_masks", False))
-    state = None
-    for index in range(n_episodes):
+    state, played = None, 0
+    if n_episodes is None and total_steps is None:
+        raise ValueError("give n_episodes or total_steps")
+    for index in itertools.count():
+        if (n_episodes is not None and index >= n_episodes) or (total_steps is not None and played >= total_steps):
+            return
         obs, info = env.reset(seed=seed if index == 0 else None)
         if on_reset is not None:
             on_reset()
@@ -296,7 +303,7 @@ def play(model, env: gymnasium.Env, n_episodes: int = 1, deterministic: bool = T
             on_frame(env.render())
         episode_start = np.ones((1,), dtype=bool)
         total, length, done = 0.0, 0, False
-        while not done and (max_steps is None or length < max_steps):
+        while not done and (max_steps is None or length < max_steps) and (total_steps is None or played < total_steps):
             batch = np.asarray(obs)[None]
             if obs_transform is not None:
                 batch = obs_transform(batch)
@@ -309,6 +316,7 @@ def play(model, env: gymnasium.Env, n_episodes: int = 1, deterministic: bool = T
             obs, reward, terminated, truncated, info = env.step(actions[0])
             total += float(reward)
             length += 1
+            played += 1
             done = bool(terminated or truncated)
             if on_frame is not None:
                 on_frame(env.render())
@@ -318,13 +326,14 @@ def play(model, env: gymnasium.Env, n_episodes: int = 1, deterministic: bool = T
         yield Episode(total, length, None if success is None else bool(success), not done)
 
 
-def describe(index: int, episode: Episode) -> str:
-    """One line for an episode: its number, return, length, success, and whether ``max_steps`` cut it."""
+def describe(index: int, episode: Episode, cut_by: str = "--max-steps") -> str:
+    """One line for an episode: its number, return, length, success, and whether ``max_steps`` (or what
+    ``cut_by`` names) cut it."""
     line = f"episode {index}: return {episode.episode_return:.4g}, {episode.length} steps"
     if episode.success is not None:
         line += ", success" if episode.success else ", failure"
     if episode.cut:
-        line += " (cut by --max-steps)"
+        line += f" (cut by {cut_by})"
     return line
 
 
@@ -449,15 +458,17 @@ class Player:
             frame = resize_nearest(frame, *self.size)
         return frame if self.raster is None else self.raster.draw(frame)
 
-    def run(self, n_episodes: int = 1, deterministic: bool = True, seed: Optional[int] = 0,
-            max_steps: Optional[int] = None, progress: bool = True) -> list[Episode]:
+    def run(self, n_episodes: Optional[int] = 1, deterministic: bool = True, seed: Optional[int] = 0,
+            max_steps: Optional[int] = None, progress: bool = True,
+            total_steps: Optional[int] = None) -> list[Episode]:
         """Play and print each episode (and a summary); write the video if one was asked for.
 
-        :param n_episodes: episodes to play.
+        :param n_episodes: episodes to play (``None``: as many as ``total_steps`` allows).
         :param deterministic: mean / arg-max actions.
         :param seed: reset seed of the first episode.
         :param max_steps: at most this many steps per episode (``None``: as the environment ends it).
         :param progress: show a progress bar over environment steps.
+        :param total_steps: at most this many steps in all (rl-zoo's ``enjoy -n``; the last episode is cut).
         :return: the episodes played.
         """
         from tqdm.auto import tqdm
@@ -469,16 +480,19 @@ class Player:
             stack.callback(self.env.close)
             if self.raster is not None:
                 stack.callback(self.raster.close)
-            bar = stack.enter_context(tqdm(total=cap and n_episodes * cap, unit="step", disable=not progress,
-                                           dynamic_ncols=True, leave=False))
+            total = total_steps if total_steps is not None else cap and n_episodes * cap
+            bar = stack.enter_context(tqdm(total=total, unit="step", disable=not progress, dynamic_ncols=True,
+                                           leave=False))
             video = stack.enter_context(VideoFile(self.video, self.fps)) if self.video is not None else None
             on_frame = (lambda frame: video.append(self._frame(frame))) if video is not None else None
             for episode in play(self.model, self.env, n_episodes, deterministic, seed, max_steps,
                                 self.obs_transform, on_frame, lambda: bar.update(1),
-                                self.raster.reset if self.raster is not None else None):
+                                self.raster.reset if self.raster is not None else None, total_steps):
                 episodes.append(episode)
-                bar.write(describe(len(episodes), episode))
-                if cap is not None:  # an episode that ended early leaves its remaining steps out of the total
+                budget_spent = total_steps is not None and sum(e.length for e in episodes) >= total_steps
+                cut_by = "-n" if budget_spent and not (max_steps and episode.length >= max_steps) else "--max-steps"
+                bar.write(describe(len(episodes), episode, cut_by))
+                if cap is not None and total_steps is None:  # an early end: its remaining steps leave the total
                     bar.total -= cap - episode.length
                     bar.refresh()
             if video is not None:
@@ -501,25 +515,32 @@ class Player:
 
 def enjoy_command(run: Optional[str] = None, model: Optional[str] = None, env: Optional[str] = None,
                   vecnormalize: Optional[str] = None, best: bool = False, env_kwargs: Optional[Sequence[str]] = None,
-                  n_episodes: int = 1, deterministic: bool = True, seed: Optional[int] = None,
+                  n_episodes: Optional[int] = None, deterministic: bool = True, seed: Optional[int] = None,
                   max_steps: Optional[int] = None,
                   video: Optional[str] = None, fps: Optional[float] = None, size: Optional[Sequence[int]] = None,
                   raster: bool = False, no_progress: bool = False, device: str = "cpu",
-                  torch_threads: int = 1) -> Callable[[], int]:
+                  torch_threads: int = 1, n_timesteps: Optional[int] = None, folder: Optional[str] = None,
+                  exp_id: int = 0, load_checkpoint: Optional[int] = None,
+                  load_last_checkpoint: bool = False) -> Callable[[], int]:
     """``sb3-spikeplastic enjoy`` with these options (its long names): the model is found and loaded and its
     :class:`Player` built (``ValueError``, nothing written); returns the play, which prints the model and each
-    episode (:meth:`Player.run`) and returns 0."""
+    episode (:meth:`Player.run`) and returns 0. ``n_episodes`` defaults to 1, or with ``n_timesteps`` (rl-zoo's
+    ``-n``: steps in all) to as many as fit."""
     import torch
 
     from .inputs import check_int, check_output_path, model_source
     from .run_folder import load_model
 
     check_int("--n-episodes", n_episodes, 1)
+    check_int("--n-timesteps", n_timesteps, 1)
     check_int("--max-steps", max_steps, 1)
+    if n_episodes is None and n_timesteps is None:
+        n_episodes = 1
     if video:
         check_output_path(video, "--video", directory=False)
     check_video_options(video, fps, size, raster)
-    info, env_id = model_source(run, model, env, vecnormalize, best, env_kwargs)
+    info, env_id = model_source(run, model, env, vecnormalize, best, env_kwargs, folder, exp_id, load_checkpoint,
+                                load_last_checkpoint)
     torch.set_num_threads(torch_threads)
     player = Player(load_model(info, device), env_id, info.env_kwargs, info.vecnormalize, info.model_path,
                     video=video, fps=fps, size=size, raster=raster)
@@ -537,7 +558,7 @@ def enjoy_command(run: Optional[str] = None, model: Optional[str] = None, env: O
             if note:
                 print(f"first episode: seed {first} ({note}; --seed picks another)")
         torch.manual_seed(first)
-        player.run(n_episodes, deterministic, first, max_steps, progress=not no_progress)
+        player.run(n_episodes, deterministic, first, max_steps, progress=not no_progress, total_steps=n_timesteps)
         return 0
 
     return enjoy

@@ -121,9 +121,9 @@ def report_lines(result: Evaluation, env_id: str, info: RunInfo, deterministic: 
     energy = result.energy
     if energy is not None:
         layers = " / ".join(f"{x:,.0f}" for x in energy["synops_per_step"])
-        lines.append(f"per environment step: {energy['total_spikes_per_step']:,.1f} spikes (input population: "
-                     f"{energy['spikes_per_step'][0]:,.1f}), {energy['total_synops_per_step']:,.0f} SynOps ({layers} "
-                     "by layer)")
+        lines.append(f"per environment step: {energy['total_spikes_per_step']:,.1f} spikes in the hidden and output "
+                     f"layers and {energy['spikes_per_step'][0]:,.1f} in the input population, "
+                     f"{energy['total_synops_per_step']:,.0f} SynOps ({layers} by layer)")
         joules = energy["energy_nj"]
         if energy["total_plasticity_macs_per_step"] is not None:
             lines.append(f"energy estimate per environment step: {joules['total_nj']:,.1f} nJ = SynOps "
@@ -137,7 +137,9 @@ def evaluate_command(run: Optional[str] = None, model: Optional[str] = None, env
                      vecnormalize: Optional[str] = None, best: bool = False,
                      env_kwargs: Optional[Sequence[str]] = None, episodes: int = 100, deterministic: bool = True,
                      seed: int = 0, n_envs: int = 1, output: Optional[str] = None, no_progress: bool = False,
-                     device: str = "cpu", torch_threads: int = 1) -> Callable[[], int]:
+                     device: str = "cpu", torch_threads: int = 1,
+                     folder: Optional[str] = None, exp_id: int = 0, load_checkpoint: Optional[int] = None,
+                     load_last_checkpoint: bool = False) -> Callable[[], int]:
     """``sb3-spikeplastic evaluate`` with these options (its long names): the model is found, loaded and checked
     against its environment and the evaluation environments are made (``ValueError``, nothing written); returns
     the evaluation, which prints :func:`report_lines`, writes ``output`` (JSON) if given and returns 0."""
@@ -147,7 +149,8 @@ def evaluate_command(run: Optional[str] = None, model: Optional[str] = None, env
     check_int("--n-envs", n_envs, 1)
     if output:
         check_output_path(output, "-o/--output", directory=False)
-    info, env_id = model_source(run, model, env, vecnormalize, best, env_kwargs)
+    info, env_id = model_source(run, model, env, vecnormalize, best, env_kwargs, folder, exp_id,
+                                load_checkpoint, load_last_checkpoint)
     torch.set_num_threads(torch_threads)
     loaded = load_checked(info, env_id, device)
     try:

@@ -13,6 +13,7 @@ nothing written yet), and returns the run, which prints where it writes and what
 
 from __future__ import annotations
 
+import os
 import random
 import shlex
 import shutil
@@ -20,6 +21,7 @@ import signal
 import sys
 import threading
 import traceback
+from collections.abc import Mapping
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Callable, Optional, Sequence, Union
@@ -81,11 +83,23 @@ def check_spaces(model, env, env_id: str, model_path) -> None:
 AUTO_THREADS_MIN_WEIGHTS = 8192
 
 
-def training_threads(policy, cores: int) -> int:
-    """The torch thread count that ``train --torch-threads auto`` uses for ``policy``: ``cores`` or 1 (see
-    :data:`AUTO_THREADS_MIN_WEIGHTS`)."""
+def training_threads(policy, cores: int, load: float = 0.0) -> int:
+    """The torch thread count that ``train --torch-threads auto`` uses for ``policy``: the cores that other
+    processes leave free (``cores`` minus the one-minute ``load``, at least 1) for a policy big enough to gain from
+    them, else 1 (see :data:`AUTO_THREADS_MIN_WEIGHTS`). Threads on busy cores only wait for each other: on a
+    loaded machine a second thread makes training slower, not faster (``benchmarks/README.md``, "Threads")."""
     largest = max((p.numel() for p in policy.parameters() if p.dim() >= 2), default=0)
-    return cores if largest >= AUTO_THREADS_MIN_WEIGHTS else 1
+    if largest < AUTO_THREADS_MIN_WEIGHTS:
+        return 1
+    return max(1, min(cores, int(cores - load + 0.5)))
+
+
+def machine_load() -> float:
+    """The one-minute load average (0 where the platform has none)."""
+    try:
+        return os.getloadavg()[0]
+    except (AttributeError, OSError):
+        return 0.0
 
 
 @contextmanager
@@ -114,6 +128,45 @@ def rule_label(config: dict) -> str:
     return str((config.get("policy_kwargs") or {}).get("rule", "dp-oja"))
 
 
+def _plain_value(value: Any) -> bool:
+    """Whether ``value`` reads back from YAML as it is (numbers, text, None, lists and mappings of them)."""
+    if isinstance(value, (list, tuple)):
+        return all(_plain_value(v) for v in value)
+    if isinstance(value, Mapping):
+        return all(isinstance(k, str) and _plain_value(v) for k, v in value.items())
+    return value is None or isinstance(value, (bool, int, float, str))
+
+
+def resolved_entry(model, config: Mapping[str, Any]) -> dict:
+    """The hyperparameter entry that rebuilds ``model`` under any later defaults: ``config``'s meta keys and every
+    algorithm argument as the model resolved it (``sb3_spikeplastic.PPO``'s policy-dependent defaults included;
+    ``lin_`` schedules as written), and the policy's arguments as it recorded them (a spiking policy records every
+    one, the rule included; classes by name). ``train --conf <run>/<EnvId>/config.yml`` reads it back."""
+    import inspect
+
+    entry = {k: config[k] for k in cfg.META_KEYS if k in config and k != "policy_kwargs"}
+    algo = config.get("algo", "ppo")
+    defaults = inspect.signature(cfg.algorithm_class(algo).__init__).parameters
+    for key in cfg.ppo_argument_hints(algo):
+        if key in config:
+            entry[key] = config[key]
+            continue
+        value = getattr(model, key, defaults[key].default)
+        if not _plain_value(value):  # a schedule or object the model made from its argument: the argument
+            value = defaults[key].default
+        if _plain_value(value) and value is not inspect.Parameter.empty:
+            entry[key] = value
+    policy_kwargs = {}
+    for key, value in {**(config.get("policy_kwargs") or {}), **(getattr(model, "policy_kwargs", None) or {})}.items():
+        if isinstance(value, type):
+            value = value.__name__
+        if _plain_value(value):
+            policy_kwargs[key] = list(value) if isinstance(value, tuple) else value
+    if policy_kwargs:
+        entry["policy_kwargs"] = policy_kwargs
+    return entry
+
+
 class Experiment:
     """One training run of ``config`` (a validated hyperparameter entry) on ``env_id``.
 
@@ -133,17 +186,21 @@ class Experiment:
     :param figure_freq: TensorBoard activity figure every this many rollouts (0: never)
     :param vec_env: ``dummy`` (environments in this process) or ``subproc``
     :param progress: show a progress bar
-    :param trained_agent: a model to continue (its run's VecNormalize statistics and TensorBoard folder too)
+    :param trained_agent: a model to continue (its run's VecNormalize statistics too)
     :param after_eval: a callback run after each evaluation (SB3's ``callback_after_eval``: it reads the result
         from its ``parent``, the ``EvalCallback``, and stops training by returning ``False``), e.g. to report
         evaluations to an Optuna trial
+    :param log_interval: SB3's ``log_interval``: the logged scalars (``progress.csv``, TensorBoard, ``-v 2``'s
+        table) are written every this many rollouts
     """
 
     def __init__(self, env_id: str, config: dict, seed: int, log_folder: Path, tensorboard_log: Optional[Path] = None,
                  device: str = "cpu", verbose: int = 1, eval_freq: int = 0, eval_episodes: int = 20,
                  save_freq: int = 0, keep_checkpoints: int = 2, figure_freq: int = 0, vec_env: str = "dummy",
-                 progress: bool = True, trained_agent: Optional[RunInfo] = None, after_eval=None):
+                 progress: bool = True, trained_agent: Optional[RunInfo] = None, after_eval=None,
+                 log_interval: int = 1):
         self.env_id, self.config, self.seed = env_id, config, seed
+        self.log_interval = log_interval
         self.log_folder, self.tensorboard_log = Path(log_folder), tensorboard_log
         self.device, self.verbose, self.vec_env, self.progress = device, verbose, vec_env, progress
         self.eval_freq, self.eval_episodes, self.figure_freq = eval_freq, eval_episodes, figure_freq
@@ -222,17 +279,16 @@ class Experiment:
             tb_root = Path(self.tensorboard_log) / self.env_id
             tb_root.mkdir(parents=True, exist_ok=True)
             self.tb_dir = tb_root / f"ppo_{rule}_{get_latest_run_id(str(tb_root), f'ppo_{rule}') + 1}"
-        elif self.source is not None and self.source.tensorboard_dir is not None:
-            self.tb_dir = self.source.tensorboard_dir  # the same TensorBoard run, its step axis continued
-        else:
+        else:  # a continued run too: its own events, whose step axis goes on from the continued run's
             self.tb_dir = self.run_dir
         atomic_write(self.run_dir / "command.txt", lambda f: f.write(command + "\n"), binary=False)
-        entry = cfg.dump_yaml({self.env_id: self.config})
+        entry = cfg.dump_yaml({self.env_id: resolved_entry(self.model, self.config)})
         atomic_write(meta_dir / "config.yml", lambda f: f.write(entry), binary=False)
         run_args = {**args, "seed": self.seed, "env": self.env_id, "run_dir": str(self.run_dir),
                     "tensorboard_dir": str(self.tb_dir)}
         if self.source is not None:
-            run_args.update(trained_agent=str(self.source.model_path), start_timesteps=self.model.num_timesteps)
+            run_args.update(trained_agent=str(self.source.model_path), start_timesteps=self.model.num_timesteps,
+                            continues=None if self.source.run_dir is None else str(self.source.run_dir))
         atomic_write(meta_dir / "args.yml", lambda f: f.write(cfg.dump_yaml(run_args)), binary=False)
         return self.run_dir
 
@@ -281,6 +337,15 @@ class Experiment:
                 eval_env = VecNormalize(eval_env, training=False, **{**norm_kwargs, "norm_reward": False})
         return env, eval_env
 
+    def continue_command(self) -> str:
+        """The ``train`` command that continues this run exactly: the saved model, the total steps and the
+        TensorBoard root; ``-i`` brings back the seed and every other run option from ``args.yml``."""
+        argv = ["sb3-spikeplastic", "train", "--env", self.env_id, "-i", str(self.model_path), "-f",
+                str(self.log_folder), "-n", str(self.config["n_timesteps"])]
+        if self.tensorboard_log:
+            argv += ["--tensorboard-log", str(self.tensorboard_log)]
+        return shlex.join(argv)
+
     def save(self) -> list[Path]:
         """The final model and its ``VecNormalize`` statistics, atomically; returns the files written."""
         saved = [save_model(self.model, self.model_path)]
@@ -306,17 +371,17 @@ class Experiment:
             outputs = [make_output_format(f, str(self.run_dir)) for f in formats + ["csv"]]
             outputs.append(make_output_format("tensorboard", str(self.tb_dir)))
             model.set_logger(Logger(str(self.run_dir), outputs))
-            write_hyperparameters(model.logger, {"env_id": self.env_id, "seed": self.seed, **self.config})
+            write_hyperparameters(model.logger, {"env_id": self.env_id, "seed": self.seed,
+                                                 **resolved_entry(model, self.config)})
             # Continuing: the remaining steps with the counter kept, so schedules resume where they stopped.
             callback = CallbackList(self._callbacks(eval_env))
             with sigterm_interrupts():
                 model.learn(self.config["n_timesteps"] - model.num_timesteps, callback=callback,
-                            reset_num_timesteps=self.source is None)
+                            reset_num_timesteps=self.source is None, log_interval=self.log_interval)
         except KeyboardInterrupt:
             self.save()
             note = (f"interrupted after {model.num_timesteps:,} of {self.config['n_timesteps']:,} steps; continue "
-                    f"with\nsb3-spikeplastic train --env {self.env_id} --trained-agent "
-                    f"{shlex.quote(str(self.model_path))} -f {shlex.quote(str(self.log_folder))}\n")
+                    f"with\n{self.continue_command()}\n")
             atomic_write(self.run_dir / "INTERRUPTED.txt", lambda f: f.write(note), binary=False)
             return False
         except BaseException:
@@ -403,17 +468,18 @@ def build(experiment: Experiment) -> None:
 def train_command(env: str, rule: Optional[str] = None, n_timesteps: Optional[int] = None,
                   seed: Optional[int] = None, log_folder: str = "logs", tensorboard_log: Optional[str] = None,
                   hyperparams: Optional[Sequence[str]] = None, env_kwargs: Optional[Sequence[str]] = None,
-                  conf: Optional[str] = None, n_envs: Optional[int] = None, vec_env: str = "dummy",
-                  eval_freq: int = 0, eval_episodes: int = 20, save_freq: Optional[int] = None,
-                  keep_checkpoints: int = 2, figure_freq: int = 0, trained_agent: Optional[str] = None,
+                  conf: Optional[str] = None, n_envs: Optional[int] = None, vec_env: Optional[str] = None,
+                  eval_freq: Optional[int] = None, eval_episodes: Optional[int] = None,
+                  save_freq: Optional[int] = None, keep_checkpoints: Optional[int] = None,
+                  figure_freq: Optional[int] = None, trained_agent: Optional[str] = None,
                   verbose: int = 1, no_progress: bool = False, device: str = "cpu",
-                  torch_threads: Union[int, str] = "auto", command_line: str = "sb3-spikeplastic train"
-                  ) -> Callable[[], int]:
+                  torch_threads: Union[int, str] = "auto", log_interval: int = 1,
+                  command_line: str = "sb3-spikeplastic train") -> Callable[[], int]:
     """``sb3-spikeplastic train`` with these options (its long names): every option is checked and the model built
     in memory (``ValueError``, nothing written); returns the run, which creates the run folder (``command_line``
     in ``command.txt``, the options in ``<EnvId>/args.yml``), trains, prints the files written and returns the exit
-    status (130 when interrupted)."""
-    options = {k: v for k, v in locals().items() if k != "command_line"}
+    status (130 when interrupted). The run options left ``None`` take, with ``trained_agent``, the continued run's
+    values (the environments' process, evaluations, checkpoints, figures, TensorBoard root), else their defaults."""
     import torch
 
     from ._fast.allocator import keep_freed_memory
@@ -425,7 +491,7 @@ def train_command(env: str, rule: Optional[str] = None, n_timesteps: Optional[in
     for name, value, minimum in (("--n-timesteps", n_timesteps, 1), ("--n-envs", n_envs, 1),
                                  ("--eval-freq", eval_freq, 0), ("--eval-episodes", eval_episodes, 1),
                                  ("--save-freq", save_freq, 0), ("--keep-checkpoints", keep_checkpoints, 0),
-                                 ("--figure-freq", figure_freq, 0)):
+                                 ("--figure-freq", figure_freq, 0), ("--log-interval", log_interval, 1)):
         check_int(name, value, minimum)
     check_device(device)
     check_output_path(log_folder, "-f/--log-folder", directory=True)
@@ -434,6 +500,16 @@ def train_command(env: str, rule: Optional[str] = None, n_timesteps: Optional[in
     source = None
     if trained_agent:
         source = continued_run(trained_agent, env_id, bool(hyperparams or rule or n_envs or conf or env_kwargs))
+        inherited = read_run_args(source.run_dir, source.env_id or env_id) if source.run_dir is not None else {}
+        given = dict(vec_env=vec_env, eval_freq=eval_freq, eval_episodes=eval_episodes, save_freq=save_freq,
+                     keep_checkpoints=keep_checkpoints, figure_freq=figure_freq, tensorboard_log=tensorboard_log)
+        chosen = {k: inherited.get(k) if v is None else v for k, v in given.items()}
+        vec_env, eval_freq, eval_episodes, save_freq, keep_checkpoints, figure_freq, tensorboard_log = chosen.values()
+    vec_env = vec_env or "dummy"
+    eval_freq = 0 if eval_freq is None else eval_freq
+    eval_episodes = 20 if eval_episodes is None else eval_episodes
+    keep_checkpoints = 2 if keep_checkpoints is None else keep_checkpoints
+    figure_freq = 0 if figure_freq is None else figure_freq
     config = train_config(env_id, conf, rule, hyperparams, env_kwargs, n_timesteps, n_envs, source)
     if figure_freq and config["policy"] != "SpikePlasticPolicy":
         raise ValueError(f"--figure-freq needs policy SpikePlasticPolicy, not {config['policy']!r}")
@@ -451,10 +527,21 @@ def train_command(env: str, rule: Optional[str] = None, n_timesteps: Optional[in
     experiment = Experiment(
         env_id, config, seed, Path(log_folder), tensorboard_log, device=device, verbose=verbose, eval_freq=eval_freq,
         eval_episodes=eval_episodes, save_freq=save_freq, keep_checkpoints=keep_checkpoints, figure_freq=figure_freq,
-        vec_env=vec_env, progress=not no_progress, trained_agent=source)
+        vec_env=vec_env, progress=not no_progress, trained_agent=source, log_interval=log_interval)
     build(experiment)
     if torch_threads == "auto":
-        torch.set_num_threads(training_threads(experiment.model.policy, cores))
+        load = machine_load()
+        chosen = training_threads(experiment.model.policy, cores, load)
+        torch.set_num_threads(chosen)
+        if verbose:
+            print(f"--torch-threads auto: {chosen} of {cores} core(s) (load {load:.1f}; "
+                  f"{'a policy big enough to split' if chosen > 1 or load >= cores - 0.5 else 'a small policy'})")
+    options = dict(env=env, rule=rule, n_timesteps=n_timesteps, seed=seed, log_folder=log_folder,
+                   tensorboard_log=tensorboard_log, hyperparams=hyperparams, env_kwargs=env_kwargs, conf=conf,
+                   n_envs=n_envs, vec_env=vec_env, eval_freq=eval_freq, eval_episodes=eval_episodes,
+                   save_freq=save_freq, keep_checkpoints=keep_checkpoints, figure_freq=figure_freq,
+                   trained_agent=trained_agent, verbose=verbose, no_progress=no_progress, device=device,
+                   torch_threads=torch_threads, log_interval=log_interval)
     return lambda: _train(experiment, command_line, {"command": "train", **options}, tensorboard_log or log_folder)
 
 
@@ -465,6 +552,10 @@ def _train(experiment: Experiment, command_line: str, options: dict[str, Any], t
     config, env_id = experiment.config, experiment.env_id
     run_dir = experiment.create_run_folder(command_line, dict(sorted(options.items())))
     algo_name = "RecurrentPPO" if config.get("algo") == "ppo_lstm" else "PPO"
+    if experiment.source is not None:
+        print(f"Continuing {experiment.source.run_dir or experiment.source.model_path} from step "
+              f"{experiment.model.num_timesteps:,} ({experiment.source.model_path.name}), with its seed and run "
+              "options unless given")
     print(f"Training {algo_name} ({config['policy']}, rule {rule_label(config)}) on {env_id} for "
           f"{config['n_timesteps']:,} steps, seed {experiment.seed}, {torch.get_num_threads()} torch thread(s)")
     print(f"Run folder:  {run_dir}")
@@ -482,8 +573,8 @@ def _train(experiment: Experiment, command_line: str, options: dict[str, Any], t
                   file=sys.stderr)
         raise
     if not finished:
-        print(f"\nInterrupted after {model.num_timesteps:,} steps; saved {experiment.model_path} (see "
-              f"{run_dir / 'INTERRUPTED.txt'})")
+        print(f"\nInterrupted after {model.num_timesteps:,} steps; saved {experiment.model_path}. Continue with\n"
+              f"  {experiment.continue_command()}")
         return 130
     print(f"\nDone: {model.num_timesteps:,} steps.")
     print(f"  model:        {experiment.model_path}")

@@ -277,7 +277,9 @@ def robustness_figure(rows: Sequence["RobustnessRow"], title: Optional[str] = No
     ax.axhline(1.0, color="0.6", linestyle=":", linewidth=0.8)
     noise = rows[0].noise_type if rows else ""
     ax.set_xlabel(f"{noise} noise σ")
-    ax.set_ylabel("return / return at σ = 0")
+    # RobustnessRow.ratio: R_sigma / R_0 for a positive R_0, and below 1 exactly when the noise lowers the return.
+    ax.set_ylabel(r"return ratio $1 + (R_\sigma - R_0)\,/\,|R_0|$" "\n"
+                  r"($R_\sigma / R_0$ for $R_0 > 0$; $R$: mean return)")
     ax.grid(alpha=0.3)
     ax.legend(loc="best", fontsize=8)
     if title:

@@ -532,7 +532,9 @@ def inspect_command(run: Optional[str] = None, model: Optional[str] = None, env:
                     vecnormalize: Optional[str] = None, best: bool = False,
                     env_kwargs: Optional[Sequence[str]] = None, output: Optional[str] = None, seed: int = 0,
                     max_steps: Optional[int] = None, deterministic: bool = True, no_progress: bool = False,
-                    device: str = "cpu", torch_threads: int = 1) -> Callable[[], int]:
+                    device: str = "cpu", torch_threads: int = 1,
+                    folder: Optional[str] = None, exp_id: int = 0, load_checkpoint: Optional[int] = None,
+                    load_last_checkpoint: bool = False) -> Callable[[], int]:
     """``sb3-spikeplastic inspect`` with these options (its long names): the model is found, loaded and checked
     (``ValueError``, nothing written); returns the inspection, which records each of :func:`inspection_episodes`
     (``typical`` from :func:`typical_seed`), draws it into ``<output>/activity_<name>.png`` (default:
@@ -543,7 +545,8 @@ def inspect_command(run: Optional[str] = None, model: Optional[str] = None, env:
 
     if output:
         check_output_path(output, "-o/--output", directory=True)
-    info, env_id = model_source(run, model, env, vecnormalize, best, env_kwargs)
+    info, env_id = model_source(run, model, env, vecnormalize, best, env_kwargs, folder, exp_id,
+                                load_checkpoint, load_last_checkpoint)
     torch.set_num_threads(torch_threads)
     loaded = load_model(info, device)
     if not hasattr(loaded.policy, "snn"):

@@ -338,9 +338,9 @@ def prepare(settings: OptimizeSettings) -> Search:
 
     :raises ValueError: one line naming the bad value and the accepted ones
     """
+    quiet_optuna()  # first: without Optuna, its one-line install hint
     import optuna
 
-    quiet_optuna()
     s = settings
     if s.sampler not in SAMPLERS:
         raise ValueError(f"unknown sampler {s.sampler!r}; accepted: {', '.join(SAMPLERS)}")

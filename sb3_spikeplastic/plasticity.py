@@ -189,9 +189,9 @@ def get_rule_class(name: str) -> type["PlasticityRule"]:
         raise ValueError(f"unknown rule {name!r}; accepted: {', '.join(RULES)}") from None
 
 
-def _logit(p: float) -> float:
+def _logit(p: float, name: str = "rate") -> float:
     if not 0.0 < p < 1.0:
-        raise ValueError(f"a rate must lie in (0, 1), got {p!r}")
+        raise ValueError(f"{name}={p!r} must lie in (0, 1)")
     return math.log(p / (1 - p))
 
 
@@ -225,7 +225,7 @@ class PlasticityRule(nn.Module):
             raise ValueError(f"e_max must be a positive finite number, got {e_max!r}")
         self.n_in, self.n_out, self.e_max = n_in, n_out, float(e_max)
         if self.has_trace:
-            self.eta_logit = nn.Parameter(torch.tensor(_logit(eta_init)))
+            self.eta_logit = nn.Parameter(torch.tensor(_logit(eta_init, "eta_init")))
 
     @property
     def eta(self) -> Tensor:
@@ -316,7 +316,7 @@ class _BCMRule(PlasticityRule):
 
     def __init__(self, n_in: int, n_out: int, e_max: float = 1.0, eta_init: float = 0.05, eta_phi_init: float = 0.05):
         super().__init__(n_in, n_out, e_max, eta_init)
-        self.eta_phi_logit = nn.Parameter(torch.tensor(_logit(eta_phi_init)))
+        self.eta_phi_logit = nn.Parameter(torch.tensor(_logit(eta_phi_init, "eta_phi_init")))
         self.psi = nn.Parameter(torch.zeros(n_in))
 
     @property

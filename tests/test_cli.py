@@ -4,6 +4,7 @@ import io
 import json
 import os
 import re
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -343,7 +344,7 @@ def test_console_script_smoke(tmp_path):
     assert "sb3-spikeplastic evaluate --run logs/ppo/TMazeCue-v0_1" in result.stdout
 
 
-def test_train_continues_a_checkpoint_with_its_statistics_counter_and_tensorboard_run(tmaze_run, cheetah_run,
+def test_train_continues_a_checkpoint_with_its_statistics_counter_and_run_options(tmaze_run, cheetah_run,
                                                                                       workdir, capsys):
     import pickle
 
@@ -360,8 +361,14 @@ def test_train_continues_a_checkpoint_with_its_statistics_counter_and_tensorboar
     assert {"rl_model_128_steps.zip", "rl_model_192_steps.zip"} <= {p.name for p in run.iterdir()}
     args = (run / "TMazeCue-v0" / "args.yml").read_text()
     assert "start_timesteps: 64" in args and "rl_model_64_steps.zip" in args
-    assert yaml.safe_load(args)["seed"] == 3  # the continued run's seed, without --seed
-    assert f"tensorboard_dir: {workdir / 'tb' / 'TMazeCue-v0' / 'ppo_ndp-oja_1'}" in args  # the source's TB run
+    recorded = yaml.safe_load(args)
+    assert recorded["seed"] == 3  # the continued run's seed, without --seed
+    # ...and its run options, unless given: its evaluations, figures and TensorBoard root (a new TensorBoard run)
+    assert (recorded["eval_freq"], recorded["eval_episodes"], recorded["figure_freq"]) == (64, 2, 1)
+    assert recorded["save_freq"] == 64 and recorded["continues"] == str(tmaze_run)
+    assert recorded["tensorboard_dir"] == str(workdir / "tb" / "TMazeCue-v0" / "ppo_ndp-oja_2")
+    assert (run / "evaluations.npz").is_file()
+    assert out.splitlines()[0].startswith(f"Continuing {tmaze_run} from step 64 (rl_model_64_steps.zip)")
     # The final model of a normalised run: its VecNormalize statistics go on accumulating.
     code, _, err = run_cli(capsys, "train", "--env", "HalfCheetah-v5", "-i", cheetah_run, "-n", "96", "--seed", "1",
                            "-f", workdir / "continued", "-v", "0", "--no-progress")
@@ -513,10 +520,21 @@ def test_ctrl_c_leaves_a_marker_that_says_how_to_continue(tmp_path, capsys, monk
         raise KeyboardInterrupt
 
     monkeypatch.setattr(PPO, "train", interrupted)
-    code, _, _ = run_cli(capsys, *_train_argv(tmp_path))
+    code, out, _ = run_cli(capsys, *_train_argv(tmp_path), "--eval-freq", "64", "--eval-episodes", "2")
     run = tmp_path / "logs" / "ppo" / "TMazeCue-v0_1"
     note = (run / "INTERRUPTED.txt").read_text()
-    assert code == 130 and "interrupted after 64 of 128 steps" in note and "--trained-agent" in note
+    assert code == 130 and "interrupted after 64 of 128 steps" in note
+    command = note.splitlines()[1]
+    assert command in out  # the terminal shows the command itself
+    monkeypatch.undo()
+    # That command continues the run exactly: to the original length, with its seed and its evaluations.
+    code, out, err = run_cli(capsys, *shlex.split(command)[1:], "-v", "0", "--no-progress")
+    assert code == 0, err
+    continued = tmp_path / "logs" / "ppo" / "TMazeCue-v0_2"
+    assert PPO.load(continued / "TMazeCue-v0.zip").num_timesteps == 128
+    recorded = yaml.safe_load((continued / "TMazeCue-v0" / "args.yml").read_text())
+    assert (recorded["seed"], recorded["eval_freq"], recorded["eval_episodes"]) == (0, 64, 2)
+    assert (continued / "evaluations.npz").is_file()
 
 
 def test_long_runs_checkpoint_by_default(tmp_path, capsys, monkeypatch):
@@ -537,16 +555,20 @@ def test_long_runs_checkpoint_by_default(tmp_path, capsys, monkeypatch):
 
 
 def test_progress_bars_count_environment_steps_and_episodes(tmp_path, capsys):
-    argv = [a for a in _train_argv(tmp_path) if a != "--no-progress"]
+    """-P shows the bar although stderr is not a terminal here; without it, it stays off."""
+    argv = [a if a != "--no-progress" else "-P" for a in _train_argv(tmp_path)]
     code, _, err = run_cli(capsys, *argv)
     assert code == 0 and "128/128" in err and "step/s" in err  # tqdm's line: steps over wall time
-    code, _, err = run_cli(capsys, "evaluate", "--run", tmp_path / "logs" / "ppo" / "TMazeCue-v0_1", "--episodes", "3")
+    run = tmp_path / "logs" / "ppo" / "TMazeCue-v0_1"
+    code, _, err = run_cli(capsys, "evaluate", "--run", run, "--episodes", "3", "-P")
     assert code == 0 and "3/3" in err and "episode" in err
+    code, _, err = run_cli(capsys, "evaluate", "--run", run, "--episodes", "3")
+    assert code == 0 and "3/3" not in err
 
 
-def test_progress_bar_stops_at_the_requested_total(tmp_path, capsys):
-    """Whole rollouts run past -n (here 100 of 2 x 64 steps); the bar counts to -n, not beyond."""
-    argv = [a for a in _train_argv(tmp_path) if a != "--no-progress"]
+def test_progress_bar_counts_the_steps_trained(tmp_path, capsys):
+    """Whole rollouts run past -n (here 100 of 2 x 64 steps): the bar counts the 128 steps trained."""
+    argv = [a if a != "--no-progress" else "-P" for a in _train_argv(tmp_path)]
     argv[argv.index("-n") + 1] = "100"
     code, out, err = run_cli(capsys, *argv)
-    assert code == 0 and "100/100" in err and "128/100" not in err and "Done: 128 steps" in out
+    assert code == 0 and "128/128" in err and "/100" not in err and "Done: 128 steps" in out

@@ -148,7 +148,10 @@ def test_auto_threads_split_the_halfcheetah_entry_but_not_small_policies():
     from sb3_spikeplastic.experiment import training_threads
 
     small = dict(n_envs=1, n_steps=32, batch_size=32)
-    assert training_threads(shipped_model(**small, bptt_steps=16).policy, 4) == 4
+    cheetah = shipped_model(**small, bptt_steps=16).policy
+    assert training_threads(cheetah, 4) == 4
+    # On a loaded machine only the free cores: a thread on a busy core waits for the others.
+    assert [training_threads(cheetah, 4, load) for load in (0.4, 1.0, 2.6, 3.7, 9.0)] == [4, 3, 1, 1, 1]
     assert training_threads(shipped_model(conf="mlp", **small).policy, 4) == 1
     assert training_threads(RecurrentPPO("MlpLstmPolicy", ENV_ID, n_steps=32, batch_size=32).policy, 4) == 4
     policy, ppo_kwargs, policy_kwargs = model_arguments(resolve_hyperparams("TMazeCue-v0", None, []))

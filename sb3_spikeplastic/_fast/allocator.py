@@ -8,7 +8,7 @@ arrays, ``(batch, T, n)`` activations and their gradients). Two settings make th
   free, so the next step page-faults it back in (measured: ~3.7k faults, ~12 ms per call of a ``(64, 50, 600)``
   layer). Raising ``M_MMAP_THRESHOLD`` to its maximum (32 MiB on 64-bit) and ``M_TRIM_THRESHOLD`` keeps them in
   the heap: 10 % faster training steps (``PPO`` chunk step, static and ndp-oja). ``sb3-spikeplastic train``,
-  ``optimize`` and ``grid`` apply it.
+  ``optimize`` and ``study`` apply it.
 * :func:`cache_freed_blocks` (torch's CPU allocator, ``block_cache.cpp``): glibc still searches, splits and
   coalesces its bins for every large block, ~5 % of the main thread's time on the paper network. A cache of
   freed blocks by exact size hands the same block back in O(1): the paper network's training step at batch 32

@@ -262,7 +262,10 @@ def run_worker(job: StudyJob, log: Callable[[str], None] = print) -> int:
     import optuna
     import torch
 
+    from .._fast.allocator import keep_freed_memory
+
     torch.set_num_threads(job.torch_threads)
+    keep_freed_memory()  # as `train` does: the training steps' buffers stay mapped
     study = job.open()
     queue_cells(job, study)
     runner = CellRunner(job, log)

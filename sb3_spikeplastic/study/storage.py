@@ -1,4 +1,4 @@
-"""The Optuna studies behind ``sb3-spikeplastic optimize`` and ``grid``: where they are stored, how a worker that
+"""The Optuna studies behind ``sb3-spikeplastic optimize`` and ``study``: where they are stored, how a worker that
 died is noticed, and the check that an existing study was made with the same settings.
 
 Storage (``--storage``):
@@ -47,7 +47,7 @@ def quiet_optuna() -> None:
     try:
         import optuna
     except ImportError:
-        raise ValueError("optimize and grid need Optuna: pip install \"sb3-spikeplastic[optimize]\"") from None
+        raise ValueError("optimize and study need Optuna: pip install \"sb3-spikeplastic[optimize]\"") from None
 
     optuna.logging.set_verbosity(optuna.logging.ERROR)
     warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning)
