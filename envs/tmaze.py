@@ -38,6 +38,13 @@ def _check_probability(name: str, value: Any) -> float:
     return float(value)
 
 
+#: Video colours of the populations' spikes (left cue, right cue, decision cue, noise) and of their columns' bands.
+_POPULATION_COLOURS = np.array([(60, 140, 255), (255, 150, 40), (255, 255, 255), (150, 150, 150)])
+_POPULATION_BANDS = np.array([(10, 20, 40), (40, 25, 10), (30, 30, 30), (15, 15, 15)])
+#: Pixels per neuron-millisecond in a video frame.
+_BLOCK = 8
+
+
 class TMazeCueEnv(gymnasium.Env):
     """Cue-association T-maze with spiking input: choose the side that showed more cues.
 
@@ -92,10 +99,13 @@ class TMazeCueEnv(gymnasium.Env):
     :param cues: a fixed cue sequence (``n_cues`` values, 0 = left, 1 = right) shown in every episode instead of
         random cues, e.g. all-left for figures. The random stream is consumed as with random cues, so for one seed
         the rest delay and the noise population's spikes do not depend on the cues.
-    :param render_mode: ``None`` or ``"rgb_array"`` (the current frame's raster, white = spike, one 4x4 pixel block
-        per neuron-millisecond; time runs down; once the decision is made, the decision frame's spikes turn green
-        if it was right and red if wrong; ``metadata["render_fps"]`` is real time, ``1000 / frame_ms``). SB3 creates
+    :param render_mode: ``None`` or ``"rgb_array"`` (the current frame's raster, one 8x8 pixel block per
+        neuron-millisecond, time running down; each population's spikes in its colour, left cue blue, right cue
+        orange, decision cue white, noise grey, with a dark band marking each population's columns; once the
+        decision is made, the decision frame's spikes turn green if it was right and red if wrong). SB3 creates
         environments from an id with ``"rgb_array"``.
+    :param render_fps: ``metadata["render_fps"]``, the frames per second of a video: 4 shows a 25 ms frame for
+        250 ms (ten times slower than real time, ``1000 / frame_ms``), so that a person can follow the cues.
     """
 
     metadata = {"render_modes": ["rgb_array"]}
@@ -116,6 +126,7 @@ class TMazeCueEnv(gymnasium.Env):
         horizon_ms: int = 500,
         cues: Sequence[int] | None = None,
         render_mode: str | None = None,
+        render_fps: float = 4.0,
     ) -> None:
         if noise not in NOISE_LEVELS:
             raise ValueError(f"noise={noise!r} is not one of {tuple(NOISE_LEVELS)}")
@@ -161,7 +172,9 @@ class TMazeCueEnv(gymnasium.Env):
         self.action_space = spaces.Discrete(2)
         self.render_mode = render_mode
         # Real time: one frame of frame_ms per frame shown.
-        self.metadata = {**type(self).metadata, "render_fps": 1000 / self.frame_ms}
+        if isinstance(render_fps, bool) or not isinstance(render_fps, (int, float)) or not 0 < render_fps < float("inf"):
+            raise ValueError(f"render_fps={render_fps!r} must be a finite number > 0")
+        self.metadata = {**type(self).metadata, "render_fps": float(render_fps)}
 
         #: Sides of the current episode's cues (0 = left, 1 = right), in order of presentation.
         self.cues: list[int] = []
@@ -237,9 +250,13 @@ class TMazeCueEnv(gymnasium.Env):
             return None
         frame = self._frames[min(self._frame, len(self._frames) - 1)] if len(self._frames) else np.zeros(
             (self.frame_ms, self.n_inputs), dtype=np.float32)
-        pixels = np.kron(frame, np.ones((4, 4), dtype=np.float32))
-        colour = {None: (255, 255, 255), True: (0, 200, 0), False: (230, 0, 0)}[self._success]
-        return (pixels[..., None] * np.array(colour, dtype=np.float32)).astype(np.uint8)
+        if self._success is None:
+            colours = np.repeat(_POPULATION_COLOURS, self.neurons_per_population, axis=0)  # (n_inputs, 3)
+        else:
+            colours = np.tile((0, 200, 0) if self._success else (230, 0, 0), (self.n_inputs, 1))
+        background = np.repeat(_POPULATION_BANDS, self.neurons_per_population, axis=0)
+        image = np.where(frame[..., None] > 0, colours[None], background[None]).astype(np.uint8)
+        return np.kron(image, np.ones((_BLOCK, _BLOCK, 1), dtype=np.uint8))
 
     def action_masks(self) -> np.ndarray:
         """Which actions are open on the current frame, in sb3-contrib's ``MaskablePPO`` convention.

@@ -45,8 +45,8 @@ def test_tmaze_video_has_one_frame_per_reset_and_per_step(tmaze_run, tmp_path, c
     assert "success rate" in out and f"wrote {video}: {sum(lengths) + 2} frames" in out
     with imageio.get_reader(video) as reader:
         assert reader.count_frames() == sum(lengths) + 2  # the rule: n_1 + n_2 steps + one reset frame each
-        assert reader.get_meta_data()["fps"] == 40  # the T-maze's real time: one 25 ms frame per frame
-        assert reader.get_meta_data()["size"] == (160, 100)  # 40 neurons x 25 ms, 4 x 4 pixels each
+        assert reader.get_meta_data()["fps"] == 4  # a 25 ms frame shown for 250 ms: ten times slower than real time
+        assert reader.get_meta_data()["size"] == (320, 200)  # 40 neurons x 25 ms, 8 x 8 pixels each
     assert sorted(p.name for p in video.parent.iterdir()) == ["tmaze.mp4"]  # no temporary file left
 
 
@@ -72,9 +72,9 @@ def test_raster_beside_the_frames_while_the_network_records(tmaze_run, tmp_path,
     assert not snn._forward_hooks and not snn._forward_pre_hooks  # detached afterwards
     with imageio.get_reader(tmp_path / "raster.mp4") as reader:
         frames = np.stack(list(reader.iter_data()))
-    # 160 px of maze, a 4 px gap, 200 ms (8 steps of 25 ms) of 16 hidden neurons at 1 px per ms
-    assert frames.shape == (episode.length + 1, 100, 364, 3)
-    assert frames[0, :, 170:].max() < 128 and frames[-1, :, 170:].max() > 200  # empty at reset, spikes later
+    # 320 px of maze, a 4 px gap, 200 ms (8 steps of 25 ms) of 16 hidden neurons at 1 px per ms
+    assert frames.shape == (episode.length + 1, 200, 524, 3)
+    assert frames[0, :, 330:].max() < 128 and frames[-1, :, 330:].max() > 200  # empty at reset, spikes later
 
     mlp = PPO("MlpPolicy", "TMazeCue-v0", n_steps=16, batch_size=16)
     mlp.save(tmp_path / "mlp.zip")
@@ -114,15 +114,24 @@ def test_tmaze_render_shows_the_outcome_after_the_decision():
     env = TMazeCueEnv(render_mode="rgb_array")
     env.reset(seed=0)
     first = env.render()
-    assert first.shape == (100, 160, 3) and set(np.unique(first)) == {0, 255}  # white spikes on black
+    assert first.shape == (25 * 8, 40 * 8, 3)  # 8x8 pixels per neuron-millisecond
+    # Each population's spikes in its colour on its own dark band: left cue blue, right orange, decision white.
+    spikes = env._frames[0] > 0
+    for population, colour in enumerate([(60, 140, 255), (255, 150, 40), (255, 255, 255), (150, 150, 150)]):
+        columns = slice(population * 10, (population + 1) * 10)
+        t, n = np.argwhere(spikes[:, columns])[0] if spikes[:, columns].any() else (None, None)
+        if t is not None:
+            assert tuple(first[t * 8, (population * 10 + n) * 8]) == colour
     while True:
         _, reward, terminated, _, _ = env.step(env.correct_action)
         if terminated:
             break
     last = env.render().reshape(-1, 3)
-    lit = last[last.any(axis=1)]
-    assert reward == 1 and len(lit) and (lit == (0, 200, 0)).all()  # right: green spikes
-    assert env.metadata["render_fps"] == 40 and TMazeCueEnv.metadata.get("render_fps") is None
+    lit = last[(last == (0, 200, 0)).all(axis=1)]
+    assert reward == 1 and len(lit)  # right: green spikes
+    assert not ((last == (230, 0, 0)).all(axis=1)).any() and not ((last == (60, 140, 255)).all(axis=1)).any()
+    assert len(lit) < last.shape[0]  # the bands stay dark
+    assert env.metadata["render_fps"] == 4 and TMazeCueEnv.metadata.get("render_fps") is None
 
 
 def test_frozen_vecnormalize_statistics_normalise_the_observations(tmp_path):

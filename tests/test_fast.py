@@ -173,13 +173,21 @@ def test_env_var_forces_fallback(monkeypatch):
     assert not _fast.compiled_disabled()
 
 
-def test_build_failure_warns_once_and_falls_back(monkeypatch):
-    monkeypatch.delenv(_fast.NO_COMPILE_ENV, raising=False)
+def _fresh_process(monkeypatch):
+    """The module's state as a new process finds it."""
     monkeypatch.setattr(_fast, "_tried", False)
     monkeypatch.setattr(_fast, "_ops", None)
     monkeypatch.setattr(_fast, "_error", None)
 
+
+def test_build_failure_warns_once_and_falls_back(monkeypatch, tmp_path):
+    monkeypatch.delenv(_fast.NO_COMPILE_ENV, raising=False)
+    monkeypatch.setattr(_fast, "build_directory", lambda: tmp_path)  # the record is not written to the real cache
+    _fresh_process(monkeypatch)
+    attempts = []
+
     def no_compiler():
+        attempts.append(1)
         raise RuntimeError("no C++ compiler found")
 
     monkeypatch.setattr(_fast, "_build", no_compiler)
@@ -191,6 +199,18 @@ def test_build_failure_warns_once_and_falls_back(monkeypatch):
     assert len([w for w in record if issubclass(w.category, RuntimeWarning)]) == 1
     assert_identical(a, _srm_spike_loop_reference(syn, state, p))
     assert_identical(b, a)
+
+    # The next process on this machine does not try again: one line points to the record.
+    _fresh_process(monkeypatch)
+    with pytest.warns(RuntimeWarning, match="failed to build on this machine before") as record:
+        assert_identical(srm_spike_loop(syn, state, p), a)
+    assert len(attempts) == 1 and (tmp_path / _fast.FAILED_BUILD_RECORD).is_file()
+    # ...unless a compiler appeared that the record did not see.
+    _fresh_process(monkeypatch)
+    monkeypatch.setattr(_fast, "_compiler", lambda: "/opt/new/c++")
+    with pytest.warns(RuntimeWarning, match="could not build"):
+        srm_spike_loop(syn, state, p)
+    assert len(attempts) == 2
 
 
 def test_fallback_for_unsupported_inputs(compiled):

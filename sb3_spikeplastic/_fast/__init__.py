@@ -225,8 +225,26 @@ def _build_cuda() -> Any:
     return torch.ops.sb3_spikeplastic_cuda
 
 
-def _try_build(build, what: str) -> tuple[Optional[Any], Optional[str]]:
-    """``(ops, None)``, or ``(None, error)`` after one warning when the build fails."""
+#: A failed CPU build is recorded in its build directory, so that later processes of the same machine and version
+#: do not try (and warn at length) again; it is tried again where a compiler appears that the record did not see.
+FAILED_BUILD_RECORD = "build_failed.txt"
+
+
+def _compiler() -> str:
+    """The C++ compiler torch would use (``$CXX`` or ``c++``), or ``""`` where there is none."""
+    return shutil.which(os.environ.get("CXX", "c++")) or ""
+
+
+def _try_build(build, what: str, record: Optional[Path] = None) -> tuple[Optional[Any], Optional[str]]:
+    """``(ops, None)``, or ``(None, error)`` after one warning when the build fails (recorded in ``record``: the
+    next process with the same compiler skips the attempt and says so in one line)."""
+    if record is not None and record.is_file():
+        compiler, _, error = record.read_text().partition("\n")
+        if compiler == _compiler():
+            warnings.warn(f"sb3_spikeplastic: the compiled {what} failed to build on this machine before ({record}; "
+                          "delete it to try again); using pure PyTorch, which gives the same results but is slower.",
+                          RuntimeWarning, stacklevel=4)
+            return None, error.strip()
     try:
         return build(), None
     except Exception as exc:  # no compiler, no ninja/nvcc, failed build, failed load
@@ -238,6 +256,12 @@ def _try_build(build, what: str) -> tuple[Optional[Any], Optional[str]]:
             error += f" [{reason[:300]}]"
         warnings.warn(f"sb3_spikeplastic: could not build the compiled {what} ({error}); using pure PyTorch, "
                       "which gives the same results but is slower.", RuntimeWarning, stacklevel=4)
+        if record is not None:
+            try:
+                record.parent.mkdir(parents=True, exist_ok=True)
+                record.write_text(f"{_compiler()}\n{error}\n")
+            except OSError:
+                pass
         return None, error
 
 
@@ -249,7 +273,7 @@ def load_ops() -> Optional[Any]:
         return _ops
     with _lock:
         if not _tried:
-            _ops, _error = _try_build(_build, "inner loops")
+            _ops, _error = _try_build(_build, "inner loops", build_directory() / FAILED_BUILD_RECORD)
             _tried = True
     return _ops
 
