@@ -127,11 +127,27 @@ def groups_of(study: Study) -> list[str]:
     return [f"{v}@{budget_label(b)}" for b in budgets for v in study.variants if b in study.budgets_of(v)]
 
 
+def _entry(study: Study, variant: str) -> dict:
+    """The variant's resolved entry on the study's first environment; where resolving needs a package the report
+    does not (sb3-contrib for a RecurrentPPO baseline), its file's entry with the variant's rule."""
+    from .. import config as cfg
+
+    try:
+        return study.config(study.envs[0], variant)
+    except ValueError:
+        data = cfg.load_hyperparams_file(study.conf_of(variant))
+        entry = dict(data.get(study.train_env(study.envs[0], variant)) or data.get("default") or {})
+        rule = study.variants[variant].rule
+        if rule is not None:
+            entry["policy_kwargs"] = {**(entry.get("policy_kwargs") or {}), "rule": rule}
+        return entry
+
+
 def kinds(study: Study) -> dict[str, str]:
-    """Variant -> ``plastic``, ``static`` or ``baselines``, from its resolved entry (the study's first env)."""
+    """Variant -> ``plastic``, ``static`` or ``baselines``, from its entry (the study's first env)."""
     out = {}
     for variant in study.variants:
-        config = study.config(study.envs[0], variant)
+        config = _entry(study, variant)
         if config.get("policy") != "SpikePlasticPolicy":
             out[variant] = "baselines"
         else:
