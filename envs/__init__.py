@@ -5,6 +5,8 @@
 * ``NoisyHalfCheetah-v5``: ``HalfCheetah-v5`` with observation, action and joint-friction noise (``obs_noise``,
   ``action_noise``, ``friction_noise`` standard deviations, ``friction_target``; all 0 by default;
   ``obs_indices`` limits the observation noise to some elements).
+* ``HalfCheetahSwitch-v5``: ``HalfCheetah-v5`` whose dynamics change once during each episode (``kind``,
+  ``window``, ``factor_range``, ``target``; :class:`DynamicsSwitch`).
 
 This package imports neither torch nor the rest of the plugin.
 """
@@ -23,16 +25,20 @@ from sb3_spikeplastic.envs.noise import (
     make_noisy_env,
     noise_kwargs,
 )
+from sb3_spikeplastic.envs.switch import SWITCH_KINDS, DynamicsSwitch, make_switch_env
 from sb3_spikeplastic.envs.tmaze import TMazeCueEnv
 
 __all__ = [
     "FRICTION_TARGETS",
     "NOISE_TYPES",
+    "SWITCH_KINDS",
     "ActionNoise",
+    "DynamicsSwitch",
     "FrictionNoise",
     "ObservationNoise",
     "TMazeCueEnv",
     "make_noisy_env",
+    "make_switch_env",
     "noise_kwargs",
     "route_mujoco_warnings",
 ]
@@ -74,6 +80,18 @@ _register(
         "friction_noise": 0.0,
         "friction_target": "damping",
         "obs_indices": None,
+    },
+    max_episode_steps=1000,
+)
+_register(
+    "HalfCheetahSwitch-v5",
+    entry_point="sb3_spikeplastic.envs.switch:make_switch_base_env",
+    kwargs={
+        "base_id": "HalfCheetah-v5",
+        "kind": "actuator_gain",
+        "window": (300, 700),
+        "factor_range": (0.2, 0.5),
+        "target": None,
     },
     max_episode_steps=1000,
 )

@@ -22,7 +22,7 @@ from sb3_spikeplastic.config import (
     yaml_load,
 )
 
-ENTRIES = ("TMazeCue-v0", "TMazeCueNoisy-v0", "HalfCheetah-v5", "NoisyHalfCheetah-v5")
+ENTRIES = ("TMazeCue-v0", "TMazeCueNoisy-v0", "HalfCheetah-v5", "NoisyHalfCheetah-v5", "HalfCheetahSwitch-v5")
 
 
 def test_packaged_file_is_found_and_has_the_entries():
