@@ -20,6 +20,8 @@ _LAZY = {
     "register_rule": "plasticity",
     "available_rules": "plasticity",
     "load_hyperparams": "config",
+    "Ablation": "ablation",
+    "ablated": "ablation",
 }
 __all__ = list(_LAZY)
 

@@ -143,6 +143,12 @@ def build_parser() -> argparse.ArgumentParser:
                        "rl_model_<STEPS>_steps.zip")
         p.add_argument("--load-last-checkpoint", action="store_true", help="of the run: its latest checkpoint")
 
+    def ablation(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--ablation", metavar="MODE", help="plasticity ablation of spiking policies: none, frozen "
+                       "(traces held at zero: W alone), reset-every:N (traces back to zero every N steps of an "
+                       "episode) or shuffled (each environment on another's traces; --n-envs 2 or more) (default: "
+                       "the model's own, none)")
+
     def action_mode(p: argparse.ArgumentParser) -> None:
         p.add_argument("--deterministic", dest="deterministic", action="store_true", default=True,
                        help="mean / arg-max actions (default)")
@@ -248,6 +254,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--seed", type=int, default=0, help="environment seed (default: 0)")
     e.add_argument("--n-envs", type=int, default=1, help="environments side by side (default: 1)")
     e.add_argument("-o", "--output", help="also write the result as JSON to this file")
+    ablation(e)
     progress(e)
     common(e)
 
@@ -272,6 +279,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="obs noise on these observation elements only (default: all)")
     action_mode(r)
     r.add_argument("-o", "--output", default="robustness", help="output folder (default: robustness)")
+    ablation(r)
     progress(r)
     common(r)
 

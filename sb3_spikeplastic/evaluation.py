@@ -45,7 +45,7 @@ class Evaluation:
 
 
 def evaluate_model(model, venv, n_episodes: int, deterministic: bool = True, seed: int = 0,
-                   progress: bool = False) -> Evaluation:
+                   progress: bool = False, ablation=None) -> Evaluation:
     """Run ``n_episodes`` episodes of ``model`` on the (seeded) vectorised ``venv`` with SB3's ``evaluate_policy``,
     which carries a recurrent policy's state and resets it at episode starts.
 
@@ -55,13 +55,18 @@ def evaluate_model(model, venv, n_episodes: int, deterministic: bool = True, see
     :param deterministic: mean / arg-max actions instead of samples
     :param seed: torch seed (the input spikes and sampled actions)
     :param progress: show a progress bar over episodes
+    :param ablation: plasticity ablation to evaluate under (:mod:`sb3_spikeplastic.ablation`: ``"frozen"``,
+        ``"reset-every:N"``, ``"shuffled"``, ``"none"`` or an ``Ablation``; spiking policies only); ``None``: the
+        policy's own (``policy.ablation``, normally ``none``)
     """
     import torch
     from stable_baselines3.common.evaluation import evaluate_policy
     from tqdm.auto import tqdm
 
+    from .ablation import ablated, check_ablation
     from .monitoring import EnergyMeter
 
+    check_ablation(model, ablation, venv.num_envs)  # before any episode
     successes: list[float] = []
     bar = tqdm(total=n_episodes, unit="episode", disable=not progress, dynamic_ncols=True)
 
@@ -75,7 +80,7 @@ def evaluate_model(model, venv, n_episodes: int, deterministic: bool = True, see
     torch.manual_seed(seed)
     snn = getattr(model.policy, "snn", None)
     try:
-        with EnergyMeter(snn) if snn is not None else contextlib.nullcontext() as meter:
+        with ablated(model, ablation), EnergyMeter(snn) if snn is not None else contextlib.nullcontext() as meter:
             returns, lengths = evaluate_policy(model, venv, n_eval_episodes=n_episodes, deterministic=deterministic,
                                                return_episode_rewards=True, callback=on_step)
     finally:
@@ -108,11 +113,15 @@ def load_checked(info: RunInfo, env_id: str, device: str = "cpu"):
     return model
 
 
-def report_lines(result: Evaluation, env_id: str, info: RunInfo, deterministic: bool) -> list[str]:
+def report_lines(result: Evaluation, env_id: str, info: RunInfo, deterministic: bool,
+                 ablation: Optional[str] = None) -> list[str]:
     """What ``evaluate`` prints: the model, the mean return and episode length, the success rate (environments
-    that report one) and the energy proxies (spiking policies)."""
+    that report one) and the energy proxies (spiking policies); ``ablation`` (other than ``none``) is named beside
+    the action mode."""
     summary = result.as_dict()
     mode = "deterministic" if deterministic else "stochastic"
+    if ablation is not None and ablation != "none":
+        mode += f", ablation {ablation}"
     lines = [f"{env_id}: {info.model_path}" + (f" (VecNormalize: {info.vecnormalize})" if info.vecnormalize else ""),
              f"mean return {summary['mean_return']:.3f} ± {summary['std_return']:.3f} over {summary['episodes']} "
              f"episodes ({mode}); mean episode length {summary['mean_length']:.1f}"]
@@ -139,20 +148,25 @@ def evaluate_command(run: Optional[str] = None, model: Optional[str] = None, env
                      seed: int = 0, n_envs: int = 1, output: Optional[str] = None, no_progress: bool = False,
                      device: str = "cpu", torch_threads: int = 1,
                      folder: Optional[str] = None, exp_id: int = 0, load_checkpoint: Optional[int] = None,
-                     load_last_checkpoint: bool = False) -> Callable[[], int]:
+                     load_last_checkpoint: bool = False, ablation: Optional[str] = None) -> Callable[[], int]:
     """``sb3-spikeplastic evaluate`` with these options (its long names): the model is found, loaded and checked
     against its environment and the evaluation environments are made (``ValueError``, nothing written); returns
     the evaluation, which prints :func:`report_lines`, writes ``output`` (JSON) if given and returns 0."""
     import torch
 
+    from .ablation import Ablation, check_ablation
+
     check_int("--episodes", episodes, 1)
     check_int("--n-envs", n_envs, 1)
+    if ablation is not None:
+        Ablation.parse(ablation).check_envs(n_envs)  # a bad --ablation before the model loads
     if output:
         check_output_path(output, "-o/--output", directory=False)
     info, env_id = model_source(run, model, env, vecnormalize, best, env_kwargs, folder, exp_id,
                                 load_checkpoint, load_last_checkpoint)
     torch.set_num_threads(torch_threads)
     loaded = load_checked(info, env_id, device)
+    in_force = str(check_ablation(loaded, ablation, n_envs))
     try:
         venv = make_eval_env(env_id, n_envs, seed, info.env_kwargs, info.vecnormalize)
     except Exception as exc:
@@ -160,13 +174,14 @@ def evaluate_command(run: Optional[str] = None, model: Optional[str] = None, env
 
     def evaluate() -> int:
         try:
-            result = evaluate_model(loaded, venv, episodes, deterministic, seed, progress=not no_progress)
+            result = evaluate_model(loaded, venv, episodes, deterministic, seed, progress=not no_progress,
+                                    ablation=ablation)
         finally:
             venv.close()
-        print("\n".join(report_lines(result, env_id, info, deterministic)))
+        print("\n".join(report_lines(result, env_id, info, deterministic, in_force)))
         if output:
             record = dict(env=env_id, model=str(info.model_path), deterministic=deterministic, seed=seed,
-                          **result.as_dict())
+                          ablation=in_force, **result.as_dict())
             atomic_write(Path(output), lambda f: json.dump(record, f, indent=1), binary=False)
         return 0
 

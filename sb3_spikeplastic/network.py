@@ -260,12 +260,14 @@ class SpikingPlasticNetwork(nn.Module):
                             initial_keys(batch, seed, device))
 
     def forward(self, obs: Tensor, state: NetworkState, record: bool = False,
-                defer_updates: bool = False) -> tuple[NetworkOutput, NetworkState]:
+                defer_updates: bool = False, hold_plastic: bool = False) -> tuple[NetworkOutput, NetworkState]:
         """One environment step for a batch of observations; returns ``(output, new_state)``.
 
         With ``defer_updates`` the built-in rules' last trace updates stay pending in the returned state (the next
         step applies them in its own pass over the traces; :meth:`settle` applies them), as
-        :meth:`forward_sequence` runs its steps."""
+        :meth:`forward_sequence` runs its steps. With ``hold_plastic`` every layer keeps the plastic state it came
+        in with (traces, rule state): its updates are dropped, also between the intervals of the step (the
+        ``frozen`` ablation, :mod:`sb3_spikeplastic.ablation`)."""
         spikes_in = self.encoder(obs, state.noise_key, self.steps)
         layer_states = list(state.layers)
         n_intervals = self.steps // self.interval
@@ -275,6 +277,8 @@ class SpikingPlasticNetwork(nn.Module):
             x = spikes_in if n_intervals == 1 else spikes_in[:, j * self.interval:(j + 1) * self.interval]
             for i, layer in enumerate(self.layers):
                 out, layer_states[i] = layer(x, layer_states[i], monitor=record, defer_update=defer_updates)
+                if hold_plastic and layer.plastic:
+                    layer_states[i] = layer_states[i]._replace(plastic=state.layers[i].plastic)
                 outputs[i].append(out)
                 if record and layer.plastic:
                     traces[i].append(layer_states[i].plastic.trace)

@@ -21,6 +21,7 @@ from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.type_aliases import Schedule
 from torch import Tensor, nn
 
+from .ablation import AblatedState, Ablation, ablate
 from .coding import ContinuousDecoder, DiscreteDecoder, ObservationStandardizer, PopulationEncoder, RasterInput
 from .network import NetworkOutput, NetworkState, SpikingPlasticNetwork
 from .neurons import SRMParameters
@@ -138,6 +139,10 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         encoder then clips them to ``obs_bounds``. Dimensions with finite bounds and spike rasters are never
         changed. Composes with ``VecNormalize`` (its output is then standardised again, close to the identity);
         ``False`` leaves observations as they come.
+    :param ablation: plasticity ablation that :meth:`predict` applies (:mod:`sb3_spikeplastic.ablation`:
+        ``"none"``, ``"frozen"``, ``"reset-every:N"``, ``"shuffled"`` or an
+        :class:`~sb3_spikeplastic.ablation.Ablation`; also settable later as ``policy.ablation``); training never
+        applies it.
     :param kwargs: passed to :class:`~stable_baselines3.common.policies.ActorCriticPolicy` (optimizer etc.).
     """
 
@@ -173,6 +178,7 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         log_std_init: float = -2.0,
         alpha_lr_scale: float = 1.0,
         standardize_obs: bool = True,
+        ablation: Union[str, Ablation, None] = None,
         **kwargs: Any,
     ):
         if kwargs.pop("use_sde", False):
@@ -200,6 +206,7 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         if raster and steps is not None and steps != observation_space.shape[0]:
             raise ValueError(f"steps={steps} does not match the spike-raster length {observation_space.shape[0]}")
         steps = int(observation_space.shape[0] if raster else (steps or VECTOR_STEPS))
+        self._ablation = Ablation.parse(ablation)
         neuron = dict(neuron or {})
         rule_kwargs = dict(rule_kwargs or {})
         modulation = inspect.signature(get_rule_class(rule).__init__).parameters.get("modulation")
@@ -297,7 +304,19 @@ class SpikePlasticPolicy(ActorCriticPolicy):
                        "squash_output", "sde_net_arch"):
             data.pop(unused, None)
         data.update(self.snn_config)
+        data["ablation"] = str(self._ablation)
         return data
+
+    @property
+    def ablation(self) -> Ablation:
+        """The plasticity ablation :meth:`predict` applies (:mod:`sb3_spikeplastic.ablation`); set it with an
+        :class:`~sb3_spikeplastic.ablation.Ablation` or its string (``"frozen"``, ``"reset-every:50"``...). Saved
+        with the model; :class:`sb3_spikeplastic.PPO`'s rollouts and updates ignore it."""
+        return self._ablation
+
+    @ablation.setter
+    def ablation(self, value: Union[str, Ablation, None]) -> None:
+        self._ablation = Ablation.parse(value)
 
     # ----------------------------------------------------------------------------------------------------------
     # Recurrent interface used by sb3_spikeplastic.PPO
@@ -331,9 +350,10 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         return self._step(self._preprocess(obs), state, episode_start, deterministic, action_masks)
 
     def _step(self, obs: Tensor, state: NetworkState, episode_start: Tensor, deterministic: bool = False,
-              action_masks: Optional[Tensor] = None, sync_free: bool = False):
-        """:meth:`step` of already preprocessed ``obs``; ``sync_free`` as in :meth:`_evaluate_sequence`."""
-        out, new_state = self.snn(obs, state.reset(episode_start, sync_free))
+              action_masks: Optional[Tensor] = None, sync_free: bool = False, hold_plastic: bool = False):
+        """:meth:`step` of already preprocessed ``obs``; ``sync_free`` as in :meth:`_evaluate_sequence`,
+        ``hold_plastic`` as in :meth:`~sb3_spikeplastic.network.SpikingPlasticNetwork.forward`."""
+        out, new_state = self.snn(obs, state.reset(episode_start, sync_free), hold_plastic=hold_plastic)
         distribution = self._distribution(out, action_masks)
         actions = distribution.get_actions(deterministic=deterministic)
         log_prob = distribution.log_prob(actions)
@@ -405,7 +425,9 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         :param deterministic: use the mean action (Gaussian) or the arg-max (discrete). Input spikes stay random
             but replayable: the same observations and state give the same actions.
         :param action_masks: open actions ``(n_envs, n_actions)`` (``Discrete`` only; ``None``: all open).
-        :return: ``(actions, new_state)``.
+        :return: ``(actions, new_state)``; under an :attr:`ablation` the state is an
+            :class:`~sb3_spikeplastic.ablation.AblatedState` (the network state and each environment's step count
+            since its episode start), to pass back as it is.
         """
         self.set_training_mode(False)
         obs_tensor, vectorized_env = self.obs_to_tensor(observation)
@@ -415,11 +437,31 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         starts = torch.zeros(n_envs) if episode_start is None else torch.as_tensor(np.asarray(episode_start, dtype=np.float32).reshape(-1))
         with torch.no_grad():
             masks = None if action_masks is None else torch.as_tensor(np.asarray(action_masks, dtype=bool), device=self.device)
-            actions, _, _, state, _ = self.step(obs_tensor, state, starts.to(self.device), deterministic, masks)
+            if self._ablation.active:
+                actions, state = self._ablated_step(obs_tensor, state, starts.to(self.device), deterministic, masks)
+            else:
+                if isinstance(state, AblatedState):  # the ablation was switched off mid-episode
+                    state = state.network
+                actions, _, _, state, _ = self.step(obs_tensor, state, starts.to(self.device), deterministic, masks)
         actions = self.clip_actions(actions.cpu().numpy())
         if not vectorized_env:
             actions = actions.squeeze(axis=0)
         return actions, state
+
+    def _ablated_step(self, obs: Tensor, state: Union[NetworkState, AblatedState], episode_start: Tensor,
+                      deterministic: bool, action_masks: Optional[Tensor]) -> tuple[Tensor, AblatedState]:
+        """:meth:`predict`'s step under :attr:`ablation`: the state is reset where episodes start, then ablated
+        (:func:`~sb3_spikeplastic.ablation.ablate`; ``frozen`` also drops the updates inside the step); a plain
+        :class:`NetworkState` counts its steps from 0."""
+        if isinstance(state, AblatedState):
+            network, steps = state
+        else:
+            network, steps = state, torch.zeros(obs.shape[0], dtype=torch.long, device=self.device)
+        steps = torch.where(episode_start.to(steps.device) > 0, torch.zeros_like(steps), steps)
+        network = ablate(self._ablation, network.reset(episode_start), steps)
+        actions, _, _, network, _ = self._step(self._preprocess(obs), network, torch.zeros_like(episode_start),
+                                               deterministic, action_masks, hold_plastic=self._ablation.holds_plastic)
+        return actions, AblatedState(network, steps + 1)
 
     def clip_actions(self, actions: np.ndarray) -> np.ndarray:
         """Sampled actions as the environment accepts them: clipped to a ``Box`` action space's bounds (a

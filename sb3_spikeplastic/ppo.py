@@ -302,6 +302,27 @@ class PPO(SB3PPO):
                              "sb3-contrib's MaskablePPO")
         return self.policy.predict(observation, state, episode_start, deterministic, action_masks=action_masks)
 
+    def learn(self, total_timesteps: int, callback=None, log_interval: int = 1, tb_log_name: str = "PPO",
+              reset_num_timesteps: bool = True, progress_bar: bool = False):
+        """SB3's ``learn``. A policy's plasticity ablation (``policy.ablation``) applies to ``predict`` only (and so to
+        ``EvalCallback``'s evaluations): rollouts and updates run the network unablated, and a line says so."""
+        ablation = getattr(self.policy, "ablation", None)
+        if ablation is not None and ablation.active:
+            warnings.warn(f"policy.ablation={str(ablation)!r} is ignored by learn(): rollouts and updates run the "
+                          "network unablated (predict() and EvalCallback apply it)", stacklevel=2)
+        return super().learn(total_timesteps, callback=callback, log_interval=log_interval, tb_log_name=tb_log_name,
+                             reset_num_timesteps=reset_num_timesteps, progress_bar=progress_bar)
+
+    def save(self, path, exclude=None, include=None) -> None:
+        """SB3's ``save``; a spiking policy's ``ablation`` (if any) goes into the saved ``policy_kwargs``, so that
+        :meth:`load` rebuilds it with the model."""
+        if isinstance(self.policy, SpikePlasticPolicy):
+            kwargs = {k: v for k, v in self.policy_kwargs.items() if k != "ablation"}
+            if self.policy.ablation.active:
+                kwargs["ablation"] = str(self.policy.ablation)
+            self.policy_kwargs = kwargs
+        super().save(path, exclude=exclude, include=include)
+
     # --------------------------------------------------------------------------------------------------------------
 
     def collect_rollouts(self, env: VecEnv, callback: BaseCallback, rollout_buffer: RolloutBuffer,

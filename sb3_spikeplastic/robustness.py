@@ -33,6 +33,7 @@ from tqdm.auto import tqdm
 
 from sb3_spikeplastic.envs.noise import FRICTION_TARGETS, NOISE_TYPES, make_noisy_env, noise_kwargs
 
+from .ablation import Ablation, ablated, check_ablation
 from .inputs import check_int, check_output_path, parse_env_kwargs
 from .run_folder import RunInfo, atomic_write, load_model, locate_run
 from .study.protocol import FIG4
@@ -103,6 +104,7 @@ def evaluate_robustness(
     n_envs: int = 1,
     friction_target: str = "damping",
     obs_indices: Sequence[int] | None = None,
+    ablation: str | Ablation | None = None,
 ) -> list[RobustnessRow]:
     """Mean return of every model under one noise type, for each ``sigma`` (paper Fig. 4 F-H).
 
@@ -126,6 +128,8 @@ def evaluate_robustness(
     :param n_envs: environments stepped side by side (batches the policy's forward pass).
     :param friction_target: the friction parameters perturbed by ``"friction"`` noise.
     :param obs_indices: the observation elements perturbed by ``"obs"`` noise (None: all of them).
+    :param ablation: plasticity ablation every model is evaluated under (:mod:`sb3_spikeplastic.ablation`; spiking
+        policies only); ``None``: each policy's own (``policy.ablation``, normally ``none``).
     :return: one row per (model, ``sigma``), models in the given order, ``sigma`` increasing, with every episode's
         return (:attr:`RobustnessRow.returns`).
     """
@@ -139,6 +143,11 @@ def evaluate_robustness(
         raise ValueError(f"n_episodes={n_episodes!r} must be an integer >= 1")
     if isinstance(n_envs, bool) or not isinstance(n_envs, int) or n_envs < 1:
         raise ValueError(f"n_envs={n_envs!r} must be an integer >= 1")
+    for name, model in models.items():
+        try:
+            check_ablation(model, ablation, n_envs)
+        except ValueError as exc:
+            raise ValueError(f"model {name!r}: {exc}") from None
     stats = dict(vec_normalize_stats or {})
     unknown = sorted(set(stats) - set(models))
     if unknown:
@@ -174,14 +183,15 @@ def evaluate_robustness(
                     torch.manual_seed(seed)
                 finished.clear()
                 try:
-                    returns, _ = evaluate_policy(
-                        model,
-                        venv,
-                        n_eval_episodes=n_episodes,
-                        deterministic=deterministic,
-                        return_episode_rewards=True,
-                        callback=count_episode,
-                    )
+                    with ablated(model, ablation):
+                        returns, _ = evaluate_policy(
+                            model,
+                            venv,
+                            n_eval_episodes=n_episodes,
+                            deterministic=deterministic,
+                            return_episode_rewards=True,
+                            callback=count_episode,
+                        )
                 finally:
                     venv.close()
                 ordered = tuple(float(r) for _, r in sorted(zip(finished, returns), key=lambda pair: pair[0]))
@@ -255,10 +265,12 @@ def format_table(rows: Sequence[RobustnessRow]) -> str:
 
 
 def write_report(rows: Sequence[RobustnessRow], folder: str | os.PathLike, env_id: str, noise_type: str,
-                 n_episodes: int) -> tuple[str, list[Path]]:
+                 n_episodes: int, ablation: str | Ablation | None = None) -> tuple[str, list[Path]]:
     """Write ``robustness_<env_id>_<noise_type>`` ``.csv`` (:func:`write_csv`), ``.md`` (:func:`format_table`),
     ``.png`` (:func:`sb3_spikeplastic.figures.robustness_figure`) and, when the rows hold their episodes,
-    ``_episodes.csv`` (:func:`write_episodes_csv`) into ``folder`` (created if needed).
+    ``_episodes.csv`` (:func:`write_episodes_csv`) into ``folder`` (created if needed). Under an ``ablation`` other
+    than ``none`` the names end in ``_<ablation>`` (``_frozen``, ``_reset-every-50``, ``_shuffled``), so that the
+    ablations of one comparison sit beside its unablated files, and the figure's title names it.
 
     :return: the Markdown table and the files written.
     """
@@ -269,11 +281,14 @@ def write_report(rows: Sequence[RobustnessRow], folder: str | os.PathLike, env_i
 
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
-    stem = out / f"robustness_{env_id}_{noise_type}"
+    ablation = Ablation.parse(ablation)
+    suffix = f"_{str(ablation).replace(':', '-')}" if ablation.active else ""
+    stem = out / f"robustness_{env_id}_{noise_type}{suffix}"
     csv_path = write_csv(rows, stem.with_suffix(".csv"))
     table = format_table(rows)
     atomic_write(stem.with_suffix(".md"), lambda f: f.write(table + "\n"), binary=False)
-    fig = robustness_figure(rows, title=f"{env_id}: {noise_type} noise ({n_episodes} episodes per point)")
+    named = f", ablation {ablation}" if ablation.active else ""
+    fig = robustness_figure(rows, title=f"{env_id}: {noise_type} noise ({n_episodes} episodes per point{named})")
     fig.savefig(stem.with_suffix(".png"), dpi=120)
     paths = [csv_path, stem.with_suffix(".md"), stem.with_suffix(".png")]
     if any(row.returns for row in rows):
@@ -301,7 +316,8 @@ def robustness_command(models: Sequence[str], noise: str, env: Optional[str] = N
                        n_envs: int = FIG4.n_envs, env_kwargs: Optional[Sequence[str]] = None,
                        friction_target: str = "damping", obs_indices: Optional[Sequence[int]] = None,
                        deterministic: bool = True, output: str = "robustness",
-                       no_progress: bool = False, device: str = "cpu", torch_threads: int = 1) -> Callable[[], int]:
+                       no_progress: bool = False, device: str = "cpu", torch_threads: int = 1,
+                       ablation: Optional[str] = None) -> Callable[[], int]:
     """``sb3-spikeplastic robustness`` with these options (its long names): the noise is applied to the
     environment once, the models are loaded and checked against it (``ValueError``, nothing written); returns the
     comparison, which prints the table, writes it (:func:`write_report`) and returns 0."""
@@ -318,6 +334,8 @@ def robustness_command(models: Sequence[str], noise: str, env: Optional[str] = N
             raise ValueError(f"sigma {s!r} must be a finite number >= 0")
     check_int("--episodes", episodes, 1)
     check_int("--n-envs", n_envs, 1)
+    if ablation is not None:
+        Ablation.parse(ablation).check_envs(n_envs)  # a bad --ablation before any model loads
     infos = parse_models(models)
     env_ids = {i.env_id for i in infos.values() if i.env_id}
     env_id = env
@@ -340,14 +358,19 @@ def robustness_command(models: Sequence[str], noise: str, env: Optional[str] = N
             check_spaces(model, probe, env_id, infos[name].model_path)
     finally:
         probe.close()
+    for name, model in loaded.items():
+        try:
+            check_ablation(model, ablation, n_envs)
+        except ValueError as exc:
+            raise ValueError(f"--models {name}: {exc}") from None
 
     def compare() -> int:
         rows = evaluate_robustness(
             loaded, env_id, noise, sigmas, n_episodes=episodes, seed=seed, deterministic=deterministic,
             vec_normalize_stats={name: info.vecnormalize for name, info in infos.items()},
             progress_bar=not no_progress, n_envs=n_envs, friction_target=friction_target, obs_indices=obs_indices,
-            env_kwargs=kwargs)
-        table, paths = write_report(rows, output, env_id, noise, episodes)
+            env_kwargs=kwargs, ablation=ablation)
+        table, paths = write_report(rows, output, env_id, noise, episodes, ablation)
         print(table)
         print(f"\nwrote {', '.join(str(p) for p in paths)}")
         return 0

@@ -266,3 +266,46 @@ def test_new_variants_and_seeds_join_an_existing_study(files):
     assert sorted(waiting) == sorted(engine.cell_key(ENV, v, s) for v in ("small", "large", "medium") for s in (0, 1))
     declared = load(folder, "mini").user_attrs[engine.DECLARATION_KEY]["variants"]
     assert sorted(declared) == [f"{ENV} large", f"{ENV} medium", f"{ENV} small"]
+
+
+ABLATION_STUDY = """envs: [TMazeCue-v0]
+seeds: [0]
+budgets: [64]
+hyperparams: [n_envs=2, n_steps=32, batch_size=32, bptt_steps=16, n_epochs=1, "policy_kwargs.hidden_sizes=[16]"]
+variants:
+  static: {rule: static}
+  dp-oja: {rule: dp-oja}
+evaluations:
+  final: {episodes: 6, seed: 100, n_envs: 2}
+  frozen: {kind: final, ablation: frozen, episodes: 6, seed: 100, n_envs: 2}
+  reset: {kind: final, ablation: "reset-every:1", episodes: 6, seed: 100, n_envs: 2}
+"""
+
+
+def test_evaluations_under_a_plasticity_ablation(tmp_path):
+    """An evaluation may run the spiking models under an ablation: the static network's episodes are those of its
+    plain evaluation, the plastic network's run on W alone; the ablation is part of the declaration."""
+    from sb3_spikeplastic.study import engine
+    from sb3_spikeplastic.study.declaration import study_from_dict
+    from sb3_spikeplastic.study.layout import read_final
+
+    import yaml
+
+    data = yaml.safe_load(ABLATION_STUDY)
+    study = study_from_dict(data)
+    assert (study.evaluations["frozen"].ablation, study.evaluations["reset"].ablation) == ("frozen", "reset-every:1")
+    job = engine.prepare(study, tmp_path / "s", "ablation")
+    assert engine.run_worker(job, lambda line: None) == 0
+    episodes = tmp_path / "s" / "episodes" / "TMazeCue-v0"
+    static = {name: read_final(episodes / "static@64_s0" / f"{name}.csv") for name in ("final", "frozen", "reset")}
+    assert (static["final"]["return"] == static["frozen"]["return"]).all()
+    assert (static["final"]["length"] == static["reset"]["length"]).all()
+    for name in ("final", "frozen", "reset"):
+        assert len(read_final(episodes / "dp-oja@64_s0" / f"{name}.csv")["return"]) == 6
+    # Declaring the same evaluation name with another ablation is another declaration: refused.
+    data["evaluations"]["frozen"]["ablation"] = "shuffled"
+    with pytest.raises(ValueError, match="evaluation 'frozen' otherwise"):
+        engine.prepare(study_from_dict(data), tmp_path / "s", "ablation")
+    data["evaluations"]["frozen"]["ablation"] = "melted"
+    with pytest.raises(ValueError, match="ablation of evaluation 'frozen'.*melted"):
+        study_from_dict(data)

@@ -45,11 +45,11 @@ STUDY_KEYS = ("description", "envs", "seeds", "budgets", "conf", "hyperparams", 
               "variants", "evaluations", "report")
 VARIANT_KEYS = ("rule", "conf", "hyperparams", "seeds", "budgets", "train_env", "noises")
 EVALUATION_KINDS = ("final", "robustness", "sensitivity")
-FINAL_KEYS = ("kind", "episodes", "seed", "n_envs", "model", "variants", "seeds", "budgets")
+FINAL_KEYS = ("kind", "episodes", "seed", "n_envs", "model", "ablation", "variants", "seeds", "budgets")
 FILTER_KEYS = ("variants", "seeds", "budgets")
 SENSITIVITY_KEYS = ("kind", "shift", "seed", "groups", "model", *FILTER_KEYS)
 ROBUSTNESS_KEYS = ("kind", "noises", "sigmas", "episodes", "seed", "n_envs", "friction_target", "obs_indices",
-                   "clip_obs", "model", *FILTER_KEYS)
+                   "clip_obs", "model", "ablation", *FILTER_KEYS)
 REPORT_KEYS = ("learned_threshold", "resamples", "compare")
 COMPARE_KEYS = ("variants", "against", "pooled")
 GROUPS = ("plastic", "static", "spiking", "baselines")
@@ -84,6 +84,8 @@ class Evaluation:
     :param variants: only these variants' models (``None``: all), likewise ``seeds`` and ``budgets``
     :param clip_obs: evaluate with the model's frozen ``VecNormalize`` statistics clipping the standardised
         observation at this bound instead of their own (``None``: as trained)
+    :param ablation: evaluate the spiking models under this plasticity ablation (:mod:`sb3_spikeplastic.ablation`:
+        ``frozen``, ``reset-every:N``, ``shuffled``; ``None``: as trained); other models as they are
     :param shift: ``sensitivity``: the shift of one raw observation element (:mod:`~sb3_spikeplastic.study.probes`)
     :param groups: ``sensitivity``: named groups of observation elements the report averages (``None``: each
         element)
@@ -96,6 +98,7 @@ class Evaluation:
     seeds: Optional[tuple[int, ...]] = None
     budgets: Optional[tuple[int, ...]] = None
     clip_obs: Optional[float] = None
+    ablation: Optional[str] = None
     shift: Optional[float] = None
     groups: Optional[tuple[tuple[str, tuple[int, ...]], ...]] = None
 
@@ -329,6 +332,15 @@ def _evaluation(name, spec, where: str, variants: dict) -> Evaluation:
                        seed=_int(spec.get("seed", FIG4.seed), f"{what} seed", 0),
                        n_envs=_int(spec.get("n_envs", FIG4.n_envs if kind == "robustness" else 1), f"{what} n_envs", 1))
     filters = _filters(spec, what, variants)
+    ablation = spec.get("ablation")
+    if ablation is not None:
+        from ..ablation import Ablation
+
+        try:
+            ablation = str(Ablation.parse(ablation))
+        except ValueError as exc:
+            raise ValueError(f"ablation of {what} in {where}: {exc}") from None
+        filters["ablation"] = None if ablation == "none" else ablation
     if kind == "final":
         return Evaluation(kind, replace(protocol, noises=(), sigmas=(0.0,)), model, **filters)
     if kind == "sensitivity":

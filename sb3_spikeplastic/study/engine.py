@@ -88,7 +88,8 @@ class StudyJob:
                                               **{k: v for k, v in config.items() if k != "n_timesteps"}}
                          for (env, variant), config in self.configs.items()},
             "evaluations": {name: {"kind": e.kind, "model": e.model, "clip_obs": e.clip_obs, "shift": e.shift,
-                                   **e.protocol.as_dict()} for name, e in s.evaluations.items()}})
+                                   "ablation": e.ablation, **e.protocol.as_dict()}
+                            for name, e in s.evaluations.items()}})
 
     def work(self, variant: str) -> dict:
         """What a cell of ``variant`` is queued to do: train to its largest budget, run these evaluations."""
@@ -423,6 +424,13 @@ def write_training_curve(layout: StudyFolder, env: str, variant: str, seed: int)
     return atomic_write(path, write, binary=False)
 
 
+def _ablation_for(model, evaluation: Evaluation) -> Optional[str]:
+    """The evaluation's plasticity ablation for a spiking model; ``None`` (as it is) for any other policy, so that
+    a study can ablate its spiking variants beside baselines evaluated as they are."""
+    spiking = getattr(model.policy, "snn", None) is not None
+    return evaluation.ablation if spiking else None
+
+
 def clipped_statistics(source: Path, target: Path, env: str, clip: float) -> Path:
     """A copy of the ``VecNormalize`` statistics ``source`` that clips the standardised observation at ``clip``."""
     import gymnasium
@@ -484,7 +492,8 @@ def _evaluate(job: StudyJob, env: str, name: str, evaluation: Evaluation, model_
     if evaluation.kind == "final":
         venv = make_eval_env(env, p.n_envs, p.seed, env_kwargs, statistics)
         try:
-            result = evaluate_model(model, venv, p.episodes, deterministic=True, seed=p.seed)
+            result = evaluate_model(model, venv, p.episodes, deterministic=True, seed=p.seed,
+                                    ablation=_ablation_for(model, evaluation))
         finally:
             venv.close()
         successes = result.successes if len(result.successes) == len(result.returns) else [""] * len(result.returns)
@@ -502,6 +511,7 @@ def _evaluate(job: StudyJob, env: str, name: str, evaluation: Evaluation, model_
         rows = evaluate_robustness({name: model}, env, noise, p.sigmas, n_episodes=p.episodes, seed=p.seed,
                                    vec_normalize_stats={name: statistics}, progress_bar=False,
                                    env_kwargs=env_kwargs, n_envs=p.n_envs, friction_target=p.friction_target,
+                                   ablation=_ablation_for(model, evaluation),
                                    obs_indices=p.obs_indices)
         tmp = folder / f".{file}.tmp"
         write_episodes_csv(rows, tmp)
