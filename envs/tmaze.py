@@ -258,6 +258,12 @@ class TMazeCueEnv(gymnasium.Env):
         image = np.where(frame[..., None] > 0, colours[None], background[None]).astype(np.uint8)
         return np.kron(image, np.ones((_BLOCK, _BLOCK, 1), dtype=np.uint8))
 
+    @property
+    def video_labels(self) -> list[tuple[float, str]]:
+        """Captions of a video frame's columns, ``(centre as a fraction of the width, text)``: the populations."""
+        return [((i + 0.5) / _N_POPULATIONS, name) for i, name in enumerate(("left cue", "right cue", "decision",
+                                                                               "noise"))]
+
     def action_masks(self) -> np.ndarray:
         """Which actions are open on the current frame, in sb3-contrib's ``MaskablePPO`` convention.
 

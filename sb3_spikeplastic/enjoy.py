@@ -184,6 +184,24 @@ def resize_nearest(frame: np.ndarray, width: int, height: int) -> np.ndarray:
     return frame[rows][:, cols]
 
 
+#: Frames narrower than this get no caption strip (its words would not fit).
+CAPTION_MIN_WIDTH = 240
+
+
+def caption_strip(width: int, labels: Sequence[tuple[float, str]], height: int = 18) -> np.ndarray:
+    """A black ``(height, width, 3)`` strip with each label written, in white, centred at its fraction of the width
+    (matplotlib's Agg renderer, no GUI)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(width / 100, height / 100), dpi=100, facecolor="black")
+    canvas = FigureCanvasAgg(fig)
+    for x, text in labels:
+        fig.text(x, 0.5, text, color="white", ha="center", va="center", fontsize=7)
+    canvas.draw()
+    return np.asarray(canvas.buffer_rgba())[:height, :width, :3].copy()
+
+
 class VideoFile:
     """A video written frame by frame through imageio, atomically.
 
@@ -437,6 +455,7 @@ class Player:
             self.env.close()
             raise
         self.fps = video_fps(self.env, fps)
+        self._caption: Optional[np.ndarray] = None
 
     def _normalizer(self) -> Optional[Callable[[np.ndarray], np.ndarray]]:
         """``normalize_obs`` of the run's ``VecNormalize`` statistics (``None`` without them): it only reads the
@@ -453,9 +472,15 @@ class Player:
         return stats.normalize_obs if stats.norm_obs else None
 
     def _frame(self, frame: np.ndarray) -> np.ndarray:
-        """A rendered frame as it goes into the video."""
+        """A rendered frame as it goes into the video: resized, captioned above where the environment names its
+        columns (the T-maze's populations) and the frame is wide enough, the spike raster beside it."""
         if self.size is not None and frame.shape[1::-1] != self.size:
             frame = resize_nearest(frame, *self.size)
+        labels = getattr(self.env.unwrapped, "video_labels", None)
+        if labels and frame.shape[1] >= CAPTION_MIN_WIDTH:
+            if self._caption is None or self._caption.shape[1] != frame.shape[1]:
+                self._caption = caption_strip(frame.shape[1], labels)
+            frame = np.concatenate([self._caption, frame.astype(np.uint8)], axis=0)
         return frame if self.raster is None else self.raster.draw(frame)
 
     def run(self, n_episodes: Optional[int] = 1, deterministic: bool = True, seed: Optional[int] = 0,

@@ -4,6 +4,7 @@ step), the choice of MuJoCo's OpenGL backend, and bad input."""
 import importlib.util
 import os
 import re
+from pathlib import Path
 
 import gymnasium
 import imageio
@@ -46,7 +47,8 @@ def test_tmaze_video_has_one_frame_per_reset_and_per_step(tmaze_run, tmp_path, c
     with imageio.get_reader(video) as reader:
         assert reader.count_frames() == sum(lengths) + 2  # the rule: n_1 + n_2 steps + one reset frame each
         assert reader.get_meta_data()["fps"] == 4  # a 25 ms frame shown for 250 ms: ten times slower than real time
-        assert reader.get_meta_data()["size"] == (320, 200)  # 40 neurons x 25 ms, 8 x 8 pixels each
+        # 40 neurons x 25 ms, 8 x 8 pixels each, under an 18 px strip naming the populations
+        assert reader.get_meta_data()["size"] == (320, 218)
     assert sorted(p.name for p in video.parent.iterdir()) == ["tmaze.mp4"]  # no temporary file left
 
 
@@ -72,8 +74,8 @@ def test_raster_beside_the_frames_while_the_network_records(tmaze_run, tmp_path,
     assert not snn._forward_hooks and not snn._forward_pre_hooks  # detached afterwards
     with imageio.get_reader(tmp_path / "raster.mp4") as reader:
         frames = np.stack(list(reader.iter_data()))
-    # 320 px of maze, a 4 px gap, 200 ms (8 steps of 25 ms) of 16 hidden neurons at 1 px per ms
-    assert frames.shape == (episode.length + 1, 200, 524, 3)
+    # 320 px of maze (218 high with its caption), a 4 px gap, 200 ms (8 steps of 25 ms) of 16 hidden neurons
+    assert frames.shape == (episode.length + 1, 218, 524, 3)
     assert frames[0, :, 330:].max() < 128 and frames[-1, :, 330:].max() > 200  # empty at reset, spikes later
 
     mlp = PPO("MlpPolicy", "TMazeCue-v0", n_steps=16, batch_size=16)
@@ -108,6 +110,24 @@ def test_play_carries_the_recurrent_state_and_restarts_it_each_episode():
     assert [e.success for e in episodes] == [e.episode_return > 0 for e in episodes]
     cut = list(enjoy.play(Recorder(), env, n_episodes=1, max_steps=3))[0]
     assert (cut.length, cut.success, cut.cut) == (3, None, True)
+
+
+def test_tmaze_video_frames_are_captioned_with_the_populations(tmaze_run):
+    """A strip above the maze names each population over its columns (white text on black); narrow frames
+    (``--size`` below 240 px) get none."""
+    from sb3_spikeplastic import PPO
+
+    player = enjoy.Player(PPO.load(tmaze_run / "TMazeCue-v0.zip"), "TMazeCue-v0", video=Path("unused.mp4"))
+    player.env.reset(seed=0)
+    frame = player._frame(player.env.render())
+    strip = frame[:18]
+    assert frame.shape == (218, 320, 3) and strip.max() > 200  # text drawn
+    for quarter in range(4):  # each population's caption sits over its own columns
+        assert strip[:, quarter * 80 + 20:quarter * 80 + 60].max() > 200
+    assert (frame[18:] == player.env.render()).all()
+    player.size = (160, 100)
+    assert player._frame(player.env.render()).shape == (100, 160, 3)
+    player.env.close()
 
 
 def test_tmaze_render_shows_the_outcome_after_the_decision():
