@@ -10,6 +10,7 @@ import shutil
 import signal
 import socket
 import time
+from pathlib import Path
 
 import optuna
 import pytest
@@ -285,12 +286,6 @@ evaluations:
 def test_evaluations_under_a_plasticity_ablation(tmp_path):
     """An evaluation may run the spiking models under an ablation: the static network's episodes are those of its
     plain evaluation, the plastic network's run on W alone; the ablation is part of the declaration."""
-    from sb3_spikeplastic.study import engine
-    from sb3_spikeplastic.study.declaration import study_from_dict
-    from sb3_spikeplastic.study.layout import read_final
-
-    import yaml
-
     data = yaml.safe_load(ABLATION_STUDY)
     study = study_from_dict(data)
     assert (study.evaluations["frozen"].ablation, study.evaluations["reset"].ablation) == ("frozen", "reset-every:1")
@@ -309,3 +304,52 @@ def test_evaluations_under_a_plasticity_ablation(tmp_path):
     data["evaluations"]["frozen"]["ablation"] = "melted"
     with pytest.raises(ValueError, match="ablation of evaluation 'frozen'.*melted"):
         study_from_dict(data)
+
+
+def _take_waiting_trials(folder, out):
+    """A worker's way of taking trials: ask for the next waiting one until none is left."""
+    import optuna
+
+    from sb3_spikeplastic.study.storage import open_storage
+
+    study = optuna.load_study(study_name="race", storage=open_storage(None, Path(folder)))
+    taken = []
+    while any(t.state.name == "WAITING" for t in study.get_trials(deepcopy=False)):
+        trial = study.ask()
+        taken.append(trial.number)
+        time.sleep(0.01)
+        study.tell(trial, 1.0)
+    out.put(taken)
+
+
+@pytest.mark.filterwarnings("ignore:Heartbeat of storage")
+def test_four_processes_never_take_the_same_waiting_trial_from_sqlite(tmp_path):
+    """SQLite ignores Optuna's SELECT ... FOR UPDATE; the default storage's immediate transactions make taking a
+    waiting trial atomic, so that two workers never run one cell (each trial is taken exactly once)."""
+    import multiprocessing
+    import queue
+
+    import optuna
+
+    from sb3_spikeplastic.study.storage import open_storage
+
+    study = optuna.create_study(study_name="race", storage=open_storage(None, tmp_path))
+    for i in range(40):
+        study.enqueue_trial({}, user_attrs={"i": i})
+    context = multiprocessing.get_context("spawn")
+    out = context.Queue()
+    workers = [context.Process(target=_take_waiting_trials, args=(str(tmp_path), out)) for _ in range(4)]
+    for worker in workers:
+        worker.start()
+    try:
+        taken = [number for _ in workers for number in out.get(timeout=120)]
+    except queue.Empty:  # a worker died: it told a trial that another worker had finished
+        taken = None
+    finally:
+        for worker in workers:
+            worker.join(10)
+            if worker.is_alive():
+                worker.kill()
+    assert taken is not None and len(taken) == len(set(taken))
+    assert {t.number for t in optuna.load_study(study_name="race", storage=open_storage(None, tmp_path)).trials
+            if t.state.name == "COMPLETE"} == set(taken) >= set(range(40))

@@ -116,6 +116,21 @@ def _journal_heartbeat_class():
     return JournalHeartbeatStorage
 
 
+def _serialise_sqlite(engine) -> None:
+    """Every SQLite transaction of ``engine`` starts with ``BEGIN IMMEDIATE`` (SQLAlchemy's recipe for pysqlite).
+
+    Optuna takes a waiting trial by reading that it waits and marking it running in one transaction, atomic on a
+    server through ``SELECT ... FOR UPDATE``; SQLite ignores that, and its default deferred transactions let two
+    processes both read "waiting" before either writes, so that both run the same cell. An immediate transaction
+    holds the write lock from its first statement: the second process reads "running" and takes another trial.
+    """
+    from sqlalchemy import event
+
+    @event.listens_for(engine, "begin")
+    def _begin(connection):
+        connection.exec_driver_sql("BEGIN IMMEDIATE")
+
+
 def retry_callback(max_retry: Optional[int] = MAX_RETRY) -> Callable:
     """Optuna's callback that queues a trial again as a ``WAITING`` copy (its parameters, grid cell and
     attributes), at most ``max_retry`` times per original trial (``None``: always)."""
@@ -146,10 +161,15 @@ def open_storage(storage: Optional[str], folder: Path, heartbeat_interval: int =
         storage = default_storage_url(folder)
     try:
         if is_url(storage):
-            engine_kwargs = {"connect_args": {"timeout": SQLITE_TIMEOUT}} if storage.startswith("sqlite") else {}
-            return optuna.storages.RDBStorage(storage, engine_kwargs=engine_kwargs,
-                                              heartbeat_interval=heartbeat_interval, grace_period=grace_period,
-                                              heartbeat_stale_trial_callback=callback)
+            sqlite = storage.startswith("sqlite")
+            # The driver's own transaction handling off (isolation_level None): see _serialise_sqlite.
+            engine_kwargs = {"connect_args": {"timeout": SQLITE_TIMEOUT, "isolation_level": None}} if sqlite else {}
+            rdb = optuna.storages.RDBStorage(storage, engine_kwargs=engine_kwargs,
+                                             heartbeat_interval=heartbeat_interval, grace_period=grace_period,
+                                             heartbeat_stale_trial_callback=callback)
+            if sqlite:
+                _serialise_sqlite(rdb.engine)
+            return rdb
         from optuna.storages.journal import JournalFileBackend
 
         Path(storage).parent.mkdir(parents=True, exist_ok=True)
