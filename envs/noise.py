@@ -258,6 +258,16 @@ def noise_kwargs(noise_type: str, sigma: float, friction_target: str = "damping"
     return kwargs
 
 
+def env_from(env_id_or_env, make_kwargs: dict) -> gymnasium.Env:
+    """``gymnasium.make(id, **make_kwargs)`` for an id, the environment itself for an instance (which takes no
+    ``make_kwargs``): what the ``make_*_env`` helpers wrap."""
+    if isinstance(env_id_or_env, str):
+        return gymnasium.make(env_id_or_env, **make_kwargs)
+    if make_kwargs:
+        raise ValueError(f"make_kwargs {sorted(make_kwargs)} need an environment id, not an environment instance")
+    return env_id_or_env
+
+
 def make_noisy_env(
     env_id_or_env: str | gymnasium.Env,
     obs_noise: float = 0.0,
@@ -284,12 +294,7 @@ def make_noisy_env(
     action_noise = _check_sigma("action_noise", action_noise)
     friction_noise = _check_sigma("friction_noise", friction_noise)
     _check_target(friction_target)
-    if isinstance(env_id_or_env, str):
-        env = gymnasium.make(env_id_or_env, **make_kwargs)
-    elif make_kwargs:
-        raise ValueError(f"make_kwargs {sorted(make_kwargs)} need an environment id, not an environment instance")
-    else:
-        env = env_id_or_env
+    env = env_from(env_id_or_env, make_kwargs)
     if friction_noise:
         env = FrictionNoise(env, friction_noise, target=friction_target)
     if action_noise:

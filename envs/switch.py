@@ -17,6 +17,8 @@ import numpy as np
 from gymnasium.envs.registration import load_env_creator
 from gymnasium.utils import RecordConstructorArgs
 
+from sb3_spikeplastic.envs.noise import env_from
+
 #: The changes :class:`DynamicsSwitch` can make.
 SWITCH_KINDS = ("actuator_gain", "friction", "action_flip", "mass")
 
@@ -260,12 +262,7 @@ def make_switch_env(
     """
     _check_kind(kind)
     _check_factor_range(factor_range)
-    if isinstance(env_id_or_env, str):
-        env = gymnasium.make(env_id_or_env, **make_kwargs)
-    elif make_kwargs:
-        raise ValueError(f"make_kwargs {sorted(make_kwargs)} need an environment id, not an environment instance")
-    else:
-        env = env_id_or_env
+    env = env_from(env_id_or_env, make_kwargs)
     return DynamicsSwitch(env, kind=kind, window=window, factor_range=factor_range, target=target)
 
 
