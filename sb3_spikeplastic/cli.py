@@ -193,7 +193,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "TensorBoard events")
     t.add_argument("-v", "--verbose", type=int, default=1, help="0: quiet, 1: a summary line (return, success, "
                    "steps/s) every tenth of the run and one per evaluation (default), 2: SB3's table every rollout")
-    t.add_argument("--log-interval", type=int, help="SB3's log_interval: write the logged scalars (progress.csv, "
+    t.add_argument("--log-interval", type=int, default=1, help="SB3's log_interval: write the logged scalars (progress.csv, "
                    "TensorBoard, -v 2's table) every N rollouts (default: 1)")
     progress(t)
     common(t, auto_threads=True)
@@ -342,25 +342,13 @@ def _progress_bar(options: dict) -> None:
 
 
 def prepare(args: argparse.Namespace, argv: Sequence[str]) -> Callable[[], int]:
-    """The parsed command's work, its options checked (``ValueError``: bad input, nothing written); a line for
-    each ``--hyperparams`` override that drops keys of the entry (a whole mapping replaced)."""
-    from sb3_spikeplastic.inputs import parse_env_kwargs
-
+    """The parsed command's work, its options checked (``ValueError``: bad input, nothing written)."""
     module, name = COMMANDS[args.command]
     options = {k: v for k, v in vars(args).items() if k != "command" and k not in _ZOO_ONLY}
     _progress_bar(options)
     if args.command == "train":  # recorded in the run folder
         options["command_line"] = shlex.join([PROG, *argv])
-        if options.get("log_interval") is None:
-            options.pop("log_interval", None)
-        parse_env_kwargs(args.env_kwargs)  # a malformed entry's error names --env-kwargs
-    work = getattr(importlib.import_module(f"sb3_spikeplastic.{module}"), name)(**options)
-    if args.command in ("train", "optimize") and args.hyperparams and not getattr(args, "trained_agent", None):
-        from sb3_spikeplastic.config import replaced_mappings
-
-        for line in replaced_mappings(args.env, args.conf, args.hyperparams, args.rule):
-            print(f"{PROG}: {line}")
-    return work
+    return getattr(importlib.import_module(f"sb3_spikeplastic.{module}"), name)(**options)
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:

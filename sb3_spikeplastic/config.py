@@ -630,6 +630,13 @@ def _overridden_entry(env_id: str, conf: Union[str, Path, None], parsed: Sequenc
     return entry
 
 
+def print_replaced_mappings(env_id: str, conf: Union[str, Path, None] = None, overrides: Sequence[str] = (),
+                            rule: Optional[str] = None) -> None:
+    """Print :func:`replaced_mappings`'s lines, one ``sb3-spikeplastic: ...`` notice each (``train``, ``optimize``)."""
+    for line in replaced_mappings(env_id, conf, overrides, rule):
+        print(f"sb3-spikeplastic: {line}")
+
+
 def replaced_mappings(env_id: str, conf: Union[str, Path, None] = None, overrides: Sequence[str] = (),
                       rule: Optional[str] = None, option: str = "--hyperparams") -> list[str]:
     """One line for each override that replaces a whole mapping of the entry and so drops some of its keys

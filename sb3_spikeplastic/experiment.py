@@ -29,7 +29,7 @@ from typing import Any, Callable, Optional, Sequence, Union
 import gymnasium
 
 from . import config as cfg
-from .inputs import check_device, check_int, check_output_path
+from .inputs import check_device, check_int, check_output_path, parse_env_kwargs
 from .run_folder import (RunInfo, atomic_write, latest_checkpoint, locate_run, next_run_dir, read_run_args,
                          read_run_config, save_model, save_vecnormalize)
 
@@ -445,6 +445,7 @@ def train_config(env_id: str, conf: Optional[str] = None, rule: Optional[str] = 
     file's entry with the overrides (``env_kwargs`` ``KEY=VALUE`` after ``hyperparams``: they win)."""
     if source is not None and source.config:
         return cfg.validate_entry({**source.config, **({"n_timesteps": n_timesteps} if n_timesteps else {})})
+    parse_env_kwargs(env_kwargs)  # a malformed entry's error names --env-kwargs
     overrides = [*(hyperparams or ()), *[f"env_kwargs.{item}" for item in env_kwargs or ()]]
     return cfg.resolve_hyperparams(env_id, conf, overrides, rule=rule, n_timesteps=n_timesteps, n_envs=n_envs)
 
@@ -511,6 +512,8 @@ def train_command(env: str, rule: Optional[str] = None, n_timesteps: Optional[in
     keep_checkpoints = 2 if keep_checkpoints is None else keep_checkpoints
     figure_freq = 0 if figure_freq is None else figure_freq
     config = train_config(env_id, conf, rule, hyperparams, env_kwargs, n_timesteps, n_envs, source)
+    if hyperparams and source is None:
+        cfg.print_replaced_mappings(env_id, conf, hyperparams, rule)
     if figure_freq and config["policy"] != "SpikePlasticPolicy":
         raise ValueError(f"--figure-freq needs policy SpikePlasticPolicy, not {config['policy']!r}")
     # Checkpoints by default on long runs (a run killed outright keeps its latest tenth), none on short ones.

@@ -481,4 +481,8 @@ def optimize_command(env: str, conf: Optional[str] = None, rule: Optional[str] =
         env, conf, rule, hyperparams or (), n_timesteps, n_trials, sampler, pruner, n_startup_trials, n_evaluations,
         eval_episodes, seeds_per_trial, storage, study_name, Path(log_folder), seed, device, torch_threads,
         search_space))
+    if hyperparams:
+        from .config import print_replaced_mappings
+
+        print_replaced_mappings(env, conf, hyperparams, rule)
     return lambda: run(search)
