@@ -119,8 +119,8 @@ CHECKS = [("HalfCheetah-v5", dict(rule=rule)) for rule in ("static", "dp-linear"
 
 def tmaze_success(model, episodes: int = 100) -> float:
     """Deterministic success over ``episodes`` episodes of 20 seeded T-mazes (``evaluate``'s own evaluation)."""
-    from sb3_spikeplastic.evaluation import evaluate_model
-    from sb3_spikeplastic.run_folder import make_eval_env
+    from sb3_spikeplastic.zoo.evaluation import evaluate_model
+    from sb3_spikeplastic.zoo.run_folder import make_eval_env
 
     return evaluate_model(model, make_eval_env("TMazeCue-v0", 20, 123, {}), episodes).success_rate
 

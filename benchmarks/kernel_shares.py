@@ -42,8 +42,8 @@ def run_one(network: str, switch: str, threads: int) -> dict:
     torch.set_num_threads(threads)
     from learn_throughput import episode_rollouts, make_model  # benchmarks/ is on sys.path
 
-    from sb3_spikeplastic import _fast, layers
-    from sb3_spikeplastic._fast import allocator
+    from sb3_spikeplastic.snn import _fast, layers
+    from sb3_spikeplastic.snn._fast import allocator
 
     allocator.keep_freed_memory()  # glibc's settings, as `train` applies them, in every variant
     if switch == "no-carried-rows":

@@ -95,7 +95,7 @@ def peak_rss_mb() -> float:
 def dense_macs_per_step(model) -> float:
     """Multiply-adds of one forward pass per environment step: every weight matrix once, a spiking layer's
     ``T`` times (its product runs on every network step)."""
-    from sb3_spikeplastic.policy import SpikePlasticPolicy
+    from sb3_spikeplastic.sb3.policy import SpikePlasticPolicy
 
     policy = model.policy
     snn_weights = set()
@@ -133,7 +133,7 @@ def make_model(key: str, device: str, n_envs: Optional[int] = None):
     from stable_baselines3.common.vec_env import VecNormalize
 
     from sb3_spikeplastic import PPO
-    from sb3_spikeplastic.config import load_hyperparams
+    from sb3_spikeplastic.zoo.config import load_hyperparams
 
     if key == "paper-conf":  # the command's model: its own PPO settings, VecNormalize, linear learning-rate decay
         h = load_hyperparams(ENV_ID, "paper")
@@ -188,7 +188,7 @@ def run_row(key: str, threads: int, device: str, rollouts: Optional[int], n_envs
     import torch
 
     torch.set_num_threads(threads)
-    from sb3_spikeplastic._fast.allocator import keep_freed_memory
+    from sb3_spikeplastic.snn._fast.allocator import keep_freed_memory
 
     keep_freed_memory()  # as `sb3-spikeplastic train` does
     model = make_model(key, device, n_envs if key in SCALABLE else None)

@@ -27,10 +27,10 @@ from pathlib import Path
 
 import torch
 from machine import describe_machine, write_result  # benchmarks/machine.py (the script's folder is on sys.path)
-from sb3_spikeplastic._fast.allocator import keep_freed_memory
+from sb3_spikeplastic.snn._fast.allocator import keep_freed_memory
 
-from sb3_spikeplastic.coding import ContinuousDecoder, PopulationEncoder
-from sb3_spikeplastic.network import SpikingPlasticNetwork
+from sb3_spikeplastic.snn.coding import ContinuousDecoder, PopulationEncoder
+from sb3_spikeplastic.snn.network import SpikingPlasticNetwork
 
 RESULTS = Path(__file__).parent / "results" / "network_forward.json"
 RESULTS_CUDA = RESULTS.with_name("network_forward_cuda.json")  # --device cuda

@@ -18,7 +18,7 @@ import torch
 from machine import describe_machine, write_result  # benchmarks/machine.py (the script's folder is on sys.path)
 from network_forward import median_time
 
-from sb3_spikeplastic import _fast
+from sb3_spikeplastic.snn import _fast
 
 DENSITIES = (0.02, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5)
 

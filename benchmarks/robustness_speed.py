@@ -3,7 +3,7 @@ thread) against the number of environments stepped side by side, and what the Fi
 
 One (model, noise, sigma) cell of the protocol is 100 episodes of 1000 steps; a model's table is 3 noise types x 5
 sigmas (sigma = 0 once per noise type): 1.5M inference steps. Each row evaluates one model with
-:func:`sb3_spikeplastic.robustness.evaluate_robustness` (action noise, sigma 0.2, ``n_envs`` environments, one
+:func:`sb3_spikeplastic.study.robustness.evaluate_robustness` (action noise, sigma 0.2, ``n_envs`` environments, one
 episode each, cut to ``--steps`` steps) in a process of its own and reports env-steps/s, and from it the minutes
 per model of the whole protocol on one core. Models: ``entry`` (the CPU entry, ``ppo.yml``), ``mlp``
 (``--conf mlp``'s MlpPolicy) and ``ppo_lstm`` (RecurrentPPO, ``--conf ppo_lstm``), untrained: the cost of a step
@@ -39,8 +39,8 @@ def run_row(key: str, n_envs: int, steps: int) -> dict:
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import VecNormalize
 
-    from sb3_spikeplastic.config import algorithm_class, load_hyperparams
-    from sb3_spikeplastic.robustness import evaluate_robustness
+    from sb3_spikeplastic.zoo.config import algorithm_class, load_hyperparams
+    from sb3_spikeplastic.study.robustness import evaluate_robustness
 
     torch.set_num_threads(1)
     h = load_hyperparams(ENV_ID, CONF[key])

@@ -20,7 +20,7 @@ def _built(monkeypatch, cuda: bool):
     the build error."""
     import warnings
 
-    from sb3_spikeplastic import _fast
+    from sb3_spikeplastic.snn import _fast
 
     monkeypatch.delenv(_fast.NO_COMPILE_ENV, raising=False)
     with warnings.catch_warnings():

@@ -9,11 +9,11 @@ import torch
 from helpers import run_cli, tmaze, tmaze_model
 
 from sb3_spikeplastic import PPO
-from sb3_spikeplastic.ablation import AblatedState, Ablation, ablated
-from sb3_spikeplastic.evaluation import evaluate_model
-from sb3_spikeplastic.network import NetworkState, tensor_leaves
-from sb3_spikeplastic.plasticity import PlasticState
-from sb3_spikeplastic.policy import SpikePlasticPolicy
+from sb3_spikeplastic.sb3.ablation import AblatedState, Ablation, ablated
+from sb3_spikeplastic.zoo.evaluation import evaluate_model
+from sb3_spikeplastic.snn.network import NetworkState, tensor_leaves
+from sb3_spikeplastic.snn.plasticity import PlasticState
+from sb3_spikeplastic.sb3.policy import SpikePlasticPolicy
 
 STEPS = 40  # two T-maze episodes and more: the environments' episodes end at different steps
 

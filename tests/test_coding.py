@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from sb3_spikeplastic.coding import (
+from sb3_spikeplastic.snn.coding import (
     EXP_FLOOR,
     ContinuousDecoder,
     CounterBernoulli,
@@ -224,7 +224,7 @@ def test_decoder_gradchecks():
 def test_compiled_sampler_is_bit_identical_to_the_eager_hash(compiled_ops, monkeypatch, dtype):
     """The compiled sampler (``_fast.bernoulli_spikes``) against the eager int32 hash, including keys with the
     sign bit set and probabilities 0 and 1; and ``SB3_SPIKEPLASTIC_NO_COMPILE`` gives the eager spikes."""
-    from sb3_spikeplastic import _fast
+    from sb3_spikeplastic.snn import _fast
 
     sampler = CounterBernoulli()
     keys = torch.tensor([0, -1, 2**31 - 1, -(2**31), 12345, -987654], dtype=torch.int32)

@@ -8,8 +8,9 @@ import torch
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
 import sb3_spikeplastic
-from sb3_spikeplastic import PPO, SpikePlasticPolicy, config
-from sb3_spikeplastic.config import (
+from sb3_spikeplastic import PPO, SpikePlasticPolicy
+from sb3_spikeplastic.zoo import config
+from sb3_spikeplastic.zoo.config import (
     algorithm_class,
     default_hyperparams_path,
     load_hyperparams,
@@ -43,7 +44,7 @@ def _default(fn, key):
 @pytest.mark.parametrize("conf", ["ppo", "paper"])
 def test_spiking_entries_state_only_what_differs_from_the_defaults(conf):
     """No value of a spiking entry (or of ``default``) repeats the default of PPO or SpikePlasticPolicy."""
-    from sb3_spikeplastic.ppo import POLICY_DEPENDENT_DEFAULTS
+    from sb3_spikeplastic.sb3.ppo import POLICY_DEPENDENT_DEFAULTS
 
     for env_id, entry in load_hyperparams_file(conf).items():
         if entry.get("policy", "SpikePlasticPolicy") != "SpikePlasticPolicy":

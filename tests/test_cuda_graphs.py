@@ -1,4 +1,4 @@
-"""CUDA-graph replay of the training pass (sb3_spikeplastic.cuda_graphs) against the eager pass.
+"""CUDA-graph replay of the training pass (sb3_spikeplastic.sb3.cuda_graphs) against the eager pass.
 
 The graph tests need a CUDA device; the state flattening and the capture-failure fallback run everywhere.
 """
@@ -13,7 +13,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 from helpers import tmaze_model
 
 from sb3_spikeplastic import PPO
-from sb3_spikeplastic.cuda_graphs import GraphedRolloutStep, GraphedSequenceEvaluation, flatten_state
+from sb3_spikeplastic.sb3.cuda_graphs import GraphedRolloutStep, GraphedSequenceEvaluation, flatten_state
 
 needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 

@@ -15,8 +15,8 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_spikeplastic import PPO
-from sb3_spikeplastic.policy import previous_defaults_filled
-from sb3_spikeplastic.ppo import POLICY_DEPENDENT_DEFAULTS
+from sb3_spikeplastic.sb3.policy import previous_defaults_filled
+from sb3_spikeplastic.sb3.ppo import POLICY_DEPENDENT_DEFAULTS
 
 CHEETAH = "HalfCheetah-v5"
 RULES = ["static", "dp-linear", "dp-oja", "dp-bcm", "ndp-oja", "ndp-bcm"]

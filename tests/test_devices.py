@@ -14,10 +14,12 @@ import pytest
 import torch
 from stable_baselines3.common.vec_env import DummyVecEnv
 
-from sb3_spikeplastic import PPO, _fast
-from sb3_spikeplastic.coding import ContinuousDecoder, PopulationEncoder
+from sb3_spikeplastic import PPO
+
+from sb3_spikeplastic.snn import _fast
+from sb3_spikeplastic.snn.coding import ContinuousDecoder, PopulationEncoder
 from sb3_spikeplastic.envs.tmaze import TMazeCueEnv
-from sb3_spikeplastic.network import SpikingPlasticNetwork, tensor_leaves
+from sb3_spikeplastic.snn.network import SpikingPlasticNetwork, tensor_leaves
 
 DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(),
                                                                  reason="needs a CUDA device"))]

@@ -1,11 +1,11 @@
-"""The energy estimate (sb3_spikeplastic.energy): the plasticity's own operations and the cost arithmetic."""
+"""The energy estimate (sb3_spikeplastic.snn.energy): the plasticity's own operations and the cost arithmetic."""
 
 import math
 
 import pytest
 from helpers import tmaze_model
 
-from sb3_spikeplastic.energy import AC_PJ, MAC_PJ, energy_estimate, plasticity_operations, trace_update_macs
+from sb3_spikeplastic.snn.energy import AC_PJ, MAC_PJ, energy_estimate, plasticity_operations, trace_update_macs
 
 
 @pytest.mark.parametrize("rule, per_synapse, modulated", [
@@ -40,7 +40,7 @@ def test_energy_estimate_in_nanojoules():
 
 def test_a_rule_of_ones_own_has_no_known_cost():
     from sb3_spikeplastic import register_rule
-    from sb3_spikeplastic.plasticity import DPLinearRule
+    from sb3_spikeplastic.snn.plasticity import DPLinearRule
 
     @register_rule("energy-test-linear", override=True)
     class Unknown(DPLinearRule):  # a subclass may change the terms: its cost is not assumed
@@ -53,7 +53,7 @@ def test_a_rule_of_ones_own_has_no_known_cost():
 def test_energy_meter_summary_adds_the_plasticity_and_the_estimate():
     import torch
 
-    from sb3_spikeplastic.monitoring import EnergyMeter
+    from sb3_spikeplastic.snn.energy import EnergyMeter
 
     model = tmaze_model("ndp-bcm")
     net, obs = model.policy.snn, torch.ones(3, *model.observation_space.shape, device=model.device)

@@ -12,7 +12,9 @@ import numpy as np
 import pytest
 from test_cli import TINY_TMAZE, run_cli
 
-from sb3_spikeplastic import cli, enjoy
+from sb3_spikeplastic import cli
+
+from sb3_spikeplastic.zoo import enjoy
 from sb3_spikeplastic.envs.tmaze import TMazeCueEnv
 
 

@@ -5,8 +5,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sb3_spikeplastic.evaluation import Evaluation, evaluate_command, report_lines
-from sb3_spikeplastic.run_folder import RunInfo
+from sb3_spikeplastic.zoo.evaluation import Evaluation, evaluate_command, report_lines
+from sb3_spikeplastic.zoo.run_folder import RunInfo
 
 
 def test_report_lines_say_return_success_and_energy():

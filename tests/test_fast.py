@@ -1,4 +1,4 @@
-"""The compiled SRM spike loop (sb3_spikeplastic._fast) against the pure-PyTorch reference loop.
+"""The compiled SRM spike loop (sb3_spikeplastic.snn._fast) against the pure-PyTorch reference loop.
 
 The compiled loop must give *bit-identical* spikes, membrane and state (``torch.equal``), not merely close ones:
 a membrane value one ulp off can flip a spike at the threshold and change a whole trajectory.
@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 import torch
 
-from sb3_spikeplastic import _fast
-from sb3_spikeplastic import neurons
-from sb3_spikeplastic.neurons import (
+from sb3_spikeplastic.snn import _fast
+from sb3_spikeplastic.snn import neurons
+from sb3_spikeplastic.snn.neurons import (
     AlphaFilterState,
     SRMParameters,
     SRMSpikeRecursion,
@@ -238,8 +238,8 @@ def test_outputs_carry_no_autograd(compiled):
 
 def test_no_compile_at_import():
     code = (
-        "import sb3_spikeplastic, sb3_spikeplastic.neurons, sb3_spikeplastic.layers\n"
-        "from sb3_spikeplastic import _fast\n"
+        "import sb3_spikeplastic, sb3_spikeplastic.snn.neurons, sb3_spikeplastic.snn.layers\n"
+        "from sb3_spikeplastic.snn import _fast\n"
         "assert not _fast._tried, 'compiled at import'\n"
     )
     env = dict(os.environ)
@@ -351,7 +351,7 @@ def test_stale_build_lock_is_removed(tmp_path):
 def test_allocator_settings_take_effect_on_glibc():
     import platform
 
-    from sb3_spikeplastic._fast.allocator import keep_freed_memory
+    from sb3_spikeplastic.snn._fast.allocator import keep_freed_memory
 
     if platform.libc_ver()[0] != "glibc":
         pytest.skip("not glibc")
@@ -360,8 +360,8 @@ def test_allocator_settings_take_effect_on_glibc():
 
 _BLOCK_CACHE_CHECK = """
 import torch
-from sb3_spikeplastic import _fast
-from sb3_spikeplastic._fast.allocator import cache_freed_blocks
+from sb3_spikeplastic.snn import _fast
+from sb3_spikeplastic.snn._fast.allocator import cache_freed_blocks
 ops = _fast.load_ops()
 assert ops is not None, _fast.build_error()
 assert ops.cpu_block_cache_bytes() == 0
@@ -383,8 +383,9 @@ assert ops.cpu_block_cache_bytes() == 3 * 2**20
 
 _BLOCK_CACHE_TRAINING = """
 import hashlib, sys, torch
-from sb3_spikeplastic import PPO, _fast
-from sb3_spikeplastic._fast import allocator
+from sb3_spikeplastic import PPO
+from sb3_spikeplastic.snn import _fast
+from sb3_spikeplastic.snn._fast import allocator
 torch.set_num_threads(1)
 cache = sys.argv[1] == "cache"
 model = PPO("SpikePlasticPolicy", "TMazeCue-v0", n_steps=64, batch_size=64, bptt_steps=16, n_epochs=2, seed=3,

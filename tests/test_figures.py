@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from sb3_spikeplastic.figures import curve_summaries, plot_command, read_runs
+from sb3_spikeplastic.zoo.figures import curve_summaries, plot_command, read_runs
 
 
 def monitor_file(path, episodes, t_start=1000.0):

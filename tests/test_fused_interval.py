@@ -6,11 +6,11 @@ gradients of the eager graph."""
 import pytest
 import torch
 
-from sb3_spikeplastic import _fast, layers
-from sb3_spikeplastic.layers import PlasticSRMLayer, _FusedInterval
-from sb3_spikeplastic.network import tensor_leaves
-from sb3_spikeplastic.neurons import SRMParameters, alpha_filter_operator, slayer_surrogate
-from sb3_spikeplastic.plasticity import DPOjaRule, get_rule_class
+from sb3_spikeplastic.snn import _fast, layers
+from sb3_spikeplastic.snn.layers import PlasticSRMLayer, _FusedInterval
+from sb3_spikeplastic.snn.network import tensor_leaves
+from sb3_spikeplastic.snn.neurons import SRMParameters, alpha_filter_operator, slayer_surrogate
+from sb3_spikeplastic.snn.plasticity import DPOjaRule, get_rule_class
 
 pytestmark = pytest.mark.skipif(_fast.load_ops() is None, reason="compiled ops unavailable")
 

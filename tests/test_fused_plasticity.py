@@ -14,8 +14,8 @@ import sys
 import pytest
 import torch
 
-from sb3_spikeplastic import _fast
-from sb3_spikeplastic.plasticity import (
+from sb3_spikeplastic.snn import _fast
+from sb3_spikeplastic.snn.plasticity import (
     HebbianTerms,
     PlasticState,
     dp_bcm_update,
@@ -254,8 +254,8 @@ def test_fused_plastic_linear_splits_environments_between_threads(compiled_ops, 
 def test_network_gradients_with_and_without_compiled_ops(compiled_ops, monkeypatch, rule):
     """A 4-step BPTT sequence through a 2-layer plastic network (float64, so that no spike flips on rounding):
     every parameter's gradient agrees between the compiled path and pure PyTorch."""
-    from sb3_spikeplastic.coding import DiscreteDecoder, RasterInput
-    from sb3_spikeplastic.network import SpikingPlasticNetwork
+    from sb3_spikeplastic.snn.coding import DiscreteDecoder, RasterInput
+    from sb3_spikeplastic.snn.network import SpikingPlasticNetwork
 
     torch.manual_seed(0)
     steps, n_in = 20, 30
@@ -292,7 +292,7 @@ def test_cuda_uses_eager_and_matches_cpu(compiled_ops):
 
 
 def test_user_rule_with_hebbian_terms_runs_the_fused_update(compiled_ops, monkeypatch):
-    from sb3_spikeplastic.plasticity import PlasticityRule
+    from sb3_spikeplastic.snn.plasticity import PlasticityRule
 
     class Covariance(PlasticityRule):
         def hebbian_terms(self, r_pre, r_post, state):
@@ -316,7 +316,7 @@ def test_pool_threads_follow_the_callers_flush_denormal_mode(compiled_ops):
     subprocess: the mode and the pool are process-wide."""
     code = """
 import torch
-from sb3_spikeplastic import _fast
+from sb3_spikeplastic.snn import _fast
 torch.set_num_threads(2)
 x = torch.full((4, 16, 256), 1e-21)
 W, alpha, E = torch.full((64, 256), 1e-21), torch.zeros(64, 256), torch.zeros(4, 64, 256)

@@ -12,9 +12,9 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_spikeplastic import PPO, SpikePlasticPolicy
-from sb3_spikeplastic.config import model_arguments, normalize_arguments, resolve_hyperparams
-from sb3_spikeplastic.network import ALPHA_REFERENCE_FAN_IN
-from sb3_spikeplastic.plasticity import DPOjaRule
+from sb3_spikeplastic.zoo.config import model_arguments, normalize_arguments, resolve_hyperparams
+from sb3_spikeplastic.snn.network import ALPHA_REFERENCE_FAN_IN
+from sb3_spikeplastic.snn.plasticity import DPOjaRule
 
 ENV_ID = "HalfCheetah-v5"
 
@@ -145,7 +145,7 @@ def test_auto_threads_split_the_halfcheetah_entry_but_not_small_policies():
     from sb3_contrib import RecurrentPPO
 
     from sb3_spikeplastic.envs.tmaze import TMazeCueEnv
-    from sb3_spikeplastic.experiment import training_threads
+    from sb3_spikeplastic.zoo.experiment import training_threads
 
     small = dict(n_envs=1, n_steps=32, batch_size=32)
     cheetah = shipped_model(**small, bptt_steps=16).policy

@@ -36,7 +36,7 @@ def test_cli_help_does_not_load_torch(tmp_path):
 
 def test_public_names_load_on_first_use():
     import sb3_spikeplastic
-    from sb3_spikeplastic.policy import SpikePlasticPolicy
+    from sb3_spikeplastic.sb3.policy import SpikePlasticPolicy
 
     assert sb3_spikeplastic.SpikePlasticPolicy is SpikePlasticPolicy
     assert "dp-oja" in sb3_spikeplastic.available_rules()

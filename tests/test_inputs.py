@@ -2,7 +2,7 @@
 
 import pytest
 
-from sb3_spikeplastic.inputs import check_int, check_output_path, model_source, parse_env_kwargs
+from sb3_spikeplastic.zoo.inputs import check_int, check_output_path, model_source, parse_env_kwargs
 
 
 def test_check_int_names_the_option_and_the_minimum():

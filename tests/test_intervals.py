@@ -4,7 +4,7 @@ widens it by the spread between seeds, coverage of a known mean, paired resampli
 import numpy as np
 import pytest
 
-from sb3_spikeplastic.intervals import (Interval, bootstrap_difference, bootstrap_interval, bootstrap_mean_differences,
+from sb3_spikeplastic.study.intervals import (Interval, bootstrap_difference, bootstrap_interval, bootstrap_mean_differences,
                                          bootstrap_mean_intervals, resample)
 
 

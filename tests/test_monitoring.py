@@ -15,16 +15,13 @@ from helpers import tmaze_model
 
 from sb3_spikeplastic import PPO
 from sb3_spikeplastic.envs.tmaze import TMazeCueEnv
-from sb3_spikeplastic.figures import activity_figure
-from sb3_spikeplastic.monitoring import (
-    ActivityFigureCallback,
-    RolloutActivity,
-    hyperparameter_markdown,
-    record_episode,
-    spike_counts,
-    write_hyperparameters,
-)
-from sb3_spikeplastic.network import NetworkOutput
+from sb3_spikeplastic.zoo.figures import activity_figure
+from sb3_spikeplastic.sb3.activity import RolloutActivity
+from sb3_spikeplastic.snn.energy import spike_counts
+from sb3_spikeplastic.zoo.callbacks import ActivityFigureCallback
+from sb3_spikeplastic.zoo.hparams import hyperparameter_markdown, write_hyperparameters
+from sb3_spikeplastic.zoo.recording import record_episode
+from sb3_spikeplastic.snn.network import NetworkOutput
 
 SMALL = dict(hidden_sizes=(16,), steps=10, encoder_pop_size=8, action_pop_size=4)
 
@@ -203,8 +200,8 @@ def test_figure_callback_validates_its_interval():
 
 
 def test_spike_counts_and_synops_by_hand():
-    from sb3_spikeplastic.monitoring import spike_counts, synaptic_operations
-    from sb3_spikeplastic.network import NetworkOutput
+    from sb3_spikeplastic.snn.energy import spike_counts, synaptic_operations
+    from sb3_spikeplastic.snn.network import NetworkOutput
 
     # batch of 2, T = 10: input 3 neurons, one hidden layer of 2, output of 4
     out = NetworkOutput(torch.zeros(2, 1),
@@ -218,7 +215,7 @@ def test_spike_counts_and_synops_by_hand():
 
 
 def test_energy_meter_counts_every_spike_of_an_evaluation():
-    from sb3_spikeplastic.monitoring import EnergyMeter
+    from sb3_spikeplastic.snn.energy import EnergyMeter
 
     model = tmaze_model("ndp-oja")
     net = model.policy.snn
@@ -261,7 +258,7 @@ def test_rollout_energy_scalars_agree_with_rates():
 def test_typical_seed_is_the_first_episode_that_ends_as_most_do(monkeypatch):
     from types import SimpleNamespace
 
-    from sb3_spikeplastic import monitoring
+    from sb3_spikeplastic.zoo import recording as monitoring
 
     outcomes = {}
 

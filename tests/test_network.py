@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from sb3_spikeplastic import _fast
-from sb3_spikeplastic.coding import ContinuousDecoder, DiscreteDecoder, PopulationEncoder
-from sb3_spikeplastic.network import NetworkState, SpikingPlasticNetwork, tensor_leaves
-from sb3_spikeplastic.plasticity import (
+from sb3_spikeplastic.snn import _fast
+from sb3_spikeplastic.snn.coding import ContinuousDecoder, DiscreteDecoder, PopulationEncoder
+from sb3_spikeplastic.snn.network import NetworkState, SpikingPlasticNetwork, tensor_leaves
+from sb3_spikeplastic.snn.plasticity import (
     RULES,
     PlasticityRule,
     PlasticState,

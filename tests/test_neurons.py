@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from sb3_spikeplastic.layers import PlasticSRMLayer
-from sb3_spikeplastic.neurons import (
+from sb3_spikeplastic.snn.layers import PlasticSRMLayer
+from sb3_spikeplastic.snn.neurons import (
     AlphaFilterState,
     SLAYERSpike,
     SRMParameters,
@@ -23,7 +23,7 @@ from sb3_spikeplastic.neurons import (
     alpha_filter_step,
     srm_spike_loop,
 )
-from sb3_spikeplastic.plasticity import StaticRule
+from sb3_spikeplastic.snn.plasticity import StaticRule
 
 
 # ---------------------------------------------------------------------------------------------------------------

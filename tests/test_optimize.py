@@ -6,8 +6,8 @@ import optuna
 import pytest
 from helpers import TINY_CARTPOLE, run_cli
 
-from sb3_spikeplastic import config as cfg
-from sb3_spikeplastic.optimize import OptimizeSettings, load_search_space, prepare, sample_overrides, searched_space
+from sb3_spikeplastic.zoo import config as cfg
+from sb3_spikeplastic.study.optimize import OptimizeSettings, load_search_space, prepare, sample_overrides, searched_space
 from sb3_spikeplastic.study.storage import default_storage_url
 
 SMALL_SPACE = """default:

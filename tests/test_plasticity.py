@@ -8,8 +8,8 @@ import pytest
 import torch
 from torch import nn
 
-from sb3_spikeplastic.layers import PlasticSRMLayer
-from sb3_spikeplastic.plasticity import PlasticState, get_rule_class
+from sb3_spikeplastic.snn.layers import PlasticSRMLayer
+from sb3_spikeplastic.snn.plasticity import PlasticState, get_rule_class
 
 
 TRACE_RULES = ["dp-linear", "dp-oja", "dp-bcm", "ndp-oja", "ndp-bcm"]

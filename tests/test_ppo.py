@@ -17,7 +17,7 @@ from stable_baselines3.common.vec_env import VecNormalize
 from helpers import tmaze, tmaze_model, vec
 
 from sb3_spikeplastic import PPO, SpikePlasticPolicy
-from sb3_spikeplastic.network import tensor_leaves
+from sb3_spikeplastic.snn.network import tensor_leaves
 
 SMALL = dict(hidden_sizes=(16,), steps=10, encoder_pop_size=8, action_pop_size=4)
 
@@ -309,14 +309,14 @@ print(mlp_keeps, (tiny * 1.0).item() == 0, model.flush_denormal)
 def test_spiking_models_on_the_cpu_install_the_block_cache(keep):
     """A spiking model on the CPU applies the allocator settings (the block cache) unless told not to; SB3's own
     policies leave the allocator alone. In a subprocess: the allocator is process-wide."""
-    from sb3_spikeplastic import _fast
+    from sb3_spikeplastic.snn import _fast
 
     if _fast.load_ops() is None:
         pytest.skip(f"compiled ops unavailable: {_fast.build_error()}")
     code = f"""
 from helpers import tmaze_model
 from sb3_spikeplastic import PPO
-from sb3_spikeplastic._fast import allocator
+from sb3_spikeplastic.snn._fast import allocator
 from stable_baselines3.common.env_util import make_vec_env
 PPO("MlpPolicy", make_vec_env("CartPole-v1", n_envs=1), n_steps=16, batch_size=16)
 mlp_installed = allocator._cache_installed
@@ -362,7 +362,7 @@ def test_chunks_per_pass_must_divide_the_minibatch(value):
 def test_auto_chunks_per_pass_keeps_the_graph_within_the_budget(monkeypatch):
     """``"auto"`` (the default) runs a small network's minibatch in one pass, and splits it into the largest
     divisor of its chunk count whose estimated graph fits the budget; the choice is logged."""
-    import sb3_spikeplastic.ppo as ppo_module
+    import sb3_spikeplastic.sb3.ppo as ppo_module
 
     # 8 chunks per minibatch; on the CPU (elsewhere "auto" is always one pass: no compiled ops' graph to size)
     model = tmaze_model(n_envs=2, n_steps=32, batch_size=64, bptt_steps=8, device="cpu")

@@ -4,8 +4,8 @@ and the same first update, under any later change of the defaults."""
 import pytest
 import torch
 
-from sb3_spikeplastic import config as cfg
-from sb3_spikeplastic.experiment import Experiment, resolved_entry
+from sb3_spikeplastic.zoo import config as cfg
+from sb3_spikeplastic.zoo.experiment import Experiment, resolved_entry
 
 SMALL = ["n_envs=2", "n_steps=32", "bptt_steps=16", "batch_size=32", "n_epochs=1"]
 
@@ -47,7 +47,7 @@ def test_config_yml_rebuilds_the_model_and_its_first_update(tmp_path, env, conf,
 
 def test_a_later_default_does_not_change_a_recorded_run(tmp_path, monkeypatch):
     """The entry records PPO's policy-dependent defaults, so changing one later leaves the rebuilt model alone."""
-    from sb3_spikeplastic import ppo
+    from sb3_spikeplastic.sb3 import ppo
 
     config = cfg.resolve_hyperparams("TMazeCue-v0", None, SMALL, n_timesteps=64)
     entry = resolved_entry(build("TMazeCue-v0", config, tmp_path), config)

@@ -11,13 +11,15 @@ import pytest
 import torch
 from helpers import run_cli, tmaze_model
 
-from sb3_spikeplastic import PPO, __version__, cli, experiment
-from sb3_spikeplastic.config import dump_yaml, packaged_hyperparams_path
+from sb3_spikeplastic import PPO, __version__, cli
+
+from sb3_spikeplastic.zoo import experiment
+from sb3_spikeplastic.zoo.config import dump_yaml, packaged_hyperparams_path
 
 
 def prepared_run(monkeypatch, argv):
     """``argv`` through the parser and ``train_command``'s checks (the model is built), not trained: the
-    :class:`~sb3_spikeplastic.experiment.Experiment` it would run and the printed lines."""
+    :class:`~sb3_spikeplastic.zoo.experiment.Experiment` it would run and the printed lines."""
     seen = {}
     monkeypatch.setattr(experiment, "_train", lambda exp, command_line, options, tb_root: seen.update(
         experiment=exp, command_line=command_line, options=options) or 0)
@@ -126,10 +128,11 @@ def zoo_logs(tmp_path_factory):
 def prepared_enjoy(monkeypatch, capsys, argv):
     """``enjoy ARGV`` prepared and run with the playing left out: (the model file it loaded, Player.run's
     arguments)."""
-    from sb3_spikeplastic import enjoy, monitoring
+    from sb3_spikeplastic.zoo import enjoy
+    from sb3_spikeplastic.zoo import recording
 
     seen = {}
-    monkeypatch.setattr(monitoring, "typical_seed", lambda *args, **kwargs: (0, None))
+    monkeypatch.setattr(recording, "typical_seed", lambda *args, **kwargs: (0, None))
     monkeypatch.setattr(enjoy.Player, "run", lambda self, *args, **kwargs: seen.update(args=args, kwargs=kwargs))
     args = cli.build_parser().parse_args([str(a) for a in argv])
     assert cli.prepare(args, argv)() == 0

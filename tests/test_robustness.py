@@ -11,7 +11,7 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-from sb3_spikeplastic.robustness import RobustnessRow, evaluate_robustness, format_table, write_csv, write_report
+from sb3_spikeplastic.study.robustness import RobustnessRow, evaluate_robustness, format_table, write_csv, write_report
 
 SHORT = {"max_episode_steps": 5}
 
@@ -138,7 +138,7 @@ def test_bad_arguments_name_the_value(kwargs, bad):
 
 
 def test_return_ratio_reads_as_kept_performance_for_negative_returns_too():
-    from sb3_spikeplastic.robustness import return_ratio
+    from sb3_spikeplastic.study.robustness import return_ratio
 
     assert return_ratio(100.0, 200.0) == pytest.approx(0.5)  # the paper's quotient for positive returns
     assert return_ratio(-1.62, -5.33) == pytest.approx(1 + 3.71 / 5.33)  # less negative: better, above 1
@@ -161,7 +161,7 @@ def test_report_is_written_as_csv_markdown_and_figure(tmp_path):
 def test_every_episode_is_kept_in_environment_order_and_written(tmp_path):
     """Returns are sorted by (episode within its environment, environment): positions 0 and 2 are environment 0's
     two episodes, exactly what an evaluation of environment 0 alone (seeded alike) returns."""
-    from sb3_spikeplastic.robustness import write_episodes_csv
+    from sb3_spikeplastic.study.robustness import write_episodes_csv
 
     rows = evaluate_robustness({"stub": RecurrentStub()}, "HalfCheetah-v5", "friction", [0.3], n_episodes=4,
                                n_envs=2, seed=7, progress_bar=False, env_kwargs=SHORT)

@@ -4,9 +4,9 @@ gradients through long plastic sequences with the trace at its clip bound."""
 import pytest
 import torch
 
-from sb3_spikeplastic.coding import DiscreteDecoder, RasterInput
-from sb3_spikeplastic.network import NetworkState, SpikingPlasticNetwork, map_tensors
-from sb3_spikeplastic.plasticity import PlasticState, get_rule_class
+from sb3_spikeplastic.snn.coding import DiscreteDecoder, RasterInput
+from sb3_spikeplastic.snn.network import NetworkState, SpikingPlasticNetwork, map_tensors
+from sb3_spikeplastic.snn.plasticity import PlasticState, get_rule_class
 
 
 @pytest.mark.parametrize("rule", ["ndp-oja", "ndp-bcm"])

@@ -11,8 +11,8 @@ import pytest
 from helpers import run_cli
 
 from sb3_spikeplastic import PPO, cli
-from sb3_spikeplastic.callbacks import TrainingSummary, rounding_note
-from sb3_spikeplastic.config import replaced_mappings
+from sb3_spikeplastic.zoo.callbacks import TrainingSummary, rounding_note
+from sb3_spikeplastic.zoo.config import replaced_mappings
 
 TINY_TMAZE = ["n_envs=2", "n_steps=32", "batch_size=32", "bptt_steps=16", "n_epochs=1",
               "policy_kwargs.hidden_sizes=[16]"]
@@ -65,7 +65,7 @@ def test_rounding_note():
                                                     (["--no-progress"], True, False)])
 def test_progress_bar_on_a_terminal_unless_asked(flags, terminal, shown, monkeypatch):
     seen = {}
-    monkeypatch.setattr("sb3_spikeplastic.evaluation.evaluate_command", lambda **options: seen.update(options))
+    monkeypatch.setattr("sb3_spikeplastic.zoo.evaluation.evaluate_command", lambda **options: seen.update(options))
     monkeypatch.setattr(sys.stderr, "isatty", lambda: terminal)
     args = cli.build_parser().parse_args(["evaluate", "--run", "r", *flags])
     cli.prepare(args, [])

@@ -11,7 +11,7 @@ import torch
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_spikeplastic import PPO
-from sb3_spikeplastic.config import model_arguments, resolve_hyperparams
+from sb3_spikeplastic.zoo.config import model_arguments, resolve_hyperparams
 
 
 def train(rule, timesteps):

@@ -1,4 +1,4 @@
-"""Studies: a declared file of variants x environments x seeds x budgets x evaluations, trained and evaluated by
+"""Studies and their analysis, the highest layer below the command line: a declared file of variants x environments x seeds x budgets x evaluations, trained and evaluated by
 workers that share an Optuna storage, and a report derived from the raw episodes alone.
 
 * :mod:`~sb3_spikeplastic.study.declaration` — the study file (:class:`Study`) and its checks
@@ -7,6 +7,9 @@ workers that share an Optuna storage, and a report derived from the raw episodes
 * :mod:`~sb3_spikeplastic.study.engine` — the cells, the shared queue, the workers
 * :mod:`~sb3_spikeplastic.study.report` — tables, intervals, verdicts and figures
 * :mod:`~sb3_spikeplastic.study.storage` — Optuna storages with heartbeats (also used by ``optimize``)
+* :mod:`~sb3_spikeplastic.study.robustness` — one model's return under noise (``sb3-spikeplastic robustness``)
+* :mod:`~sb3_spikeplastic.study.intervals` — two-stage bootstrap intervals over seeds and episodes
+* :mod:`~sb3_spikeplastic.study.optimize` — hyperparameter search (``sb3-spikeplastic optimize``)
 """
 
 from .declaration import Study, load_study_file, study_from_dict

@@ -38,7 +38,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Optional, Sequence
 
-from .. import config as cfg
+from ..zoo import config as cfg
 from .protocol import FIG4, NOISES, Protocol
 
 STUDY_KEYS = ("description", "envs", "seeds", "budgets", "conf", "hyperparams", "eval_freq", "eval_episodes",
@@ -84,7 +84,7 @@ class Evaluation:
     :param variants: only these variants' models (``None``: all), likewise ``seeds`` and ``budgets``
     :param clip_obs: evaluate with the model's frozen ``VecNormalize`` statistics clipping the standardised
         observation at this bound instead of their own (``None``: as trained)
-    :param ablation: evaluate the spiking models under this plasticity ablation (:mod:`sb3_spikeplastic.ablation`:
+    :param ablation: evaluate the spiking models under this plasticity ablation (:mod:`sb3_spikeplastic.sb3.ablation`:
         ``frozen``, ``reset-every:N``, ``shuffled``; ``None``: as trained); other models as they are
     :param shift: ``sensitivity``: the shift of one raw observation element (:mod:`~sb3_spikeplastic.study.probes`)
     :param groups: ``sensitivity``: named groups of observation elements the report averages (``None``: each
@@ -274,7 +274,7 @@ def _variant(name, spec, where: str, base: Path) -> Variant:
     _check_keys(f"key of variant {name!r}", spec, VARIANT_KEYS, where)
     rule = spec.get("rule")
     if rule is not None:
-        from ..plasticity import available_rules, get_rule_class
+        from ..snn.plasticity import available_rules, get_rule_class
 
         try:
             get_rule_class(rule)
@@ -334,7 +334,7 @@ def _evaluation(name, spec, where: str, variants: dict) -> Evaluation:
     filters = _filters(spec, what, variants)
     ablation = spec.get("ablation")
     if ablation is not None:
-        from ..ablation import Ablation
+        from ..sb3.ablation import Ablation
 
         try:
             ablation = str(Ablation.parse(ablation))

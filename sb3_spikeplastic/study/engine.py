@@ -263,7 +263,7 @@ def run_worker(job: StudyJob, log: Callable[[str], None] = print) -> int:
     import optuna
     import torch
 
-    from .._fast.allocator import keep_freed_memory
+    from ..snn._fast.allocator import keep_freed_memory
 
     torch.set_num_threads(job.torch_threads)
     keep_freed_memory()  # as `train` does: the training steps' buffers stay mapped
@@ -333,7 +333,7 @@ def _budget_checkpoints(budgets, run_dir: Path):
     budget: ``rl_model_<steps>_steps.zip``, the model of that budget."""
     from stable_baselines3.common.callbacks import BaseCallback
 
-    from ..run_folder import checkpoint_statistics, save_model, save_vecnormalize
+    from ..zoo.run_folder import checkpoint_statistics, save_model, save_vecnormalize
 
     class BudgetCheckpoints(BaseCallback):
         def _on_step(self) -> bool:
@@ -371,7 +371,7 @@ def _final_steps(folder: Path, env: str) -> int:
 
 def train_cell(job: StudyJob, env: str, variant: str, seed: int, trial=None) -> None:
     """Train the cell to its variant's largest budget, continuing its latest run if there is one."""
-    from ..experiment import Experiment, continued_run
+    from ..zoo.experiment import Experiment, continued_run
 
     layout, study = job.layout, job.study
     budgets, train_env = study.budgets_of(variant), study.train_env(env, variant)
@@ -403,7 +403,7 @@ def write_training_curve(layout: StudyFolder, env: str, variant: str, seed: int)
     """The cell's evaluations during training (every run folder's ``evaluations.npz``) as raw episodes."""
     import numpy as np
 
-    from ..run_folder import atomic_write
+    from ..zoo.run_folder import atomic_write
 
     rows = []
     for folder in layout.run_folders(env, variant, seed):
@@ -460,9 +460,9 @@ def evaluate_model_file(job: StudyJob, env: str, name: str, evaluation: Evaluati
 
 def _evaluate(job: StudyJob, env: str, name: str, evaluation: Evaluation, model_path: Path, folder: Path,
               missing: list[str], eval_name: str, same_env: bool, tmp: Path) -> int:
-    from ..evaluation import evaluate_model
-    from ..robustness import evaluate_robustness, write_episodes_csv
-    from ..run_folder import atomic_write, load_model, locate_run, make_eval_env
+    from ..zoo.evaluation import evaluate_model
+    from .robustness import evaluate_robustness, write_episodes_csv
+    from ..zoo.run_folder import atomic_write, load_model, locate_run, make_eval_env
 
     info = locate_run(model_path)
     model = load_model(info, job.device)
@@ -597,7 +597,7 @@ def study_command(study_file: list[str], workers: int = 1, heartbeat_interval: i
     """``sb3-spikeplastic study [report] FILE`` with these options (its long names): the study file and the study
     are checked by :func:`prepare` (``ValueError``, nothing written); returns the work (:func:`run`, or the report
     alone)."""
-    from ..inputs import check_device, check_int, check_output_path
+    from ..zoo.inputs import check_device, check_int, check_output_path
     from .declaration import load_study_file
     from .report import report_command
     from .storage import check_storage

@@ -4,13 +4,13 @@ and the area under the ratio curve.
 
 Every model is evaluated on ``episodes`` deterministic episodes per (noise, sigma), all environments seeded from
 ``seed``, so every model and every sigma sees the same episode seeds and the comparison is paired; sigma = 0 is the
-model's noise-free return R0. The ratio to R0 is :func:`sb3_spikeplastic.robustness.return_ratio`; the AUC is the
+model's noise-free return R0. The ratio to R0 is :func:`sb3_spikeplastic.study.robustness.return_ratio`; the AUC is the
 trapezoid area under the ratio curve divided by the sigma range (1: no loss at any sigma).
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
@@ -52,7 +52,7 @@ FIG4 = Protocol()
 
 def ratio_to_r0(means: np.ndarray) -> np.ndarray:
     r"""The return ratio of each sigma's mean return to the first's (R0), on the last axis:
-    :math:`1 + (R_\sigma - R_0) / |R_0|` (see :func:`sb3_spikeplastic.robustness.return_ratio`)."""
+    :math:`1 + (R_\sigma - R_0) / |R_0|` (see :func:`sb3_spikeplastic.study.robustness.return_ratio`)."""
     r0 = means[..., :1]
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(r0 == 0, np.nan, 1.0 + (means - r0) / np.abs(r0))

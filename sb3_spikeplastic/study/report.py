@@ -2,7 +2,7 @@
 raw episode files (:mod:`sb3_spikeplastic.study.layout`) and nothing else.
 
 A group is ``<variant>@<budget>`` (its models are the seeds). Intervals are two-stage bootstrap 95 % intervals over
-seeds, then episodes (:mod:`sb3_spikeplastic.intervals`; seeded, so a report is reproducible). Written into the
+seeds, then episodes (:mod:`sb3_spikeplastic.study.intervals`; seeded, so a report is reproducible). Written into the
 study's folder (with one environment; with several, each file name starts with ``<env>_``):
 
 * ``table.md`` — per final evaluation: each group's mean return (and success rate) per seed and with its interval;
@@ -29,7 +29,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..intervals import Interval, bootstrap_mean_differences, bootstrap_mean_intervals
+from .intervals import Interval, bootstrap_mean_differences, bootstrap_mean_intervals
 from .declaration import Evaluation, Study, budget_label, model_name
 from .layout import StudyFolder, read_final, read_robustness, read_sensitivity, read_training
 from .protocol import auc, ratio_to_r0
@@ -130,7 +130,7 @@ def groups_of(study: Study) -> list[str]:
 def _entry(study: Study, variant: str) -> dict:
     """The variant's resolved entry on the study's first environment; where resolving needs a package the report
     does not (sb3-contrib for a RecurrentPPO baseline), its file's entry with the variant's rule."""
-    from .. import config as cfg
+    from ..zoo import config as cfg
 
     try:
         return study.config(study.envs[0], variant)
@@ -431,7 +431,7 @@ def training_curves(study: Study, env: str, curves: dict, path: Path) -> list[di
 # Writing
 
 def _write_csv(path: Path, rows: list[dict]) -> Path:
-    from ..run_folder import atomic_write
+    from ..zoo.run_folder import atomic_write
 
     fields = list(dict.fromkeys(k for r in rows for k in r))
 
@@ -444,7 +444,7 @@ def _write_csv(path: Path, rows: list[dict]) -> Path:
 
 
 def _write_text(path: Path, text: str) -> Path:
-    from ..run_folder import atomic_write
+    from ..zoo.run_folder import atomic_write
 
     return atomic_write(path, lambda f: f.write(text), binary=False)
 

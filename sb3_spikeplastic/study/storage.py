@@ -65,7 +65,7 @@ def is_url(storage: str) -> bool:
 
 def check_storage(storage: Optional[str]) -> None:
     """``ValueError`` unless a ``--storage`` journal file (not a URL) could be written."""
-    from ..inputs import check_output_path
+    from ..zoo.inputs import check_output_path
 
     if storage is not None and not is_url(storage):
         check_output_path(storage, "--storage", directory=False)
@@ -272,7 +272,7 @@ def train_command(env_id: str, conf: Optional[str], rule: Optional[str], overrid
 def check_model(env_id: str, config: dict, device: str = "cpu") -> None:
     """Build the environments and the model of a resolved entry once, in memory, as ``train`` does before it
     writes anything: ``ValueError`` (one line) for combinations that only the constructors reject."""
-    from ..experiment import Experiment
+    from ..zoo.experiment import Experiment
 
     try:
         Experiment(env_id, config, 0, Path("."), device=device, verbose=0, progress=False).setup()

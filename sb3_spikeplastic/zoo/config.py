@@ -53,7 +53,7 @@ SCHEDULE_KEYS = ("learning_rate", "clip_range", "clip_range_vf")
 #: Policy arguments naming a class: accepted as a name (``ReLU``, ``nn.ReLU``, ``th.optim.AdamW``,
 #: ``PlaceCellFeatures``...).
 _CLASS_KEYS = {"activation_fn": "torch.nn", "optimizer_class": "torch.optim",
-               "features_extractor_class": "sb3_spikeplastic.encoder_features"}
+               "features_extractor_class": "sb3_spikeplastic.sb3.encoder_features"}
 #: Policy arguments of SB3's ActorCriticPolicy that SpikePlasticPolicy passes on and that make sense for it.
 _SPIKE_EXTRA_POLICY_KEYS = ("optimizer_class", "optimizer_kwargs")
 _UNSETTABLE_POLICY_KEYS = ("self", "observation_space", "action_space", "lr_schedule", "kwargs")
@@ -372,7 +372,7 @@ def _signature_hints(fn) -> dict[str, Any]:
 def algorithm_class(algo: str = "ppo") -> type:
     """The class trained for an entry's ``algo`` (:data:`ALGOS`)."""
     if algo == "ppo":
-        from .ppo import PPO
+        from ..sb3.ppo import PPO
 
         return PPO
     if algo == "ppo_lstm":
@@ -420,14 +420,14 @@ def policy_kwarg_hints(policy: str = "SpikePlasticPolicy", algo: str = "ppo") ->
 
 def resolve_class_name(name: str, key: str) -> type:
     """A class named in ``activation_fn`` / ``optimizer_class`` (``ReLU``, ``nn.ReLU``, ``th.optim.AdamW``) or
-    ``features_extractor_class`` (:mod:`sb3_spikeplastic.encoder_features`: ``PlaceCellFeatures``...)."""
+    ``features_extractor_class`` (:mod:`sb3_spikeplastic.sb3.encoder_features`: ``PlaceCellFeatures``...)."""
     import torch
 
     module_name = _CLASS_KEYS[key]
-    if module_name == "sb3_spikeplastic.encoder_features":
+    if module_name == "sb3_spikeplastic.sb3.encoder_features":
         from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 
-        from . import encoder_features as module
+        from ..sb3 import encoder_features as module
 
         base = BaseFeaturesExtractor
     else:
@@ -447,7 +447,7 @@ def _check_rule_values(rule: str, rule_kwargs: dict) -> None:
     The global torch random state is left as it was."""
     import torch
 
-    from .plasticity import get_rule_class
+    from ..snn.plasticity import get_rule_class
 
     try:
         with torch.random.fork_rng(devices=[]):
@@ -462,7 +462,7 @@ def _check_rule_values(rule: str, rule_kwargs: dict) -> None:
 
 
 def _validate_policy_kwargs(policy: str, kwargs: Any, algo: str = "ppo") -> dict:
-    from .plasticity import get_rule_class
+    from ..snn.plasticity import get_rule_class
 
     kwargs = _as_mapping(kwargs, "policy_kwargs")
     if kwargs is None:
@@ -497,7 +497,7 @@ def _validate_policy_kwargs(policy: str, kwargs: Any, algo: str = "ppo") -> dict
                                   for k, v in out["rule_kwargs"].items()}
             _check_rule_values(out_rule, out["rule_kwargs"])
     if out.get("neuron"):
-        from .neurons import SRMParameters
+        from ..snn.neurons import SRMParameters
 
         _check_keys("policy_kwargs.neuron key", out["neuron"], list(SRMParameters._fields))
         out["neuron"] = {k: _check_value(f"policy_kwargs.neuron.{k}", v, float) for k, v in out["neuron"].items()}
@@ -578,7 +578,7 @@ def validate_entry(entry: Mapping[str, Any]) -> dict:
         elif key in SCHEDULE_KEYS:
             out[key] = _validate_schedule(key, value, allow_none=key == "clip_range_vf")
         elif key == "grad_clip":
-            from .ppo import GRAD_CLIP_MODES
+            from ..sb3.ppo import GRAD_CLIP_MODES
 
             if value not in GRAD_CLIP_MODES:
                 raise ValueError(f"grad_clip={value!r} is not accepted; accepted: {', '.join(GRAD_CLIP_MODES)}")
@@ -682,7 +682,7 @@ def resolve_hyperparams(
     :param n_envs: number of environments.
     :raises ValueError: a one-line message naming the bad key or value and the accepted ones.
     """
-    from .plasticity import get_rule_class
+    from ..snn.plasticity import get_rule_class
 
     parsed = [parse_override(o) for o in overrides]  # syntax first: cheap and independent of the file
     if rule is not None:
@@ -782,7 +782,7 @@ def check_env_id(env_id: str, entries: Sequence[str] = ()) -> str:
     """
     import gymnasium
 
-    from . import envs  # noqa: F401  (registers TMazeCue-v0, TMazeCueNoisy-v0, NoisyHalfCheetah-v5)
+    from .. import envs  # noqa: F401  (registers TMazeCue-v0, TMazeCueNoisy-v0, NoisyHalfCheetah-v5)
 
     if env_id in gymnasium.registry or (env_id in entries and env_id != "default"):
         return env_id
@@ -831,3 +831,10 @@ def dump_yaml(data: Any) -> str:
         return x
 
     return yaml.safe_dump(plain(data), sort_keys=False, default_flow_style=None)
+
+
+def rule_label(config: dict) -> str:
+    """Short name of a run's policy for folder names and messages: the rule, or ``mlp``, ``mlplstm``..."""
+    if config.get("policy") != "SpikePlasticPolicy":
+        return str(config.get("policy", "policy")).lower().replace("policy", "") or "policy"
+    return str((config.get("policy_kwargs") or {}).get("rule", "dp-oja"))

@@ -1,14 +1,14 @@
 """Compiled CPU fast paths of the two inner loops that eager PyTorch runs slowest.
 
-* :func:`srm_loop` (``srm_loop.cpp``), for :func:`sb3_spikeplastic.neurons.srm_spike_loop`: the SRM
+* :func:`srm_loop` (``srm_loop.cpp``), for :func:`sb3_spikeplastic.snn.neurons.srm_spike_loop`: the SRM
   threshold/refractory recursion is sequential in time and element-wise across neurons, so eager PyTorch spends
   its time launching ~7 tiny kernels per step; the compiled loop runs it in one pass and gives **bit-identical**
   spikes, membrane and state (the same IEEE operations in the same order and dtype, compiled with
   ``-ffp-contract=off`` and without fast-math).
-* :func:`trace_step` (``trace_step.cpp``), for :func:`sb3_spikeplastic.plasticity.hebbian_trace_step`: the
+* :func:`trace_step` (``trace_step.cpp``), for :func:`sb3_spikeplastic.snn.plasticity.hebbian_trace_step`: the
   trace update and clip of every built-in rule, forward and backward, in one pass over the trace each instead of
   ~20 eager passes; equal to the eager ops to float rounding (a dot product is summed in another order).
-* :func:`plastic_linear` (``plastic_linear.cpp``), for :meth:`sb3_spikeplastic.layers.PlasticSRMLayer.project`:
+* :func:`plastic_linear` (``plastic_linear.cpp``), for :meth:`sb3_spikeplastic.snn.layers.PlasticSRMLayer.project`:
   the synaptic product ``X[b] (W + alpha * E[b])^T`` with the efficacy of a few environments at a time in a
   cache-sized buffer, so that neither the ``(B, n_out, n_in)`` efficacy nor its gradient is ever materialised
   (eager: four extra passes over trace-sized arrays); equal to the eager ops to float rounding. Where an
@@ -16,15 +16,15 @@
   cells), its forward and gradient products add up the firing inputs' columns instead of multiplying through the
   zeros (``spike_product.h``, AVX2 builds); a one-environment block's float32 input gradient runs register tiles of
   broadcast-FMA (``small_gemm.h``, where the CPU has FMA) instead of BLAS.
-* :func:`interval_ops` (``srm_interval.cpp``), for :class:`sb3_spikeplastic.layers.PlasticSRMLayer`: a whole
+* :func:`interval_ops` (``srm_interval.cpp``), for :class:`sb3_spikeplastic.snn.layers.PlasticSRMLayer`: a whole
   layer interval (filter, product, spike loop, surrogate, rates and, for the built-in rules, the trace update) as
   one op forward and one backward, built from the kernels above; one autograd node per layer and interval where
   eager autograd records ~15, whose overhead dominated the small CPU networks' training step. It filters by the
   alpha filter's recurrence (``alpha_filter.cpp``, ~4 operations per value and step) where the eager layer
   multiplies by the filter's ``(L + 2, L + 2)`` operator; states and gradients are equal to float rounding.
-* :func:`bernoulli_spikes` (``bernoulli.cpp``), for :meth:`sb3_spikeplastic.coding.CounterBernoulli.sample`:
+* :func:`bernoulli_spikes` (``bernoulli.cpp``), for :meth:`sb3_spikeplastic.snn.coding.CounterBernoulli.sample`:
   the hash sampler in one pass instead of ~12, **bit-identical** (integer hashing, exact comparisons).
-* ``cache_cpu_blocks`` (``block_cache.cpp``), for :func:`sb3_spikeplastic._fast.allocator.cache_freed_blocks`:
+* ``cache_cpu_blocks`` (``block_cache.cpp``), for :func:`sb3_spikeplastic.snn._fast.allocator.cache_freed_blocks`:
   torch's CPU allocator replaced by one that keeps freed large blocks by exact size for the next allocation of
   that size (a training step allocates the same sizes in every BPTT step), where glibc searches its bins.
 
@@ -461,7 +461,7 @@ def spike_product_counts() -> Optional[tuple[int, int]]:
 
 
 def interval_ops() -> Optional[Any]:
-    """The compiled ops' namespace for :class:`sb3_spikeplastic.layers.PlasticSRMLayer`'s fused interval
+    """The compiled ops' namespace for :class:`sb3_spikeplastic.snn.layers.PlasticSRMLayer`'s fused interval
     (``srm_interval_forward`` / ``srm_interval_backward``, ``srm_interval.cpp``), or ``None`` when disabled or
     unavailable."""
     return _enabled_ops()

@@ -22,8 +22,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
 if TYPE_CHECKING:  # pragma: no cover
-    from .monitoring import EpisodeActivity
-    from .robustness import RobustnessRow
+    from .recording import EpisodeActivity
 
 _GROUP_COLOURS = ("tab:blue", "tab:red", "tab:green", "0.55", "tab:purple", "tab:orange")
 _LAYER_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple")
@@ -74,7 +73,7 @@ def activity_figure(activity: "EpisodeActivity", title: Optional[str] = None, n_
     neuromodulatory signals (mean and range over neurons) of modulated layers. Faint vertical lines separate
     environment steps.
 
-    :param activity: from :func:`sb3_spikeplastic.monitoring.record_episode`.
+    :param activity: from :func:`sb3_spikeplastic.zoo.recording.record_episode`.
     :param title: the figure's title (the episode's return, actions and outcome are appended).
     :param n_synapses: synapses shown per plastic layer.
     :param n_membrane: output neurons whose membrane potential is shown.
@@ -260,37 +259,10 @@ def training_curves_figure(runs: Mapping[str, Mapping[str, np.ndarray]], x: str 
     return fig
 
 
-def robustness_figure(rows: Sequence["RobustnessRow"], title: Optional[str] = None) -> Figure:
-    """Return ratio (:func:`~sb3_spikeplastic.robustness.return_ratio`, the mean return relative to the one at
-    ``sigma = 0``) against ``sigma``, one line per model
-    (paper Fig. 4 F-H). Error bars: one standard deviation of the episode returns over ``|mean return at 0|``."""
-    fig = Figure(figsize=(6.5, 4.5), layout="constrained")
-    ax = fig.subplots()
-    models = list(dict.fromkeys(r.model for r in rows))
-    for k, name in enumerate(models):
-        mine = sorted((r for r in rows if r.model == name), key=lambda r: r.sigma)
-        base = next((r.mean_return for r in mine if r.sigma == 0.0), math.nan)
-        sigmas = [r.sigma for r in mine]
-        ratios = [r.ratio for r in mine]
-        errors = [r.std_return / abs(base) if base not in (0.0,) and math.isfinite(base) else math.nan for r in mine]
-        ax.errorbar(sigmas, ratios, yerr=errors, marker="o", capsize=3, linewidth=1.4, label=name, color=f"C{k % 10}")
-    ax.axhline(1.0, color="0.6", linestyle=":", linewidth=0.8)
-    noise = rows[0].noise_type if rows else ""
-    ax.set_xlabel(f"{noise} noise σ")
-    # RobustnessRow.ratio: R_sigma / R_0 for a positive R_0, and below 1 exactly when the noise lowers the return.
-    ax.set_ylabel(r"return ratio $1 + (R_\sigma - R_0)\,/\,|R_0|$" "\n"
-                  r"($R_\sigma / R_0$ for $R_0 > 0$; $R$: mean return)")
-    ax.grid(alpha=0.3)
-    ax.legend(loc="best", fontsize=8)
-    if title:
-        ax.set_title(title)
-    return fig
-
-
 def read_runs(folders: Sequence[Union[str, os.PathLike]]) -> dict[str, dict[str, np.ndarray]]:
     """The Monitor data (:func:`read_monitor_files`) of run folders, labelled by folder name and rule (the full
     path where two folders share a name); ``ValueError`` for a folder without finished episodes."""
-    from .experiment import rule_label
+    from .config import rule_label
     from .run_folder import read_run_config
 
     runs = {}

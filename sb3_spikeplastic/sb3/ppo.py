@@ -1,6 +1,6 @@
 """Recurrent PPO for spiking plastic policies: a thin layer over ``stable_baselines3.PPO``.
 
-For a recurrent policy (:class:`~sb3_spikeplastic.policy.SpikePlasticPolicy`) the algorithm
+For a recurrent policy (:class:`~sb3_spikeplastic.sb3.policy.SpikePlasticPolicy`) the algorithm
 
 * carries the per-environment network state through rollouts, resetting it where an episode starts;
 * stores a state snapshot only at the start of each ``bptt_steps``-long chunk (never per step);
@@ -31,10 +31,11 @@ from stable_baselines3.common.vec_env import VecEnv
 from torch import Tensor
 from torch.nn import functional as F
 
-from ._fast import allocator
+from ..snn._fast import allocator
+from .activity import RolloutActivityCallback
 from .buffers import ChunkRolloutBuffer, ChunkSamples, check_chunking
 from .cuda_graphs import GraphedRolloutStep, GraphedSequenceEvaluation
-from .network import NetworkState
+from ..snn.network import NetworkState
 from .policy import SpikePlasticPolicy, previous_defaults_filled
 
 
@@ -85,7 +86,7 @@ class PPO(SB3PPO):
         is open, its log-probability is 0 and the step adds no policy gradient: on tasks that ignore most actions
         (the cue T-maze acts once per episode, as in the paper) this removes the noise of the ignored ones.
     :param cuda_graphs: on a CUDA device, replay each rollout step and each minibatch's forward and backward
-        pass as CUDA graphs (:mod:`sb3_spikeplastic.cuda_graphs`): the same values and gradients as eager
+        pass as CUDA graphs (:mod:`sb3_spikeplastic.sb3.cuda_graphs`): the same values and gradients as eager
         PyTorch (the rollout's action samples use other random numbers of the same distribution), without the
         hundreds of kernel launches per environment step that otherwise bound the GPU by the host. Ignored on
         the CPU.
@@ -103,7 +104,7 @@ class PPO(SB3PPO):
         where CPU arithmetic is up to ~100x slower; flushed to zero they change no spike, and the HalfCheetah
         entry trains ~1.3x faster (``benchmarks/README.md``). ``False`` leaves the mode as it is.
     :param keep_freed_memory: for recurrent policies on the CPU, apply the allocator settings of
-        :mod:`sb3_spikeplastic._fast.allocator` (process-wide) when the model is set up: freed large blocks stay
+        :mod:`sb3_spikeplastic.snn._fast.allocator` (process-wide) when the model is set up: freed large blocks stay
         in the process and go to the next allocation of their size, where glibc would unmap them or search its
         bins for every one (a training step allocates the same sizes in every BPTT step). The paper's
         HalfCheetah network trains a few percent faster and peaks ~0.2 GB lower. ``False`` leaves the allocator
@@ -199,7 +200,7 @@ class PPO(SB3PPO):
     def load(cls, path, env=None, device="auto", custom_objects=None, print_system_info=False, force_reset=True,
              **kwargs):
         """SB3's ``load``; a spiking model saved before its ``policy_kwargs`` recorded every resolved argument
-        is rebuilt with the defaults of its time (:func:`~sb3_spikeplastic.policy.previous_defaults_filled`)."""
+        is rebuilt with the defaults of its time (:func:`~sb3_spikeplastic.sb3.policy.previous_defaults_filled`)."""
         custom_objects = dict(custom_objects or {})
         if "policy_kwargs" not in custom_objects:
             start = path.tell() if hasattr(path, "tell") else None
@@ -257,11 +258,10 @@ class PPO(SB3PPO):
 
     def _init_callback(self, callback, progress_bar: bool = False) -> BaseCallback:
         """SB3's callback setup, plus the ``snn/`` and ``plasticity/`` scalars of every rollout for spiking
-        policies (:class:`~sb3_spikeplastic.monitoring.RolloutActivityCallback`)."""
+        policies (:class:`~sb3_spikeplastic.sb3.activity.RolloutActivityCallback`)."""
         if self.recurrent:
             from stable_baselines3.common.callbacks import ConvertCallback
 
-            from .monitoring import RolloutActivityCallback
 
             if callback is not None and not isinstance(callback, (list, BaseCallback)):
                 callback = ConvertCallback(callback)  # a plain function, as SB3 accepts

@@ -99,9 +99,9 @@ class _IntervalConstants(NamedTuple):
     :param filters: the alpha-filter operator's PSP rows and end-state rows (:meth:`PlasticSRMLayer._psp_filter`;
         the op reads the filter's recurrence constants off them).
     :param filter_first: :attr:`PlasticSRMLayer.filter_first`.
-    :param spike: ``(d, kappa, theta, width, scale)`` (:func:`~sb3_spikeplastic.neurons.spike_constants`).
+    :param spike: ``(d, kappa, theta, width, scale)`` (:func:`~sb3_spikeplastic.snn.neurons.spike_constants`).
     :param e_max: the rule's trace bound.
-    :param form: the rule's :class:`~sb3_spikeplastic.plasticity.CompiledForm`; ``None`` when the op does not update
+    :param form: the rule's :class:`~sb3_spikeplastic.snn.plasticity.CompiledForm`; ``None`` when the op does not update
         the trace (static layers, rules of one's own).
     :param carry_state: :meth:`PlasticSRMLayer.carries_state` for this interval length.
     """
@@ -172,7 +172,7 @@ class PlasticSRMLayer(nn.Module):
     def project(self, x: Tensor, trace: Tensor, efficacy_left: bool = False) -> Tensor:
         """The synaptic product :math:`x_b (W + \\alpha \\odot E_b)^T` of presynaptic rows ``x (batch, L, n_in)``.
 
-        On CPU the compiled op of :mod:`sb3_spikeplastic._fast` builds the efficacy of a few environments at a
+        On CPU the compiled op of :mod:`sb3_spikeplastic.snn._fast` builds the efficacy of a few environments at a
         time (the ``(batch, n_out, n_in)`` efficacy and its gradient are never materialised). The eager path multiplies
         with the efficacy on the left when ``efficacy_left`` (so that its gradient comes out in its own
         ``(n_out, n_in)`` layout, not transposed: cheaper when ``n_in > n_out``; a plastic layer's only), else on the
@@ -191,7 +191,7 @@ class PlasticSRMLayer(nn.Module):
         return x @ w_eff.transpose(-1, -2)
 
     def _psp_filter(self, length: int, dtype, device) -> tuple[Tensor, Tensor, Tensor]:
-        """:func:`~sb3_spikeplastic.neurons.alpha_filter_operator` for ``length`` steps, and its PSP rows and
+        """:func:`~sb3_spikeplastic.snn.neurons.alpha_filter_operator` for ``length`` steps, and its PSP rows and
         end-state rows as contiguous blocks."""
         key = (length, dtype, device)
         if key not in self._filters:
@@ -207,10 +207,10 @@ class PlasticSRMLayer(nn.Module):
         it is off on the training path). The spikes come from :meth:`interval`, then ``E`` is updated from the
         interval's rates and acts from the next interval on. On the CPU both run as one compiled op each way, one
         autograd node when training (:class:`_FusedInterval`; other rules than the built-in ones run their
-        :meth:`~sb3_spikeplastic.plasticity.PlasticityRule.step` after it).
+        :meth:`~sb3_spikeplastic.snn.plasticity.PlasticityRule.step` after it).
 
         With ``defer_update`` (a built-in rule on the CPU, without ``monitor``) the update is returned as the state's
-        :attr:`~sb3_spikeplastic.plasticity.PlasticState.pending` instead, and the next interval applies it in its
+        :attr:`~sb3_spikeplastic.snn.plasticity.PlasticState.pending` instead, and the next interval applies it in its
         own pass over ``E`` (:class:`_DeferredInterval`): the same values, one pass over the trace fewer each way.
         Every other such interval leaves the update before it pending too and passes its input trace on unchanged,
         so that a sequence stores half of its traces. Pending updates in ``state`` are always applied first.
@@ -314,7 +314,7 @@ class _FusedInterval(torch.autograd.Function):
     membrane, states and the new trace equal the eager layer's to float rounding (spikes then only differ where the
     membrane lies within rounding of the threshold); the gradients are those of the eager graph (tested for every
     built-in rule) up to the surrogate, which the spike loop computes with an exponential of its own (within 2 ulp
-    of :func:`~sb3_spikeplastic.neurons.slayer_surrogate` in float32). Eager autograd builds ~15 nodes per layer
+    of :func:`~sb3_spikeplastic.snn.neurons.slayer_surrogate` in float32). Eager autograd builds ~15 nodes per layer
     and interval, whose overhead dominates the small CPU networks' training step.
     """
 
@@ -484,7 +484,7 @@ class _DeferredInterval(torch.autograd.Function):
 
 def _constant_outputs(ctx, out: _FusedOutputs | _DeferredOutputs) -> list[Tensor]:
     """The fused interval's outputs that carry no gradient: the membrane and the refractory state (as in
-    :class:`~sb3_spikeplastic.neurons.SRMSpikeRecursion`), and, when the input spikes and the carried PSP state have
+    :class:`~sb3_spikeplastic.snn.neurons.SRMSpikeRecursion`), and, when the input spikes and the carried PSP state have
     no gradient (the input layer), the PSP state and ``r_pre``, which depend on those only."""
     constant = [out.membrane, out.ref_h1, out.ref_h2]
     if not any(ctx.needs_input_grad[:3]):

@@ -6,12 +6,16 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Iterator, Optional
+from typing import Any, Callable, Iterator, Mapping, Optional, Union
+
+import gymnasium
 
 import numpy as np
 
 from stable_baselines3.common.callbacks import BaseCallback, EvalCallback
+from stable_baselines3.common.logger import Figure
 
+from .recording import record_episode
 from .run_folder import checkpoint_statistics, save_model, save_vecnormalize
 
 
@@ -195,3 +199,74 @@ class TrainingSummary(BaseCallback):
     def _write(self) -> None:
         self._print(self.summary())
         self.written_at = self.model.num_timesteps
+
+
+class ActivityFigureCallback(BaseCallback):
+    """Every ``every`` rollouts, log a figure of one episode's network activity to TensorBoard (``snn/activity``):
+    input / hidden / output spike rasters, output membrane potentials, the traces of a few synapses and the
+    modulatory signals (:func:`sb3_spikeplastic.zoo.figures.activity_figure`).
+
+    The episode runs on a separate single environment made by ``env`` (never a training environment), always reset
+    with the same ``seed``, so successive figures show the same episode (e.g. the same T-maze cues) as training
+    goes on. With ``VecNormalize`` the training statistics normalise its observations (without updating them).
+
+    :param env: an environment id, or a function returning a fresh environment.
+    :param every: rollouts between figures (>= 1).
+    :param env_kwargs: ``gymnasium.make`` arguments when ``env`` is an id.
+    :param seed: reset seed of the episode.
+    :param max_steps: environment steps recorded (see :func:`record_episode`).
+    :param deterministic: mean / arg-max actions.
+    :param tag: the logger key.
+    """
+
+    def __init__(self, env: Union[str, Callable[[], gymnasium.Env]], every: int = 10,
+                 env_kwargs: Optional[Mapping[str, Any]] = None, seed: int = 0, max_steps: Optional[int] = None,
+                 deterministic: bool = True, tag: str = "snn/activity", verbose: int = 0):
+        super().__init__(verbose)
+        if int(every) < 1:
+            raise ValueError(f"every={every!r} must be >= 1 rollout")
+        if isinstance(env, str):
+            env_id, kwargs = env, dict(env_kwargs or {})
+            self._make_env: Callable[[], gymnasium.Env] = lambda: gymnasium.make(env_id, **kwargs)
+            self._title = env_id
+        else:
+            self._make_env = env
+            self._title = ""
+        self.every, self.seed, self.max_steps = int(every), seed, max_steps
+        self.deterministic, self.tag = deterministic, tag
+        self.n_rollouts = 0
+        self._env: Optional[gymnasium.Env] = None
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _on_rollout_end(self) -> None:
+        self.n_rollouts += 1
+        if self.n_rollouts % self.every:
+            return
+        self.logger.record(self.tag, Figure(self.make_figure(), close=True), exclude=("stdout", "log", "json", "csv"))
+
+    def make_figure(self):
+        """Record the episode and draw its figure (a ``matplotlib.figure.Figure``)."""
+        from .figures import activity_figure
+
+        if self._env is None:
+            self._env = self._make_env()
+            if not self._title and self._env.spec is not None:
+                self._title = self._env.spec.id
+        vec_normalize = self.model.get_vec_normalize_env()
+        obs_transform = vec_normalize.normalize_obs if vec_normalize is not None and vec_normalize.norm_obs else None
+        policy = self.model.policy
+        was_training = policy.training
+        policy.set_training_mode(False)
+        try:
+            activity = record_episode(policy, self._env, seed=self.seed, deterministic=self.deterministic,
+                                      max_steps=self.max_steps, obs_transform=obs_transform)
+        finally:
+            policy.set_training_mode(was_training)
+        return activity_figure(activity, title=f"{self._title}  step {self.num_timesteps:,}")
+
+    def _on_training_end(self) -> None:
+        if self._env is not None:
+            self._env.close()
+            self._env = None

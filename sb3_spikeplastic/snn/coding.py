@@ -89,7 +89,7 @@ class CounterBernoulli:
     def sample(self, p: Tensor, keys: Tensor, steps: int) -> Tensor:
         """Spikes ``(batch, steps, n)`` with per-neuron probability ``p`` of shape ``(batch, n)``.
 
-        On CPU the compiled sampler of :mod:`sb3_spikeplastic._fast` (bit-identical, one pass), else eager."""
+        On CPU the compiled sampler of :mod:`sb3_spikeplastic.snn._fast` (bit-identical, one pass), else eager."""
         fast = _fast.bernoulli_spikes(p, keys, self.index_hash(steps, p.shape[-1], keys.device))
         if fast is not None:
             return fast

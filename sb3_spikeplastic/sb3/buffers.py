@@ -12,7 +12,7 @@ from gymnasium import spaces
 from stable_baselines3.common.buffers import RolloutBuffer
 from torch import Tensor
 
-from .network import NetworkState, map_tensors
+from ..snn.network import NetworkState, map_tensors
 
 
 def check_chunking(bptt_steps: int, n_steps: int, batch_size: Optional[int] = None) -> None:

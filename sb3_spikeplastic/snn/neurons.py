@@ -185,7 +185,7 @@ def srm_spike_loop(
     ``state`` holds the refractory filter (``h1``, ``h2``) of the layer's own spikes. Returns
     ``(spikes, membrane, new_state)``, all without autograd (see :class:`SRMSpikeRecursion`).
 
-    On CPU (float32/float64) this runs the compiled loop of :mod:`sb3_spikeplastic._fast`, built on first use;
+    On CPU (float32/float64) this runs the compiled loop of :mod:`sb3_spikeplastic.snn._fast`, built on first use;
     elsewhere, with ``SB3_SPIKEPLASTIC_NO_COMPILE=1``, or if the build failed (one warning), it runs
     :func:`_srm_spike_loop_reference`. Both give bit-identical spikes, membrane and state.
     """

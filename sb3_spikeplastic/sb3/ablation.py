@@ -13,7 +13,7 @@ episode-start reset), given each environment's step count since its episode star
   rolled by one environment (environment ``i`` gets that of ``i - 1``), which needs 2 or more environments.
 
 A static network (rule ``static``) keeps no plastic state, so every mode leaves it unchanged. The modes act on
-evaluation only: :meth:`SpikePlasticPolicy.predict <sb3_spikeplastic.policy.SpikePlasticPolicy.predict>` (and so
+evaluation only: :meth:`SpikePlasticPolicy.predict <sb3_spikeplastic.sb3.policy.SpikePlasticPolicy.predict>` (and so
 ``evaluate_policy``, ``EvalCallback``, ``evaluate``, ``robustness`` and ``enjoy``) applies the policy's
 ``ablation``; :class:`sb3_spikeplastic.PPO`'s rollouts and updates never do.
 """
@@ -27,8 +27,8 @@ from typing import Iterator, NamedTuple, Optional, Union
 import torch
 from torch import Tensor
 
-from .layers import LayerState
-from .network import NetworkState, map_tensors, tensor_leaves
+from ..snn.layers import LayerState
+from ..snn.network import NetworkState, map_tensors, tensor_leaves
 
 #: The ablation modes (``reset-every`` is written ``reset-every:N``).
 MODES = ("none", "frozen", "reset-every", "shuffled")
@@ -102,10 +102,10 @@ class Ablation:
 
 
 class AblatedState(NamedTuple):
-    """The recurrent state :meth:`SpikePlasticPolicy.predict <sb3_spikeplastic.policy.SpikePlasticPolicy.predict>`
+    """The recurrent state :meth:`SpikePlasticPolicy.predict <sb3_spikeplastic.sb3.policy.SpikePlasticPolicy.predict>`
     returns under an ablation: the network state and each environment's step count since its episode start.
 
-    :param network: the :class:`~sb3_spikeplastic.network.NetworkState`.
+    :param network: the :class:`~sb3_spikeplastic.snn.network.NetworkState`.
     :param steps: ``(batch,)`` int64, environment steps since each environment's episode start.
     """
 

@@ -1,9 +1,9 @@
 """The spiking policy's input code as an MLP's input: SB3 features extractors that read an observation with the
-place cells of :class:`~sb3_spikeplastic.coding.PopulationEncoder`, to tell the code's share of a result from the
+place cells of :class:`~sb3_spikeplastic.snn.coding.PopulationEncoder`, to tell the code's share of a result from the
 spiking network's (e.g. ``PPO("MlpPolicy", env, policy_kwargs=dict(features_extractor_class=PlaceCellFeatures))``,
 or ``policy_kwargs.features_extractor_class=PlaceCellFeatures`` in a hyperparameter file or a study).
 
-The defaults are :class:`~sb3_spikeplastic.policy.SpikePlasticPolicy`'s for vector observations, so the MLP sees
+The defaults are :class:`~sb3_spikeplastic.sb3.policy.SpikePlasticPolicy`'s for vector observations, so the MLP sees
 what the spiking policy's first layer receives.
 """
 
@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 
-from .coding import PopulationEncoder, hash32
+from ..snn.coding import PopulationEncoder, hash32
 from .policy import VECTOR_STEPS, SpikePlasticPolicy
 
 _ENCODER = {k: v.default for k, v in inspect.signature(SpikePlasticPolicy).parameters.items()

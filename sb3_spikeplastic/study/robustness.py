@@ -21,22 +21,24 @@ import math
 import os
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any, Callable, Optional
+from typing import TYPE_CHECKING, Any, Optional
 
 import gymnasium
 import numpy as np
 import torch
 from stable_baselines3.common.evaluation import evaluate_policy
-from stable_baselines3.common.monitor import Monitor
-from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize
+from stable_baselines3.common.vec_env import VecEnv
 from tqdm.auto import tqdm
 
 from sb3_spikeplastic.envs.noise import FRICTION_TARGETS, NOISE_TYPES, make_noisy_env, noise_kwargs
 
-from .ablation import Ablation, ablated, check_ablation
-from .inputs import check_int, check_output_path, parse_env_kwargs
-from .run_folder import RunInfo, atomic_write, load_model, locate_run
-from .study.protocol import FIG4
+from ..sb3.ablation import Ablation, ablated, check_ablation
+from ..zoo.inputs import check_int, check_output_path, parse_env_kwargs
+from ..zoo.run_folder import RunInfo, atomic_write, frozen_eval_env, load_model, locate_run
+from .protocol import FIG4
+
+if TYPE_CHECKING:  # pragma: no cover
+    from matplotlib.figure import Figure
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,22 +68,6 @@ class RobustnessRow:
     n_episodes: int
     ratio: float
     returns: tuple[float, ...] = ()
-
-
-def frozen_eval_env(make: Callable[[], gymnasium.Env], n_envs: int, seed: int,
-                    vec_normalize_path: str | os.PathLike | None = None) -> VecEnv:
-    """Seeded ``DummyVecEnv`` of ``Monitor(make())``, with frozen ``VecNormalize`` statistics if given.
-
-    The Monitor is outermost so that it records the returns of the (possibly noisy) environment.
-    """
-    venv: VecEnv = DummyVecEnv([lambda: Monitor(make()) for _ in range(n_envs)])
-    venv.seed(seed)
-    if vec_normalize_path is not None:
-        venv = VecNormalize.load(str(vec_normalize_path), venv)
-        # Evaluation must neither update the statistics nor see normalised rewards.
-        venv.training = False
-        venv.norm_reward = False
-    return venv
 
 
 def _make_eval_env(env_id: str, noise: Mapping[str, Any], env_kwargs: Mapping[str, Any], n_envs: int, seed: int,
@@ -128,7 +114,7 @@ def evaluate_robustness(
     :param n_envs: environments stepped side by side (batches the policy's forward pass).
     :param friction_target: the friction parameters perturbed by ``"friction"`` noise.
     :param obs_indices: the observation elements perturbed by ``"obs"`` noise (None: all of them).
-    :param ablation: plasticity ablation every model is evaluated under (:mod:`sb3_spikeplastic.ablation`; spiking
+    :param ablation: plasticity ablation every model is evaluated under (:mod:`sb3_spikeplastic.sb3.ablation`; spiking
         policies only); ``None``: each policy's own (``policy.ablation``, normally ``none``).
     :return: one row per (model, ``sigma``), models in the given order, ``sigma`` increasing, with every episode's
         return (:attr:`RobustnessRow.returns`).
@@ -267,7 +253,7 @@ def format_table(rows: Sequence[RobustnessRow]) -> str:
 def write_report(rows: Sequence[RobustnessRow], folder: str | os.PathLike, env_id: str, noise_type: str,
                  n_episodes: int, ablation: str | Ablation | None = None) -> tuple[str, list[Path]]:
     """Write ``robustness_<env_id>_<noise_type>`` ``.csv`` (:func:`write_csv`), ``.md`` (:func:`format_table`),
-    ``.png`` (:func:`sb3_spikeplastic.figures.robustness_figure`) and, when the rows hold their episodes,
+    ``.png`` (:func:`robustness_figure`) and, when the rows hold their episodes,
     ``_episodes.csv`` (:func:`write_episodes_csv`) into ``folder`` (created if needed). Under an ``ablation`` other
     than ``none`` the names end in ``_<ablation>`` (``_frozen``, ``_reset-every-50``, ``_shuffled``), so that the
     ablations of one comparison sit beside its unablated files, and the figure's title names it.
@@ -277,7 +263,6 @@ def write_report(rows: Sequence[RobustnessRow], folder: str | os.PathLike, env_i
     import matplotlib
 
     matplotlib.use("Agg")
-    from .figures import robustness_figure
 
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
@@ -321,8 +306,8 @@ def robustness_command(models: Sequence[str], noise: str, env: Optional[str] = N
     """``sb3-spikeplastic robustness`` with these options (its long names): the noise is applied to the
     environment once, the models are loaded and checked against it (``ValueError``, nothing written); returns the
     comparison, which prints the table, writes it (:func:`write_report`) and returns 0."""
-    from .config import check_env_id
-    from .experiment import check_spaces
+    from ..zoo.config import check_env_id
+    from ..zoo.run_folder import check_spaces
 
     if noise not in NOISE_TYPES:
         raise ValueError(f"unknown noise type {noise!r}; accepted: {', '.join(NOISE_TYPES)}")
@@ -376,3 +361,32 @@ def robustness_command(models: Sequence[str], noise: str, env: Optional[str] = N
         return 0
 
     return compare
+
+
+def robustness_figure(rows: Sequence["RobustnessRow"], title: Optional[str] = None) -> Figure:
+    """Return ratio (:func:`~sb3_spikeplastic.study.robustness.return_ratio`, the mean return relative to the one at
+    ``sigma = 0``) against ``sigma``, one line per model
+    (paper Fig. 4 F-H). Error bars: one standard deviation of the episode returns over ``|mean return at 0|``."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(6.5, 4.5), layout="constrained")
+    ax = fig.subplots()
+    models = list(dict.fromkeys(r.model for r in rows))
+    for k, name in enumerate(models):
+        mine = sorted((r for r in rows if r.model == name), key=lambda r: r.sigma)
+        base = next((r.mean_return for r in mine if r.sigma == 0.0), math.nan)
+        sigmas = [r.sigma for r in mine]
+        ratios = [r.ratio for r in mine]
+        errors = [r.std_return / abs(base) if base not in (0.0,) and math.isfinite(base) else math.nan for r in mine]
+        ax.errorbar(sigmas, ratios, yerr=errors, marker="o", capsize=3, linewidth=1.4, label=name, color=f"C{k % 10}")
+    ax.axhline(1.0, color="0.6", linestyle=":", linewidth=0.8)
+    noise = rows[0].noise_type if rows else ""
+    ax.set_xlabel(f"{noise} noise σ")
+    # RobustnessRow.ratio: R_sigma / R_0 for a positive R_0, and below 1 exactly when the noise lowers the return.
+    ax.set_ylabel(r"return ratio $1 + (R_\sigma - R_0)\,/\,|R_0|$" "\n"
+                  r"($R_\sigma / R_0$ for $R_0 > 0$; $R$: mean return)")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize=8)
+    if title:
+        ax.set_title(title)
+    return fig

@@ -47,7 +47,7 @@ class PlasticState(NamedTuple):
     :param pending: trace updates not applied yet, oldest first, each ``(p, q)`` with shapes ``(batch, n_out)`` and
         ``(batch, n_in)`` (:class:`HebbianTerms`' ``post`` and ``pre``, the prediction already subtracted): each
         makes the trace :math:`\mathrm{clip}((1-\eta) E + (\eta p) \otimes q)`. Only the states inside
-        :meth:`~sb3_spikeplastic.network.SpikingPlasticNetwork.forward_sequence` have them (the next interval
+        :meth:`~sb3_spikeplastic.snn.network.SpikingPlasticNetwork.forward_sequence` have them (the next interval
         applies them in its own pass over ``E``; one or two, so that only every other trace is stored); ``None``
         everywhere else.
     """
@@ -79,7 +79,7 @@ def hebbian_update(E: Tensor, eta: Tensor, terms: HebbianTerms) -> Tensor:
 def hebbian_trace_step(E: Tensor, eta: Tensor, terms: HebbianTerms, e_max: float) -> Tensor:
     """:func:`hebbian_update` followed by the clip to :math:`[-E_{max}, E_{max}]`.
 
-    On CPU this runs the fused, compiled op of :mod:`sb3_spikeplastic._fast` (one pass over the trace forward and
+    On CPU this runs the fused, compiled op of :mod:`sb3_spikeplastic.snn._fast` (one pass over the trace forward and
     one backward instead of ~20 eager ones); elsewhere, or when it is unavailable, the eager ops, which give the
     same values to float rounding.
     """

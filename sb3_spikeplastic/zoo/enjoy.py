@@ -435,7 +435,7 @@ class Player:
     def __init__(self, model, env_id: str, env_kwargs: Optional[dict] = None, vecnormalize: Optional[Path] = None,
                  model_path: Optional[os.PathLike] = None, video: Optional[os.PathLike] = None,
                  fps: Optional[float] = None, size: Optional[Sequence[int]] = None, raster: bool = False):
-        from .experiment import check_spaces
+        from .run_folder import check_spaces
 
         self.model, self.env_id, self.vecnormalize = model, env_id, vecnormalize
         self.video = Path(video) if video is not None else None
@@ -576,7 +576,7 @@ def enjoy_command(run: Optional[str] = None, model: Optional[str] = None, env: O
         if first is None:  # a first episode that ends as most do (a success-reporting task, a spiking policy)
             first, note = 0, None
             if hasattr(player.model.policy, "snn") and deterministic:
-                from .monitoring import typical_seed
+                from .recording import typical_seed
 
                 first, note = typical_seed(player.model.policy, lambda: gymnasium.make(env_id, **info.env_kwargs),
                                            0, obs_transform=player.obs_transform)

@@ -1,5 +1,5 @@
 """Evaluate a trained model: returns, episode lengths, success rate and, for spiking policies, the energy proxies
-(spikes and synaptic operations per environment step, :class:`~sb3_spikeplastic.monitoring.EnergyMeter`).
+(spikes and synaptic operations per environment step, :class:`~sb3_spikeplastic.snn.energy.EnergyMeter`).
 
 :func:`evaluate_command` is ``sb3-spikeplastic evaluate``; :func:`load_checked` loads a model and checks it against
 the environment it is to play in (for ``evaluate``, ``robustness`` and ``inspect``)."""
@@ -55,7 +55,7 @@ def evaluate_model(model, venv, n_episodes: int, deterministic: bool = True, see
     :param deterministic: mean / arg-max actions instead of samples
     :param seed: torch seed (the input spikes and sampled actions)
     :param progress: show a progress bar over episodes
-    :param ablation: plasticity ablation to evaluate under (:mod:`sb3_spikeplastic.ablation`: ``"frozen"``,
+    :param ablation: plasticity ablation to evaluate under (:mod:`sb3_spikeplastic.sb3.ablation`: ``"frozen"``,
         ``"reset-every:N"``, ``"shuffled"``, ``"none"`` or an ``Ablation``; spiking policies only); ``None``: the
         policy's own (``policy.ablation``, normally ``none``)
     """
@@ -63,8 +63,8 @@ def evaluate_model(model, venv, n_episodes: int, deterministic: bool = True, see
     from stable_baselines3.common.evaluation import evaluate_policy
     from tqdm.auto import tqdm
 
-    from .ablation import ablated, check_ablation
-    from .monitoring import EnergyMeter
+    from ..sb3.ablation import ablated, check_ablation
+    from ..snn.energy import EnergyMeter
 
     check_ablation(model, ablation, venv.num_envs)  # before any episode
     successes: list[float] = []
@@ -94,7 +94,7 @@ def check_fits(model, info: RunInfo, env_id: str, make_error: Optional[str] = No
     made: ``make_error`` starts that message, default ``cannot make <env_id> with env_kwargs=...``)."""
     import gymnasium
 
-    from .experiment import check_spaces
+    from .run_folder import check_spaces
 
     try:
         probe = gymnasium.make(env_id, **info.env_kwargs)
@@ -138,7 +138,7 @@ def report_lines(result: Evaluation, env_id: str, info: RunInfo, deterministic: 
             lines.append(f"energy estimate per environment step: {joules['total_nj']:,.1f} nJ = SynOps "
                          f"{joules['synops_nj']:,.1f} nJ + plasticity {joules['plasticity_nj']:,.1f} nJ "
                          f"({energy['total_plasticity_macs_per_step']:,.0f} MACs of trace updates; 45 nm costs, "
-                         "sb3_spikeplastic.energy)")
+                         "sb3_spikeplastic.snn.energy)")
     return lines
 
 
@@ -154,7 +154,7 @@ def evaluate_command(run: Optional[str] = None, model: Optional[str] = None, env
     the evaluation, which prints :func:`report_lines`, writes ``output`` (JSON) if given and returns 0."""
     import torch
 
-    from .ablation import Ablation, check_ablation
+    from ..sb3.ablation import Ablation, check_ablation
 
     check_int("--episodes", episodes, 1)
     check_int("--n-envs", n_envs, 1)

@@ -1,6 +1,6 @@
 """One training run and its run folder (after rl-baselines3-zoo's ``ExperimentManager``): the environments, the
 model, the callbacks, the logs and every file that ``sb3-spikeplastic train`` writes (layout:
-:mod:`sb3_spikeplastic.run_folder`).
+:mod:`sb3_spikeplastic.zoo.run_folder`).
 
 The model is built in memory first (:meth:`Experiment.setup`), so that bad hyperparameters fail before anything
 is written; then :meth:`Experiment.create_run_folder` and :meth:`Experiment.learn`, which saves the final model,
@@ -30,7 +30,8 @@ import gymnasium
 
 from . import config as cfg
 from .inputs import check_device, check_int, check_output_path, parse_env_kwargs
-from .run_folder import (RunInfo, atomic_write, latest_checkpoint, locate_run, next_run_dir, read_run_args,
+from .config import rule_label
+from .run_folder import (RunInfo, atomic_write, check_spaces, latest_checkpoint, locate_run, next_run_dir, read_run_args,
                          read_run_config, save_model, save_vecnormalize)
 
 
@@ -62,18 +63,6 @@ def make_train_env(env_id: str, n_envs: int, env_kwargs: dict, monitor_dir: Opti
 
     factories = [factory(i) for i in range(n_envs)]
     return SubprocVecEnv(factories) if vec_env == "subproc" else DummyVecEnv(factories)
-
-
-def check_spaces(model, env, env_id: str, model_path) -> None:
-    """``ValueError`` naming both sides unless ``model`` was trained on ``env``'s observation and action spaces."""
-    from stable_baselines3.common.utils import check_for_correct_spaces
-
-    try:
-        check_for_correct_spaces(env, model.observation_space, model.action_space)
-    except ValueError:
-        raise ValueError(f"model {str(model_path)!r} (observations {model.observation_space}, actions "
-                         f"{model.action_space}) does not fit {env_id} (observations {env.observation_space}, "
-                         f"actions {env.action_space})") from None
 
 
 #: ``train --torch-threads auto``: a policy with a weight matrix of at least this many entries trains on every core,
@@ -121,13 +110,6 @@ def sigterm_interrupts():
         signal.signal(signal.SIGTERM, previous)
 
 
-def rule_label(config: dict) -> str:
-    """Short name of a run's policy for folder names and messages: the rule, or ``mlp``, ``mlplstm``..."""
-    if config.get("policy") != "SpikePlasticPolicy":
-        return str(config.get("policy", "policy")).lower().replace("policy", "") or "policy"
-    return str((config.get("policy_kwargs") or {}).get("rule", "dp-oja"))
-
-
 def _plain_value(value: Any) -> bool:
     """Whether ``value`` reads back from YAML as it is (numbers, text, None, lists and mappings of them)."""
     if isinstance(value, (list, tuple)):
@@ -171,13 +153,13 @@ class Experiment:
     """One training run of ``config`` (a validated hyperparameter entry) on ``env_id``.
 
     :param env_id: Gymnasium id
-    :param config: the resolved hyperparameter entry (:func:`sb3_spikeplastic.config.resolve_hyperparams`)
+    :param config: the resolved hyperparameter entry (:func:`sb3_spikeplastic.zoo.config.resolve_hyperparams`)
     :param seed: seed of the model and the environments
     :param log_folder: runs go to ``<log_folder>/ppo/<env_id>_<n>``
     :param tensorboard_log: TensorBoard root (``<root>/<env_id>/ppo_<rule>_<n>``); ``None``: events in the run
         folder, or the continued run's TensorBoard folder
     :param device: torch device of the model
-    :param verbose: 0 quiet, 1 a summary line every tenth of the run (:class:`~sb3_spikeplastic.callbacks.
+    :param verbose: 0 quiet, 1 a summary line every tenth of the run (:class:`~sb3_spikeplastic.zoo.callbacks.
         TrainingSummary`), 2 SB3's table every rollout and SB3's own messages
     :param eval_freq: deterministic evaluation every this many environment steps (0: never)
     :param eval_episodes: episodes per evaluation
@@ -295,8 +277,7 @@ class Experiment:
     def _callbacks(self, eval_env) -> list:
         from stable_baselines3.common.callbacks import EvalCallback
 
-        from .callbacks import AtomicCheckpoint, SaveBest, TrainingSummary, WallClockProgress
-        from .monitoring import ActivityFigureCallback
+        from .callbacks import ActivityFigureCallback, AtomicCheckpoint, SaveBest, TrainingSummary, WallClockProgress
 
         callbacks = [WallClockProgress()] if self.progress else []
         if self.verbose == 1:
@@ -360,7 +341,7 @@ class Experiment:
         from stable_baselines3.common.callbacks import CallbackList
         from stable_baselines3.common.logger import Logger, make_output_format
 
-        from .monitoring import write_hyperparameters
+        from .hparams import write_hyperparameters
 
         model, env, eval_env = self.model, None, None
         try:
@@ -483,8 +464,8 @@ def train_command(env: str, rule: Optional[str] = None, n_timesteps: Optional[in
     values (the environments' process, evaluations, checkpoints, figures, TensorBoard root), else their defaults."""
     import torch
 
-    from ._fast.allocator import keep_freed_memory
-    from .plasticity import get_rule_class
+    from ..snn._fast.allocator import keep_freed_memory
+    from ..snn.plasticity import get_rule_class
 
     env_id = cfg.check_env_id(env, list(cfg.load_hyperparams_file(conf)))
     if rule is not None:

@@ -2,7 +2,7 @@
 
 Each trial samples hyperparameters from the packaged search space (``hyperparams/search_space.yml``, per
 environment: :func:`load_search_space`), resolves them like ``train --hyperparams`` over the entry of ``--conf``
-(:func:`sb3_spikeplastic.config.resolve_hyperparams`) and trains one :class:`~sb3_spikeplastic.experiment.
+(:func:`sb3_spikeplastic.zoo.config.resolve_hyperparams`) and trains one :class:`~sb3_spikeplastic.zoo.experiment.
 Experiment` per seed, in a run folder ``<study folder>/trial_<n>/ppo/<EnvId>_<k>/``. Every ``n_timesteps /
 n_evaluations`` steps a deterministic evaluation is reported to the trial (``trial.report``), so the pruner can
 stop it early; the trial's value is the mean over its seeds of the last evaluation's mean return. A trial whose
@@ -23,8 +23,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
 
-from . import config as cfg
-from .study.storage import (check_model, check_settings, count_states, create_study, describe_storage, open_storage,
+from ..zoo import config as cfg
+from .storage import (check_model, check_settings, count_states, create_study, describe_storage, open_storage,
                       one_line, quiet_optuna, storage_exists, train_command, worker_name)
 
 SAMPLERS = ("tpe", "random")
@@ -117,7 +117,7 @@ def _algorithm_default(entry: dict, key: str) -> Any:
     if parameter is None:
         return None
     if parameter.default is None and entry.get("algo", "ppo") == "ppo":
-        from .ppo import POLICY_DEPENDENT_DEFAULTS
+        from ..sb3.ppo import POLICY_DEPENDENT_DEFAULTS
 
         if key in POLICY_DEPENDENT_DEFAULTS:  # the value PPO resolves None to for the entry's policy
             return POLICY_DEPENDENT_DEFAULTS[key][entry.get("policy", "SpikePlasticPolicy") == "SpikePlasticPolicy"]
@@ -136,7 +136,7 @@ def sample_overrides(trial, space: dict, entry: dict, fixed: Sequence[str] = ())
     :param entry: the resolved entry the trial starts from
     :param fixed: dotted keys set on the command line
     """
-    from .plasticity import get_rule_class
+    from ..snn.plasticity import get_rule_class
 
     values: dict[str, Any] = {}
     if RULE_KEY in space:
@@ -173,7 +173,7 @@ def _trial_report_class():
     from stable_baselines3.common.callbacks import BaseCallback
 
     class TrialReport(BaseCallback):
-        """Run after each evaluation of :class:`~sb3_spikeplastic.experiment.Experiment` (SB3's
+        """Run after each evaluation of :class:`~sb3_spikeplastic.zoo.experiment.Experiment` (SB3's
         ``callback_after_eval``): reports the evaluation's mean return to the trial, numbered across the trial's
         seeds, and stops training when the pruner says so.
 
@@ -287,7 +287,7 @@ class Search:
         """Train the trial's configuration on every seed; the mean of the last evaluations."""
         import optuna
 
-        from .experiment import Experiment
+        from ..zoo.experiment import Experiment
 
         s = self.settings
         try:
@@ -410,7 +410,7 @@ def summary(search: Search, study) -> list[str]:
 def write_best(search: Search, study) -> Path:
     """``<study folder>/best.yml``: the best trial as ``{env_id: entry}``, with a header saying where it comes
     from and how to train it."""
-    from .run_folder import atomic_write
+    from ..zoo.run_folder import atomic_write
 
     s = search.settings
     best = study.best_trial
@@ -434,7 +434,7 @@ def run(search: Search, log: Callable[[str], None] = print) -> int:
     """
     import torch
 
-    from ._fast.allocator import keep_freed_memory
+    from ..snn._fast.allocator import keep_freed_memory
 
     s = search.settings
     torch.set_num_threads(s.torch_threads)
@@ -470,8 +470,8 @@ def optimize_command(env: str, conf: Optional[str] = None, rule: Optional[str] =
                      torch_threads: int = 1) -> Callable[[], int]:
     """``sb3-spikeplastic optimize`` with these options (its long names): everything is checked by
     :func:`prepare` (``ValueError``, nothing written); returns the search (:func:`run`)."""
-    from .inputs import check_device, check_int, check_output_path
-    from .study.storage import check_storage
+    from ..zoo.inputs import check_device, check_int, check_output_path
+    from .storage import check_storage
 
     check_int("--torch-threads", torch_threads, 1)
     check_device(device)
@@ -482,7 +482,7 @@ def optimize_command(env: str, conf: Optional[str] = None, rule: Optional[str] =
         eval_episodes, seeds_per_trial, storage, study_name, Path(log_folder), seed, device, torch_threads,
         search_space))
     if hyperparams:
-        from .config import print_replaced_mappings
+        from ..zoo.config import print_replaced_mappings
 
         print_replaced_mappings(env, conf, hyperparams, rule)
     return lambda: run(search)

@@ -27,7 +27,7 @@ from typing import Callable, Iterator, Optional
 import torch
 from torch import Tensor, nn
 
-from .network import NetworkOutput, NetworkState, map_tensors, tensor_leaves
+from ..snn.network import NetworkOutput, NetworkState, map_tensors, tensor_leaves
 
 
 def flatten_state(state: NetworkState) -> tuple[list[Tensor], Callable[[list[Tensor]], NetworkState]]:
@@ -116,7 +116,7 @@ class GraphedSequenceEvaluation:
     before the next call, as the PPO update does. If a capture fails, one :class:`RuntimeWarning` is issued
     and every later call runs eagerly (the same values, slower).
 
-    :param policy: the :class:`~sb3_spikeplastic.policy.SpikePlasticPolicy` (on a CUDA device).
+    :param policy: the :class:`~sb3_spikeplastic.sb3.policy.SpikePlasticPolicy` (on a CUDA device).
     """
 
     def __init__(self, policy: nn.Module):
@@ -156,7 +156,7 @@ class GraphedRolloutStep:
 
     If a capture fails, one :class:`RuntimeWarning` is issued and every later call runs eagerly.
 
-    :param policy: the :class:`~sb3_spikeplastic.policy.SpikePlasticPolicy` (on a CUDA device).
+    :param policy: the :class:`~sb3_spikeplastic.sb3.policy.SpikePlasticPolicy` (on a CUDA device).
     """
 
     def __init__(self, policy: nn.Module):

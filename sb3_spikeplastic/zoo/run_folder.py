@@ -21,7 +21,11 @@ import pickle
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Optional
+from typing import TYPE_CHECKING, Any, Callable, Optional
+
+if TYPE_CHECKING:  # pragma: no cover
+    import gymnasium
+    from stable_baselines3.common.vec_env import VecEnv
 
 CHECKPOINT = re.compile(r"rl_model_(\d+)_steps\.zip")
 
@@ -170,7 +174,36 @@ def make_eval_env(env_id: str, n_envs: int, seed: int, env_kwargs: Optional[dict
     """Monitored ``DummyVecEnv`` of ``env_id`` with the run's frozen ``VecNormalize`` statistics if given."""
     import gymnasium
 
-    from .robustness import frozen_eval_env
-
     kwargs = dict(env_kwargs or {})
     return frozen_eval_env(lambda: gymnasium.make(env_id, **kwargs), n_envs, seed, vecnormalize)
+
+
+def check_spaces(model, env, env_id: str, model_path) -> None:
+    """``ValueError`` naming both sides unless ``model`` was trained on ``env``'s observation and action spaces."""
+    from stable_baselines3.common.utils import check_for_correct_spaces
+
+    try:
+        check_for_correct_spaces(env, model.observation_space, model.action_space)
+    except ValueError:
+        raise ValueError(f"model {str(model_path)!r} (observations {model.observation_space}, actions "
+                         f"{model.action_space}) does not fit {env_id} (observations {env.observation_space}, "
+                         f"actions {env.action_space})") from None
+
+
+def frozen_eval_env(make: Callable[[], gymnasium.Env], n_envs: int, seed: int,
+                    vec_normalize_path: str | os.PathLike | None = None) -> VecEnv:
+    """Seeded ``DummyVecEnv`` of ``Monitor(make())``, with frozen ``VecNormalize`` statistics if given.
+
+    The Monitor is outermost so that it records the returns of the (possibly noisy) environment.
+    """
+    from stable_baselines3.common.monitor import Monitor
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    venv: VecEnv = DummyVecEnv([lambda: Monitor(make()) for _ in range(n_envs)])
+    venv.seed(seed)
+    if vec_normalize_path is not None:
+        venv = VecNormalize.load(str(vec_normalize_path), venv)
+        # Evaluation must neither update the statistics nor see normalised rewards.
+        venv.training = False
+        venv.norm_reward = False
+    return venv

@@ -22,7 +22,7 @@ from .plasticity import compiled_form, get_rule_class
 class NetworkState(NamedTuple):
     """Per-environment state of the whole network (leading batch axis everywhere).
 
-    :param layers: one :class:`~sb3_spikeplastic.layers.LayerState` per layer.
+    :param layers: one :class:`~sb3_spikeplastic.snn.layers.LayerState` per layer.
     :param noise_key: ``(batch,)`` int32 key of the replayable input sampler. It is the random stream, not memory:
         it advances every step and is *not* reset at episode starts (otherwise every episode would see the same
         input noise).
@@ -134,7 +134,7 @@ class NetworkOutput(NamedTuple):
     :param rates: per layer (hidden layers, then the output population) the mean spike rate over the step.
     :param record: the full activity when requested, else ``None``.
     :param input_rate: the input population's mean spike rate over the step ``(batch, n_in)`` (for spike and
-        synaptic-operation counts, :mod:`sb3_spikeplastic.monitoring`).
+        synaptic-operation counts, :mod:`sb3_spikeplastic.sb3.activity`).
     """
 
     action: Tensor
@@ -162,11 +162,11 @@ class SpikingPlasticNetwork(nn.Module):
     """Feed-forward SNN with plastic synapses (SpikePropamine): ``encoder -> hidden layers -> output -> decoder``.
 
     :param encoder: maps ``(obs, keys, T)`` to input spikes ``(batch, T, n_in)``
-        (:class:`~sb3_spikeplastic.coding.PopulationEncoder` or :class:`~sb3_spikeplastic.coding.RasterInput`).
+        (:class:`~sb3_spikeplastic.snn.coding.PopulationEncoder` or :class:`~sb3_spikeplastic.snn.coding.RasterInput`).
     :param decoder: maps output rates ``(batch, n_out)`` to actions or logits.
     :param hidden_sizes: neurons per hidden layer (paper HalfCheetah: ``(64, 64)``).
     :param steps: network steps ``T`` per environment step (1 ms each).
-    :param rule: plasticity rule name (see :func:`~sb3_spikeplastic.plasticity.available_rules`).
+    :param rule: plasticity rule name (see :func:`~sb3_spikeplastic.snn.plasticity.available_rules`).
     :param plastic_layers: indices of the plastic layers (0 = input->first hidden; the last is the output
         layer), or ``"all"``. The others use the ``static`` rule.
     :param neuron: SRM constants shared by all layers.
@@ -175,7 +175,7 @@ class SpikingPlasticNetwork(nn.Module):
         (default: ``steps``, one update per environment step).
     :param rule_kwargs: extra keyword arguments of the rule class (e.g. ``eta_init``, ``modulation``).
     :param w_init_gain: initial weight spread per layer (or one value for all): the std of ``W`` puts the
-        membrane spread at ``gain * theta`` (:func:`~sb3_spikeplastic.layers.fan_in_std`).
+        membrane spread at ``gain * theta`` (:func:`~sb3_spikeplastic.snn.layers.fan_in_std`).
     :param w_init_mean: mean of the initial ``W`` per layer (or one value).
     :param alpha_init_mean: mean of the initial ``alpha`` per layer (default: the rule's ``alpha_init_mean``,
         measured on the T-maze's 40-input layer, times ``40 / n_in``: the positive feedback of a positive-mean
@@ -267,7 +267,7 @@ class SpikingPlasticNetwork(nn.Module):
         step applies them in its own pass over the traces; :meth:`settle` applies them), as
         :meth:`forward_sequence` runs its steps. With ``hold_plastic`` every layer keeps the plastic state it came
         in with (traces, rule state): its updates are dropped, also between the intervals of the step (the
-        ``frozen`` ablation, :mod:`sb3_spikeplastic.ablation`)."""
+        ``frozen`` ablation, :mod:`sb3_spikeplastic.sb3.ablation`)."""
         spikes_in = self.encoder(obs, state.noise_key, self.steps)
         layer_states = list(state.layers)
         n_intervals = self.steps // self.interval

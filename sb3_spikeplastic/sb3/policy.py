@@ -22,10 +22,10 @@ from stable_baselines3.common.type_aliases import Schedule
 from torch import Tensor, nn
 
 from .ablation import AblatedState, Ablation, ablate
-from .coding import ContinuousDecoder, DiscreteDecoder, ObservationStandardizer, PopulationEncoder, RasterInput
-from .network import NetworkOutput, NetworkState, SpikingPlasticNetwork
-from .neurons import SRMParameters
-from .plasticity import get_rule_class
+from ..snn.coding import ContinuousDecoder, DiscreteDecoder, ObservationStandardizer, PopulationEncoder, RasterInput
+from ..snn.network import NetworkOutput, NetworkState, SpikingPlasticNetwork
+from ..snn.neurons import SRMParameters
+from ..snn.plasticity import get_rule_class
 
 MISUSE_MESSAGE = (
     "SpikePlasticPolicy is recurrent (its synapses and neurons carry state across environment steps) and needs "
@@ -89,13 +89,13 @@ class SpikePlasticPolicy(ActorCriticPolicy):
     :param action_space: action space (``Box`` or ``Discrete``).
     :param lr_schedule: learning-rate schedule.
     :param rule: plasticity rule name (``static``, ``dp-linear``, ``dp-oja``, ``dp-bcm``, ``ndp-oja``,
-        ``ndp-bcm`` or any registered with :func:`~sb3_spikeplastic.plasticity.register_rule`).
+        ``ndp-bcm`` or any registered with :func:`~sb3_spikeplastic.snn.plasticity.register_rule`).
     :param hidden_sizes: neurons per hidden layer (paper: ``(64, 64)``).
     :param steps: network steps ``T`` per environment step (1 ms each; paper HalfCheetah: 50). ``None``: the
         raster length for spike observations, else 10.
     :param plastic_layers: indices of the plastic layers (0 is input->first hidden, the last is the output
         layer) or ``"all"``.
-    :param neuron: SRM constants as a dict of :class:`~sb3_spikeplastic.neurons.SRMParameters` fields
+    :param neuron: SRM constants as a dict of :class:`~sb3_spikeplastic.snn.neurons.SRMParameters` fields
         (``theta``, ``tau_s``, ``tau_ref``, ``scale_ref``, ``tau_rho``, ``scale_rho``, ``dt``). With
         population-encoded observations ``tau_s`` defaults to ``T / 5`` ms (the paper's 10 ms at T = 50, 2 ms at
         the default T = 10), so that an input's PSP peaks within the environment step; otherwise 10 ms.
@@ -116,7 +116,7 @@ class SpikePlasticPolicy(ActorCriticPolicy):
     :param action_pop_size: output neurons per action dimension (continuous, even; paper: 100) or per action
         (discrete). ``None``: 20 for ``Box``, 1 for ``Discrete``.
     :param logit_scale_init: initial scale of the discrete decoder's logits.
-    :param w_init_gain: initial weight spread per layer (see :class:`~sb3_spikeplastic.network.SpikingPlasticNetwork`).
+    :param w_init_gain: initial weight spread per layer (see :class:`~sb3_spikeplastic.snn.network.SpikingPlasticNetwork`).
     :param w_init_mean: initial weight mean per layer.
     :param alpha_init_mean: initial plasticity-coefficient mean per layer (``None``: 0 for population-encoded
         observations, the rule's default for spike rasters).
@@ -134,14 +134,14 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         learn which synapses' traces to read. 1 is the plain shared rate (the T-maze entry's value and its
         measurements: ``docs/reproducing-tmaze.md``).
     :param standardize_obs: standardise the observation dimensions whose space bounds are infinite with running
-        statistics (:class:`~sb3_spikeplastic.coding.ObservationStandardizer`, ``policy.obs_standardizer``),
+        statistics (:class:`~sb3_spikeplastic.snn.coding.ObservationStandardizer`, ``policy.obs_standardizer``),
         updated by :class:`sb3_spikeplastic.PPO` after each rollout's update and saved with the model; the
         encoder then clips them to ``obs_bounds``. Dimensions with finite bounds and spike rasters are never
         changed. Composes with ``VecNormalize`` (its output is then standardised again, close to the identity);
         ``False`` leaves observations as they come.
-    :param ablation: plasticity ablation that :meth:`predict` applies (:mod:`sb3_spikeplastic.ablation`:
+    :param ablation: plasticity ablation that :meth:`predict` applies (:mod:`sb3_spikeplastic.sb3.ablation`:
         ``"none"``, ``"frozen"``, ``"reset-every:N"``, ``"shuffled"`` or an
-        :class:`~sb3_spikeplastic.ablation.Ablation`; also settable later as ``policy.ablation``); training never
+        :class:`~sb3_spikeplastic.sb3.ablation.Ablation`; also settable later as ``policy.ablation``); training never
         applies it.
     :param kwargs: passed to :class:`~stable_baselines3.common.policies.ActorCriticPolicy` (optimizer etc.).
     """
@@ -309,8 +309,8 @@ class SpikePlasticPolicy(ActorCriticPolicy):
 
     @property
     def ablation(self) -> Ablation:
-        """The plasticity ablation :meth:`predict` applies (:mod:`sb3_spikeplastic.ablation`); set it with an
-        :class:`~sb3_spikeplastic.ablation.Ablation` or its string (``"frozen"``, ``"reset-every:50"``...). Saved
+        """The plasticity ablation :meth:`predict` applies (:mod:`sb3_spikeplastic.sb3.ablation`); set it with an
+        :class:`~sb3_spikeplastic.sb3.ablation.Ablation` or its string (``"frozen"``, ``"reset-every:50"``...). Saved
         with the model; :class:`sb3_spikeplastic.PPO`'s rollouts and updates ignore it."""
         return self._ablation
 
@@ -352,7 +352,7 @@ class SpikePlasticPolicy(ActorCriticPolicy):
     def _step(self, obs: Tensor, state: NetworkState, episode_start: Tensor, deterministic: bool = False,
               action_masks: Optional[Tensor] = None, sync_free: bool = False, hold_plastic: bool = False):
         """:meth:`step` of already preprocessed ``obs``; ``sync_free`` as in :meth:`_evaluate_sequence`,
-        ``hold_plastic`` as in :meth:`~sb3_spikeplastic.network.SpikingPlasticNetwork.forward`."""
+        ``hold_plastic`` as in :meth:`~sb3_spikeplastic.snn.network.SpikingPlasticNetwork.forward`."""
         out, new_state = self.snn(obs, state.reset(episode_start, sync_free), hold_plastic=hold_plastic)
         distribution = self._distribution(out, action_masks)
         actions = distribution.get_actions(deterministic=deterministic)
@@ -375,7 +375,7 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         n_actions)`` are the masks the rollout sampled with (``Discrete`` only).
 
         :return: ``(values, log_prob, entropy, outputs)``; the first three flattened over ``L * batch``
-            (time-major), ``outputs`` the per-step :class:`~sb3_spikeplastic.network.NetworkOutput`.
+            (time-major), ``outputs`` the per-step :class:`~sb3_spikeplastic.snn.network.NetworkOutput`.
         """
         obs = self._preprocess(obs.flatten(0, 1)).view(obs.shape[0], obs.shape[1], *self.observation_space.shape)
         return self._evaluate_sequence(obs, actions, episode_starts, state, action_masks)
@@ -383,7 +383,7 @@ class SpikePlasticPolicy(ActorCriticPolicy):
     def _evaluate_sequence(self, obs: Tensor, actions: Tensor, episode_starts: Tensor, state: NetworkState,
                            action_masks: Optional[Tensor], sync_free: bool = False):
         """:meth:`evaluate_actions_sequence` of already preprocessed ``obs``; with ``sync_free`` no operation
-        waits for the device (for CUDA-graph capture, :mod:`sb3_spikeplastic.cuda_graphs`)."""
+        waits for the device (for CUDA-graph capture, :mod:`sb3_spikeplastic.sb3.cuda_graphs`)."""
         outputs, _ = self.snn.forward_sequence(obs, episode_starts, state, sync_free)
         merged = NetworkOutput(torch.cat([o.action for o in outputs]),
                                tuple(torch.cat(r) for r in zip(*[o.rates for o in outputs])), None)
@@ -426,7 +426,7 @@ class SpikePlasticPolicy(ActorCriticPolicy):
             but replayable: the same observations and state give the same actions.
         :param action_masks: open actions ``(n_envs, n_actions)`` (``Discrete`` only; ``None``: all open).
         :return: ``(actions, new_state)``; under an :attr:`ablation` the state is an
-            :class:`~sb3_spikeplastic.ablation.AblatedState` (the network state and each environment's step count
+            :class:`~sb3_spikeplastic.sb3.ablation.AblatedState` (the network state and each environment's step count
             since its episode start), to pass back as it is.
         """
         self.set_training_mode(False)
@@ -451,7 +451,7 @@ class SpikePlasticPolicy(ActorCriticPolicy):
     def _ablated_step(self, obs: Tensor, state: Union[NetworkState, AblatedState], episode_start: Tensor,
                       deterministic: bool, action_masks: Optional[Tensor]) -> tuple[Tensor, AblatedState]:
         """:meth:`predict`'s step under :attr:`ablation`: the state is reset where episodes start, then ablated
-        (:func:`~sb3_spikeplastic.ablation.ablate`; ``frozen`` also drops the updates inside the step); a plain
+        (:func:`~sb3_spikeplastic.sb3.ablation.ablate`; ``frozen`` also drops the updates inside the step); a plain
         :class:`NetworkState` counts its steps from 0."""
         if isinstance(state, AblatedState):
             network, steps = state
