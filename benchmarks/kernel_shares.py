@@ -43,17 +43,16 @@ def run_one(network: str, switch: str, threads: int) -> dict:
     from learn_throughput import episode_rollouts, make_model  # benchmarks/ is on sys.path
 
     from sb3_spikeplastic.snn import _fast, layers
-    from sb3_spikeplastic.snn._fast import allocator
+    from sb3_spikeplastic.snn import cpu_settings
 
-    allocator.keep_freed_memory()  # glibc's settings, as `train` applies them, in every variant
+    cpu_settings.keep_freed_memory()  # glibc's settings, as `train` applies them, in every variant
     if switch == "no-carried-rows":
         layers.CARRY_MIN_ROW_VALUES = 2**62
     if switch == "no-spike-products":
         _fast.spike_density_limit(0.0)
-    if switch == "no-block-cache":  # PPO installs the cache when it sets the model up
-        allocator.cache_freed_blocks = lambda *args, **kwargs: False
+    if switch == "no-block-cache":  # PPO installs the cache while it learns
+        cpu_settings.cache_freed_blocks = lambda *args, **kwargs: False
     model = make_model(network, "cpu")
-    assert allocator._cache_installed == (switch not in ("no-block-cache", "no-compile"))
     per_rollout = model.n_steps * model.n_envs
     model.learn(per_rollout)  # warm-up
     rollouts = episode_rollouts(model)

@@ -188,7 +188,7 @@ def run_row(key: str, threads: int, device: str, rollouts: Optional[int], n_envs
     import torch
 
     torch.set_num_threads(threads)
-    from sb3_spikeplastic.snn._fast.allocator import keep_freed_memory
+    from sb3_spikeplastic.snn.cpu_settings import keep_freed_memory
 
     keep_freed_memory()  # as `sb3-spikeplastic train` does
     model = make_model(key, device, n_envs if key in SCALABLE else None)

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import torch
 from machine import describe_machine, write_result  # benchmarks/machine.py (the script's folder is on sys.path)
-from sb3_spikeplastic.snn._fast.allocator import keep_freed_memory
+from sb3_spikeplastic.snn.cpu_settings import keep_freed_memory
 
 from sb3_spikeplastic.snn.coding import ContinuousDecoder, PopulationEncoder
 from sb3_spikeplastic.snn.network import SpikingPlasticNetwork

@@ -351,7 +351,7 @@ def test_stale_build_lock_is_removed(tmp_path):
 def test_allocator_settings_take_effect_on_glibc():
     import platform
 
-    from sb3_spikeplastic.snn._fast.allocator import keep_freed_memory
+    from sb3_spikeplastic.snn.cpu_settings import keep_freed_memory
 
     if platform.libc_ver()[0] != "glibc":
         pytest.skip("not glibc")
@@ -361,12 +361,13 @@ def test_allocator_settings_take_effect_on_glibc():
 _BLOCK_CACHE_CHECK = """
 import torch
 from sb3_spikeplastic.snn import _fast
-from sb3_spikeplastic.snn._fast.allocator import cache_freed_blocks
+from sb3_spikeplastic.snn.cpu_settings import block_cache_active, cache_freed_blocks, release_block_cache
 ops = _fast.load_ops()
 assert ops is not None, _fast.build_error()
-assert ops.cpu_block_cache_bytes() == 0
+assert ops.cpu_block_cache_bytes() == 0 and not block_cache_active()
 early = torch.empty(2**18)  # allocated before: freed through the allocator it came from
-assert cache_freed_blocks(min_bytes=2**16, max_cached_bytes=3 * 2**20) and cache_freed_blocks()
+assert cache_freed_blocks(min_bytes=2**16, max_cached_bytes=3 * 2**20) and not cache_freed_blocks()
+assert block_cache_active()
 a = torch.ones(2**18)  # 1 MiB
 address = a.data_ptr()
 del a, early
@@ -379,23 +380,48 @@ assert ops.cpu_block_cache_bytes() == 3 * 2**20, ops.cpu_block_cache_bytes()
 small = torch.empty(100)  # under min_bytes: not cached
 del small
 assert ops.cpu_block_cache_bytes() == 3 * 2**20
+kept = torch.empty(2**18)  # allocated through the cache, freed after it is released
+assert release_block_cache() and not block_cache_active() and not release_block_cache()
+assert ops.cpu_block_cache_bytes() == 0  # the cached blocks went back
+del kept
+assert ops.cpu_block_cache_bytes() == 0  # and so do the cache's blocks freed later
+e = torch.empty(2**18)
+del e
+assert ops.cpu_block_cache_bytes() == 0  # torch's own allocator again
+assert cache_freed_blocks(min_bytes=2**16, max_cached_bytes=3 * 2**20)  # installed again
+f = torch.empty(2**18)
+del f
+assert ops.cpu_block_cache_bytes() == 2**20
 """
 
 _BLOCK_CACHE_TRAINING = """
 import hashlib, sys, torch
+from stable_baselines3.common.callbacks import BaseCallback
 from sb3_spikeplastic import PPO
 from sb3_spikeplastic.snn import _fast
-from sb3_spikeplastic.snn._fast import allocator
+from sb3_spikeplastic.snn.cpu_settings import block_cache_active
 torch.set_num_threads(1)
 cache = sys.argv[1] == "cache"
 model = PPO("SpikePlasticPolicy", "TMazeCue-v0", n_steps=64, batch_size=64, bptt_steps=16, n_epochs=2, seed=3,
             policy_kwargs=dict(rule="ndp-oja", hidden_sizes=(128, 128)),  # traces of 64 KB per environment
             keep_freed_memory=cache, device="cpu")  # the block cache is the CPU allocator's
-model.learn(128)
+
+
+class Seen(BaseCallback):
+    active = []
+
+    def _on_step(self):
+        return True
+
+    def _on_rollout_end(self):
+        self.active.append(block_cache_active())
+
+
+model.learn(128, callback=Seen())
 digest = hashlib.sha256()
 for tensor in model.policy.state_dict().values():
     digest.update(tensor.numpy().tobytes())
-assert allocator._cache_installed == cache and (_fast.load_ops().cpu_block_cache_bytes() > 0) == cache
+assert Seen.active == [cache, cache] and not block_cache_active(), Seen.active
 print(digest.hexdigest())
 """
 

@@ -1,9 +1,5 @@
 """SpikePlasticPolicy + recurrent PPO: replay exactness, state handling, SB3 integration, save/load, misuse."""
 
-import os
-import subprocess
-import sys
-from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -282,52 +278,6 @@ def test_bad_alpha_lr_scale_is_a_clear_error(bad):
     with pytest.raises(ValueError, match=r"alpha_lr_scale=.* must be a positive finite number"):
         PPO("SpikePlasticPolicy", tmaze(1), n_steps=16, batch_size=16, bptt_steps=16,
             policy_kwargs=dict(hidden_sizes=[8], alpha_lr_scale=bad))
-
-
-@pytest.mark.parametrize("flush", [True, False])
-def test_flush_denormal_mode_is_set_for_spiking_policies(flush):
-    """A spiking model sets torch's flush-denormal mode (subnormal floats read and written as 0) unless told not
-    to; SB3's own policies leave it alone. In a subprocess: the mode is process-wide."""
-    code = f"""
-import torch
-from helpers import tmaze_model
-from sb3_spikeplastic import PPO
-from stable_baselines3.common.env_util import make_vec_env
-tiny = torch.tensor([1e-40])
-PPO("MlpPolicy", make_vec_env("CartPole-v1", n_envs=1), n_steps=16, batch_size=16)
-mlp_keeps = (tiny * 1.0).item() > 0
-model = tmaze_model(flush_denormal={flush})
-print(mlp_keeps, (tiny * 1.0).item() == 0, model.flush_denormal)
-"""
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
-                            cwd=Path(__file__).parent)
-    assert result.returncode == 0, result.stderr[-2000:]
-    assert result.stdout.split() == ["True", str(flush), str(flush)]
-
-
-@pytest.mark.parametrize("keep", [True, False])
-def test_spiking_models_on_the_cpu_install_the_block_cache(keep):
-    """A spiking model on the CPU applies the allocator settings (the block cache) unless told not to; SB3's own
-    policies leave the allocator alone. In a subprocess: the allocator is process-wide."""
-    from sb3_spikeplastic.snn import _fast
-
-    if _fast.load_ops() is None:
-        pytest.skip(f"compiled ops unavailable: {_fast.build_error()}")
-    code = f"""
-from helpers import tmaze_model
-from sb3_spikeplastic import PPO
-from sb3_spikeplastic.snn._fast import allocator
-from stable_baselines3.common.env_util import make_vec_env
-PPO("MlpPolicy", make_vec_env("CartPole-v1", n_envs=1), n_steps=16, batch_size=16)
-mlp_installed = allocator._cache_installed
-model = tmaze_model(keep_freed_memory={keep}, device="cpu")
-print(mlp_installed, allocator._cache_installed, model.keep_freed_memory)
-"""
-    env = {k: v for k, v in os.environ.items() if k != _fast.NO_COMPILE_ENV}
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
-                            cwd=Path(__file__).parent, env=env)
-    assert result.returncode == 0, result.stderr[-2000:]
-    assert result.stdout.split() == ["False", str(keep), str(keep)]
 
 
 def test_chunks_per_pass_gives_the_whole_minibatchs_gradient_and_statistics(monkeypatch):

@@ -14,6 +14,7 @@ Any other policy (``MlpPolicy``...) goes through SB3's own code paths unchanged.
 from __future__ import annotations
 
 import math
+import contextlib
 import warnings
 from typing import Any, ClassVar, Optional, Union
 
@@ -31,7 +32,7 @@ from stable_baselines3.common.vec_env import VecEnv
 from torch import Tensor
 from torch.nn import functional as F
 
-from ..snn._fast import allocator
+from ..snn.cpu_settings import spiking_cpu_settings
 from .activity import RolloutActivityCallback
 from .buffers import ChunkRolloutBuffer, ChunkSamples, check_chunking
 from .cuda_graphs import GraphedRolloutStep, GraphedSequenceEvaluation
@@ -98,17 +99,16 @@ class PPO(SB3PPO):
         :data:`AUTO_PASS_GRAPH_BYTES` (1 GiB: the paper's HalfCheetah network with a plastic rule runs its 64-chunk
         minibatches in one pass, peaking at ~1.5 GB; two passes would peak ~0.5 GB lower for ~5-8 % less speed);
         on a GPU, one pass. ``train/chunks_per_pass`` logs the choice.
-    :param flush_denormal: for recurrent policies, set torch's flush-denormal mode
-        (``torch.set_flush_denormal(True)``, process-wide) when the model is set up. The PSP filters of silent
-        neurons, the traces and their gradients decay through the subnormal floats (below ~1e-38 in float32),
-        where CPU arithmetic is up to ~100x slower; flushed to zero they change no spike, and the HalfCheetah
-        entry trains ~1.3x faster (``benchmarks/README.md``). ``False`` leaves the mode as it is.
-    :param keep_freed_memory: for recurrent policies on the CPU, apply the allocator settings of
-        :mod:`sb3_spikeplastic.snn._fast.allocator` (process-wide) when the model is set up: freed large blocks stay
-        in the process and go to the next allocation of their size, where glibc would unmap them or search its
-        bins for every one (a training step allocates the same sizes in every BPTT step). The paper's
-        HalfCheetah network trains a few percent faster and peaks ~0.2 GB lower. ``False`` leaves the allocator
-        as it is.
+    :param flush_denormal: for recurrent policies, flush subnormal floats to zero while ``learn()`` runs
+        (:func:`~sb3_spikeplastic.snn.cpu_settings.spiking_cpu_settings`; the mode is put back on return). The PSP
+        filters of silent neurons, the traces and their gradients decay through the subnormal floats, where CPU
+        arithmetic is up to ~100x slower; flushed to zero they change no spike, and the HalfCheetah entry trains
+        ~1.3x faster (``benchmarks/README.md``). ``False`` leaves the mode as it is.
+    :param keep_freed_memory: for recurrent policies on the CPU, make the block cache torch's CPU allocator while
+        ``learn()`` runs (:mod:`sb3_spikeplastic.snn.cpu_settings`; the previous allocator is put back on return):
+        freed large blocks go to the next allocation of their size, where glibc would search its bins for every
+        one (a training step allocates the same sizes in every BPTT step). The paper's HalfCheetah network trains a
+        few percent faster and peaks ~0.2 GB lower. ``False`` leaves the allocator as it is.
     Other parameters as :class:`stable_baselines3.PPO`; ``batch_size`` keeps its meaning (transitions per
     minibatch), so a minibatch holds ``batch_size // bptt_steps`` chunks.
     """
@@ -240,11 +240,6 @@ class PPO(SB3PPO):
         if self.recurrent:
             self.rollout_buffer_class = ChunkRolloutBuffer
             self.rollout_buffer_kwargs = {**(self.rollout_buffer_kwargs or {}), "chunk_len": self.bptt_steps}
-        if self.recurrent and getattr(self, "flush_denormal", True):
-            torch.set_flush_denormal(True)
-        if self.recurrent and self.device.type == "cpu" and getattr(self, "keep_freed_memory", True):
-            allocator.keep_freed_memory()
-            allocator.cache_freed_blocks()
         super()._setup_model()
         if isinstance(self.policy, SpikePlasticPolicy):
             # What the defaults resolved to, so that a saved model rebuilds the same policy under later defaults.
@@ -310,8 +305,20 @@ class PPO(SB3PPO):
         if ablation is not None and ablation.active:
             warnings.warn(f"policy.ablation={str(ablation)!r} is ignored by learn(): rollouts and updates run the "
                           "network unablated (predict() and EvalCallback apply it)", stacklevel=2)
-        return super().learn(total_timesteps, callback=callback, log_interval=log_interval, tb_log_name=tb_log_name,
-                             reset_num_timesteps=reset_num_timesteps, progress_bar=progress_bar)
+        with self.cpu_settings(training=True):
+            return super().learn(total_timesteps, callback=callback, log_interval=log_interval,
+                                 tb_log_name=tb_log_name, reset_num_timesteps=reset_num_timesteps,
+                                 progress_bar=progress_bar)
+
+    def cpu_settings(self, training: bool = False):
+        """The CPU settings this model runs under (a context manager; nothing for feed-forward policies):
+        flush-to-zero unless ``flush_denormal=False``, and in training on the CPU the block cache unless
+        ``keep_freed_memory=False`` (:mod:`sb3_spikeplastic.snn.cpu_settings`)."""
+        if not self.recurrent:
+            return contextlib.nullcontext()
+        return spiking_cpu_settings(
+            flush_denormal=getattr(self, "flush_denormal", True),
+            cache_blocks=training and self.device.type == "cpu" and getattr(self, "keep_freed_memory", True))
 
     def save(self, path, exclude=None, include=None) -> None:
         """SB3's ``save``; a spiking policy's ``ablation`` (if any) goes into the saved ``policy_kwargs``, so that

@@ -263,7 +263,7 @@ def run_worker(job: StudyJob, log: Callable[[str], None] = print) -> int:
     import optuna
     import torch
 
-    from ..snn._fast.allocator import keep_freed_memory
+    from ..snn.cpu_settings import keep_freed_memory
 
     torch.set_num_threads(job.torch_threads)
     keep_freed_memory()  # as `train` does: the training steps' buffers stay mapped
@@ -462,7 +462,7 @@ def _evaluate(job: StudyJob, env: str, name: str, evaluation: Evaluation, model_
               missing: list[str], eval_name: str, same_env: bool, tmp: Path) -> int:
     from ..zoo.evaluation import evaluate_model
     from .robustness import evaluate_robustness, write_episodes_csv
-    from ..zoo.run_folder import atomic_write, load_model, locate_run, make_eval_env
+    from ..zoo.run_folder import atomic_write, cpu_settings_of, load_model, locate_run, make_eval_env
 
     info = locate_run(model_path)
     model = load_model(info, job.device)
@@ -478,7 +478,8 @@ def _evaluate(job: StudyJob, env: str, name: str, evaluation: Evaluation, model_
 
         venv = make_eval_env(env, 1, p.seed, env_kwargs, statistics)
         try:
-            values, sd = action_sensitivity(model, venv, evaluation.shift), observation_sd(venv)
+            with cpu_settings_of(model):
+                values, sd = action_sensitivity(model, venv, evaluation.shift), observation_sd(venv)
         finally:
             venv.close()
 

@@ -434,7 +434,7 @@ def run(search: Search, log: Callable[[str], None] = print) -> int:
     """
     import torch
 
-    from ..snn._fast.allocator import keep_freed_memory
+    from ..snn.cpu_settings import keep_freed_memory
 
     s = search.settings
     torch.set_num_threads(s.torch_threads)

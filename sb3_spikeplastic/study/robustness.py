@@ -34,7 +34,7 @@ from sb3_spikeplastic.envs.noise import FRICTION_TARGETS, NOISE_TYPES, make_nois
 
 from ..sb3.ablation import Ablation, ablated, check_ablation
 from ..zoo.inputs import check_int, check_output_path, parse_env_kwargs
-from ..zoo.run_folder import RunInfo, atomic_write, frozen_eval_env, load_model, locate_run
+from ..zoo.run_folder import RunInfo, atomic_write, cpu_settings_of, frozen_eval_env, load_model, locate_run
 from .protocol import FIG4
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -169,7 +169,7 @@ def evaluate_robustness(
                     torch.manual_seed(seed)
                 finished.clear()
                 try:
-                    with ablated(model, ablation):
+                    with ablated(model, ablation), cpu_settings_of(model):
                         returns, _ = evaluate_policy(
                             model,
                             venv,

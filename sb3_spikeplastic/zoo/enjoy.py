@@ -498,11 +498,14 @@ class Player:
         """
         from tqdm.auto import tqdm
 
+        from .run_folder import cpu_settings_of
+
         limit = getattr(self.env.spec, "max_episode_steps", None)
         cap = min(c for c in (max_steps, limit) if c) if (max_steps or limit) else None
         episodes: list[Episode] = []
         with contextlib.ExitStack() as stack:
             stack.callback(self.env.close)
+            stack.enter_context(cpu_settings_of(self.model))
             if self.raster is not None:
                 stack.callback(self.raster.close)
             total = total_steps if total_steps is not None else cap and n_episodes * cap

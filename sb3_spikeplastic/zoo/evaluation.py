@@ -15,7 +15,7 @@ from typing import Any, Callable, Optional, Sequence
 import numpy as np
 
 from .inputs import check_int, check_output_path, model_source
-from .run_folder import RunInfo, atomic_write, load_model, make_eval_env
+from .run_folder import RunInfo, atomic_write, cpu_settings_of, load_model, make_eval_env
 
 
 @dataclass
@@ -80,7 +80,8 @@ def evaluate_model(model, venv, n_episodes: int, deterministic: bool = True, see
     torch.manual_seed(seed)
     snn = getattr(model.policy, "snn", None)
     try:
-        with ablated(model, ablation), EnergyMeter(snn) if snn is not None else contextlib.nullcontext() as meter:
+        with ablated(model, ablation), cpu_settings_of(model), \
+                EnergyMeter(snn) if snn is not None else contextlib.nullcontext() as meter:
             returns, lengths = evaluate_policy(model, venv, n_eval_episodes=n_episodes, deterministic=deterministic,
                                                return_episode_rewards=True, callback=on_step)
     finally:

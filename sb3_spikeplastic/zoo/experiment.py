@@ -464,7 +464,7 @@ def train_command(env: str, rule: Optional[str] = None, n_timesteps: Optional[in
     values (the environments' process, evaluations, checkpoints, figures, TensorBoard root), else their defaults."""
     import torch
 
-    from ..snn._fast.allocator import keep_freed_memory
+    from ..snn.cpu_settings import keep_freed_memory
     from ..snn.plasticity import get_rule_class
 
     env_id = cfg.check_env_id(env, list(cfg.load_hyperparams_file(conf)))

@@ -28,7 +28,7 @@ def inspect_command(run: Optional[str] = None, model: Optional[str] = None, env:
     from .evaluation import check_fits
     from .inputs import check_output_path, model_source
     from .recording import inspection_episodes, record_episode, typical_seed
-    from .run_folder import load_model, make_eval_env
+    from .run_folder import cpu_settings_of, load_model, make_eval_env
 
     if output:
         check_output_path(output, "-o/--output", directory=True)
@@ -49,6 +49,10 @@ def inspect_command(run: Optional[str] = None, model: Optional[str] = None, env:
     out = Path(output) if output else (info.run_dir / "figures" if info.run_dir else Path("figures"))
 
     def inspect() -> int:
+        with cpu_settings_of(loaded):
+            return draw()
+
+    def draw() -> int:
         import matplotlib
         from tqdm.auto import tqdm
 

@@ -207,3 +207,12 @@ def frozen_eval_env(make: Callable[[], gymnasium.Env], n_envs: int, seed: int,
         venv.training = False
         venv.norm_reward = False
     return venv
+
+
+def cpu_settings_of(model):
+    """The CPU settings ``model`` runs its episodes under: :meth:`sb3_spikeplastic.PPO.cpu_settings` (flush-to-zero
+    for spiking policies), nothing for other algorithms."""
+    import contextlib
+
+    settings = getattr(model, "cpu_settings", None)
+    return settings() if callable(settings) else contextlib.nullcontext()

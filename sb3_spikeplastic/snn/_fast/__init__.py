@@ -24,7 +24,7 @@
   multiplies by the filter's ``(L + 2, L + 2)`` operator; states and gradients are equal to float rounding.
 * :func:`bernoulli_spikes` (``bernoulli.cpp``), for :meth:`sb3_spikeplastic.snn.coding.CounterBernoulli.sample`:
   the hash sampler in one pass instead of ~12, **bit-identical** (integer hashing, exact comparisons).
-* ``cache_cpu_blocks`` (``block_cache.cpp``), for :func:`sb3_spikeplastic.snn._fast.allocator.cache_freed_blocks`:
+* ``cache_cpu_blocks`` (``block_cache.cpp``), for :func:`sb3_spikeplastic.snn.cpu_settings.cache_freed_blocks`:
   torch's CPU allocator replaced by one that keeps freed large blocks by exact size for the next allocation of
   that size (a training step allocates the same sizes in every BPTT step), where glibc searches its bins.
 

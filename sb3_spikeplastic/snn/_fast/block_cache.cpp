@@ -10,6 +10,10 @@
 // alone frees it (Allocator::raw_allocate and raw_deleter, which some ATen kernels use, need that). The sizes
 // repeat from step to step, so after the first step nearly every large allocation is a cache hit. Unlike c10's
 // default allocator it reports nothing to torch.profiler's memory profiling.
+//
+// The cache is torch's CPU allocator only between cache_cpu_blocks() and uncache_cpu_blocks() (a spiking model's
+// training): uncaching puts the allocator it replaced back and frees the cached blocks; blocks allocated through
+// the cache and freed later go straight back to c10::free_cpu.
 
 #include <c10/core/Allocator.h>
 #include <c10/core/CPUAllocator.h>
@@ -25,8 +29,35 @@ namespace {
 
 class BlockCacheAllocator final : public c10::Allocator {
  public:
-  BlockCacheAllocator(size_t min_bytes, size_t max_cached_bytes)
-      : min_bytes_(min_bytes), max_cached_bytes_(max_cached_bytes) {}
+  // Starts caching freed blocks of at least min_bytes, up to max_cached_bytes in all.
+  void activate(size_t min_bytes, size_t max_cached_bytes) {
+    const std::lock_guard<std::mutex> lock(mutex_);
+    min_bytes_ = min_bytes;
+    max_cached_bytes_ = max_cached_bytes;
+    active_ = true;
+  }
+
+  // Frees every cached block; blocks freed from now on go back to c10::free_cpu.
+  void deactivate() {
+    std::unordered_map<size_t, std::vector<void*>> cached;
+    {
+      const std::lock_guard<std::mutex> lock(mutex_);
+      active_ = false;
+      cached.swap(free_);
+      cached_bytes_ = 0;
+    }
+    for (auto& entry : cached) {
+      for (void* data : entry.second) c10::free_cpu(static_cast<char*>(data) - kHeader);
+    }
+  }
+
+  bool active() {
+    const std::lock_guard<std::mutex> lock(mutex_);
+    return active_;
+  }
+
+  // The allocator that was torch's CPU allocator before this one, put back by uncache_cpu_blocks.
+  c10::Allocator* previous = nullptr;
 
   c10::DataPtr allocate(size_t n) override {
     void* data = nullptr;
@@ -73,7 +104,7 @@ class BlockCacheAllocator final : public c10::Allocator {
     const size_t n = *reinterpret_cast<size_t*>(base);
     {
       const std::lock_guard<std::mutex> lock(mutex_);
-      if (n >= min_bytes_ && cached_bytes_ + n <= max_cached_bytes_) {
+      if (active_ && n >= min_bytes_ && cached_bytes_ + n <= max_cached_bytes_) {
         free_[n].push_back(data);
         cached_bytes_ += n;
         return;
@@ -82,7 +113,8 @@ class BlockCacheAllocator final : public c10::Allocator {
     c10::free_cpu(base);
   }
 
-  const size_t min_bytes_, max_cached_bytes_;
+  size_t min_bytes_ = 0, max_cached_bytes_ = 0;
+  bool active_ = false;
   std::mutex mutex_;
   std::unordered_map<size_t, std::vector<void*>> free_;
   size_t cached_bytes_ = 0;
@@ -90,17 +122,36 @@ class BlockCacheAllocator final : public c10::Allocator {
 
 BlockCacheAllocator* BlockCacheAllocator::instance = nullptr;
 
-// Installs the cache once per process (later calls change nothing); returns whether this call installed it.
+std::mutex install_mutex;
+
+// Makes the cache torch's CPU allocator (created on the first call, never deleted: tensors allocated through it may
+// outlive any owner); returns whether this call installed it (false: it already was).
 bool cache_cpu_blocks(int64_t min_bytes, int64_t max_cached_bytes) {
-  static std::mutex install_mutex;
   const std::lock_guard<std::mutex> lock(install_mutex);
-  if (BlockCacheAllocator::instance != nullptr) return false;
   TORCH_CHECK(min_bytes > 0 && max_cached_bytes >= 0, "cache_cpu_blocks: min_bytes > 0 and max_cached_bytes >= 0");
-  // Never deleted: tensors allocated through it may outlive any owner.
-  BlockCacheAllocator::instance =
-      new BlockCacheAllocator(static_cast<size_t>(min_bytes), static_cast<size_t>(max_cached_bytes));
-  c10::SetCPUAllocator(BlockCacheAllocator::instance, /*priority=*/10);
+  if (BlockCacheAllocator::instance == nullptr) BlockCacheAllocator::instance = new BlockCacheAllocator();
+  BlockCacheAllocator* cache = BlockCacheAllocator::instance;
+  if (cache->active()) return false;
+  cache->previous = c10::GetCPUAllocator();
+  cache->activate(static_cast<size_t>(min_bytes), static_cast<size_t>(max_cached_bytes));
+  c10::SetCPUAllocator(cache, /*priority=*/10);
   return true;
+}
+
+// Puts back the allocator that cache_cpu_blocks replaced and frees the cached blocks; returns whether the cache
+// was installed.
+bool uncache_cpu_blocks() {
+  const std::lock_guard<std::mutex> lock(install_mutex);
+  BlockCacheAllocator* cache = BlockCacheAllocator::instance;
+  if (cache == nullptr || !cache->active()) return false;
+  c10::SetCPUAllocator(cache->previous, /*priority=*/10);
+  cache->deactivate();
+  return true;
+}
+
+// Whether the cache is torch's CPU allocator now.
+bool cpu_block_cache_active() {
+  return BlockCacheAllocator::instance != nullptr && BlockCacheAllocator::instance->active();
 }
 
 // Bytes of freed blocks the cache holds now (0 when it is not installed).
@@ -113,5 +164,7 @@ int64_t cpu_block_cache_bytes() {
 
 TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
   m.def("cache_cpu_blocks(int min_bytes, int max_cached_bytes) -> bool", &cache_cpu_blocks);
+  m.def("uncache_cpu_blocks() -> bool", &uncache_cpu_blocks);
+  m.def("cpu_block_cache_active() -> bool", &cpu_block_cache_active);
   m.def("cpu_block_cache_bytes() -> int", &cpu_block_cache_bytes);
 }
