@@ -5,6 +5,8 @@
 * ``NoisyHalfCheetah-v5``: ``HalfCheetah-v5`` with observation, action and joint-friction noise (``obs_noise``,
   ``action_noise``, ``friction_noise`` standard deviations, ``friction_target``; all 0 by default;
   ``obs_indices`` limits the observation noise to some elements).
+* ``TMazeReversal-v0`` / ``TMazeReversalNoisy-v0``: a spiking two-armed T-maze whose paying arm is hidden, must be
+  learned from the outcomes within the episode and reverses once (:class:`TMazeReversalEnv`); low / high noise.
 * ``HalfCheetahSwitch-v5``: ``HalfCheetah-v5`` whose dynamics change once during each episode (``kind``,
   ``window``, ``factor_range``, ``target``; :class:`DynamicsSwitch`).
 
@@ -25,6 +27,7 @@ from sb3_spikeplastic.envs.noise import (
     make_noisy_env,
     noise_kwargs,
 )
+from sb3_spikeplastic.envs.reversal import TMazeReversalEnv
 from sb3_spikeplastic.envs.switch import SWITCH_KINDS, DynamicsSwitch, make_switch_env
 from sb3_spikeplastic.envs.tmaze import TMazeCueEnv
 
@@ -37,6 +40,7 @@ __all__ = [
     "FrictionNoise",
     "ObservationNoise",
     "TMazeCueEnv",
+    "TMazeReversalEnv",
     "make_noisy_env",
     "make_switch_env",
     "noise_kwargs",
@@ -70,6 +74,9 @@ def _register(env_id: str, **kwargs: Any) -> None:
 
 _register("TMazeCue-v0", entry_point="sb3_spikeplastic.envs.tmaze:TMazeCueEnv", kwargs={"noise": "low"})
 _register("TMazeCueNoisy-v0", entry_point="sb3_spikeplastic.envs.tmaze:TMazeCueEnv", kwargs={"noise": "high"})
+_register("TMazeReversal-v0", entry_point="sb3_spikeplastic.envs.reversal:TMazeReversalEnv", kwargs={"noise": "low"})
+_register("TMazeReversalNoisy-v0", entry_point="sb3_spikeplastic.envs.reversal:TMazeReversalEnv",
+          kwargs={"noise": "high"})
 _register(
     "NoisyHalfCheetah-v5",
     entry_point="sb3_spikeplastic.envs.noise:make_noisy_base_env",

@@ -8,9 +8,10 @@ The package is layered; each layer imports only the ones before it:
 * :mod:`sb3_spikeplastic.study` — studies, the robustness protocol, intervals, hyperparameter search
 * :mod:`sb3_spikeplastic.cli` — the command line, which only parses and dispatches
 
-Importing the package registers the environments (``TMazeCue-v0``, ``TMazeCueNoisy-v0``, ``NoisyHalfCheetah-v5``,
-``HalfCheetahSwitch-v5``) and nothing else: torch and Stable-Baselines3 load when one of the names below is first
-used (``sb3_spikeplastic.PPO``...), so that ``sb3_spikeplastic.envs`` and the command line's ``--help`` stay light.
+Importing the package registers the environments (``TMazeCue-v0``, ``TMazeCueNoisy-v0``, ``TMazeReversal-v0``,
+``TMazeReversalNoisy-v0``, ``NoisyHalfCheetah-v5``, ``HalfCheetahSwitch-v5``) and nothing else: torch and
+Stable-Baselines3 load when one of the names below is first used (``sb3_spikeplastic.PPO``...), so that
+``sb3_spikeplastic.envs`` and the command line's ``--help`` stay light.
 """
 
 import importlib
