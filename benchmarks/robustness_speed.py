@@ -39,7 +39,8 @@ def run_row(key: str, n_envs: int, steps: int) -> dict:
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import VecNormalize
 
-    from sb3_spikeplastic.zoo.config import algorithm_class, load_hyperparams
+    from sb3_spikeplastic.zoo.config import load_hyperparams
+    from sb3_spikeplastic.zoo.validation import algorithm_class
     from sb3_spikeplastic.study.robustness import evaluate_robustness
 
     torch.set_num_threads(1)

@@ -9,9 +9,9 @@
     sb3-spikeplastic plot logs/ppo/TMazeCue-v0_1 logs/ppo/TMazeCue-v0_2 -o curves.png
     sb3-spikeplastic inspect --run logs/ppo/TMazeCue-v0_1
 
-This module only parses the arguments and hands them to the command's function (:data:`COMMANDS`), which checks
-them and returns the work to run: ``train`` is :func:`sb3_spikeplastic.zoo.experiment.train_command` (the run folder's
-layout: :mod:`sb3_spikeplastic.zoo.run_folder`), ``evaluate`` :func:`sb3_spikeplastic.zoo.evaluation.evaluate_command`, and
+This module only parses the arguments and hands them to the command's function (:data:`COMMANDS`), which checks them
+and returns the work to run: ``train`` is :func:`sb3_spikeplastic.zoo.train.train_command` (the run folder's layout:
+:mod:`sb3_spikeplastic.zoo.run_folder`), ``evaluate`` :func:`sb3_spikeplastic.zoo.evaluation.evaluate_command`, and
 so on. A ``ValueError`` (or ``FileNotFoundError``) raised while checking is bad input: :func:`main` prints it as one
 line ``sb3-spikeplastic: error: ...`` and returns exit status 2.
 
@@ -41,7 +41,7 @@ PROG = "sb3-spikeplastic"
 #: command -> (module, function): the function takes the command's options as keywords, checks them (raising
 #: ``ValueError`` before anything is written) and returns the work, which returns the exit status.
 COMMANDS = {
-    "train": ("zoo.experiment", "train_command"),
+    "train": ("zoo.train", "train_command"),
     "optimize": ("study.optimize", "optimize_command"),
     "study": ("study.engine", "study_command"),
     "evaluate": ("zoo.evaluation", "evaluate_command"),

@@ -17,7 +17,7 @@ from helpers import run_cli
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from sb3_spikeplastic import PPO, cli
-from sb3_spikeplastic.zoo.config import load_hyperparams_file
+from sb3_spikeplastic.zoo.zoo_yaml import load_hyperparams_file
 from sb3_spikeplastic.zoo.run_folder import load_model, locate_run
 
 TINY_TMAZE = ["n_envs=2", "n_steps=32", "batch_size=32", "bptt_steps=16", "n_epochs=1",

@@ -9,17 +9,14 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
 import sb3_spikeplastic
 from sb3_spikeplastic import PPO, SpikePlasticPolicy
-from sb3_spikeplastic.zoo import config
-from sb3_spikeplastic.zoo.config import (
-    algorithm_class,
+from sb3_spikeplastic.zoo import validation as config
+from sb3_spikeplastic.zoo.config import load_hyperparams, model_arguments, normalize_arguments, resolve_hyperparams
+from sb3_spikeplastic.zoo.validation import algorithm_class
+from sb3_spikeplastic.zoo.zoo_yaml import (
     default_hyperparams_path,
-    load_hyperparams,
     load_hyperparams_file,
-    model_arguments,
-    normalize_arguments,
     parse_override,
     parse_python_literal,
-    resolve_hyperparams,
     yaml_load,
 )
 

@@ -2,7 +2,7 @@
 
 import pytest
 
-from sb3_spikeplastic.zoo.experiment import continued_run, train_command
+from sb3_spikeplastic.zoo.train import continued_run, train_command
 
 
 @pytest.mark.parametrize("options, message", [

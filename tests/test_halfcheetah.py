@@ -145,7 +145,7 @@ def test_auto_threads_split_the_halfcheetah_entry_but_not_small_policies():
     from sb3_contrib import RecurrentPPO
 
     from sb3_spikeplastic.envs.tmaze import TMazeCueEnv
-    from sb3_spikeplastic.zoo.experiment import training_threads
+    from sb3_spikeplastic.zoo.train import training_threads
 
     small = dict(n_envs=1, n_steps=32, batch_size=32)
     cheetah = shipped_model(**small, bptt_steps=16).policy

@@ -244,7 +244,7 @@ def test_bad_arguments_name_the_value(make, bad):
 
 
 def test_envs_import_neither_torch_nor_the_plugin():
-    allowed = {"__future__", "collections", "typing", "math", "warnings", "gymnasium", "numpy", "mujoco",
+    allowed = {"__future__", "collections", "itertools", "typing", "math", "warnings", "gymnasium", "numpy", "mujoco",
                "sb3_spikeplastic"}
     for source in Path(sb3_spikeplastic.envs.__file__).parent.glob("*.py"):
         for node in ast.walk(ast.parse(source.read_text())):

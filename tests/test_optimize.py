@@ -7,7 +7,8 @@ import pytest
 from helpers import TINY_CARTPOLE, run_cli
 
 from sb3_spikeplastic.zoo import config as cfg
-from sb3_spikeplastic.study.optimize import OptimizeSettings, load_search_space, prepare, sample_overrides, searched_space
+from sb3_spikeplastic.study.optimize import OptimizeSettings, prepare
+from sb3_spikeplastic.study.search_space import load_search_space, sample_overrides, searched_space
 from sb3_spikeplastic.study.storage import default_storage_url
 
 SMALL_SPACE = """default:

@@ -13,8 +13,9 @@ from helpers import run_cli, tmaze_model
 
 from sb3_spikeplastic import PPO, __version__, cli
 
-from sb3_spikeplastic.zoo import experiment
-from sb3_spikeplastic.zoo.config import dump_yaml, packaged_hyperparams_path
+from sb3_spikeplastic.zoo import train as experiment
+from sb3_spikeplastic.zoo.config import dump_yaml
+from sb3_spikeplastic.zoo.zoo_yaml import packaged_hyperparams_path
 
 
 def prepared_run(monkeypatch, argv):

@@ -38,7 +38,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Optional, Sequence
 
-from ..zoo import config as cfg
+from ..zoo.config import check_env_id, resolve_hyperparams
+from ..zoo.zoo_yaml import PACKAGED_HYPERPARAMS, load_hyperparams_file, parse_override, yaml_load
 from .protocol import FIG4, NOISES, Protocol
 
 STUDY_KEYS = ("description", "envs", "seeds", "budgets", "conf", "hyperparams", "eval_freq", "eval_episodes",
@@ -176,9 +177,9 @@ class Study:
         v = self.variants[variant]
         train_env = self.train_env(env_id, variant)
         try:
-            cfg.check_env_id(train_env, list(cfg.load_hyperparams_file(self.conf_of(variant))))
-            return cfg.resolve_hyperparams(train_env, self.conf_of(variant), self.overrides(variant), rule=v.rule,
-                                           n_timesteps=max(self.budgets_of(variant)))
+            check_env_id(train_env, list(load_hyperparams_file(self.conf_of(variant))))
+            return resolve_hyperparams(train_env, self.conf_of(variant), self.overrides(variant), rule=v.rule,
+                                       n_timesteps=max(self.budgets_of(variant)))
         except ValueError as exc:
             raise ValueError(f"variant {variant!r} on {env_id}: {exc}") from None
 
@@ -247,7 +248,7 @@ def _overrides(value, what: str) -> tuple[str, ...]:
     if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
         raise ValueError(f"{what} must be a list of KEY=VALUE strings, got {value!r}")
     for item in value:
-        cfg.parse_override(item)
+        parse_override(item)
     return tuple(value)
 
 
@@ -257,10 +258,10 @@ def _conf(value, what: str, base: Path, where: str = "the study file") -> Option
         return None
     if not isinstance(value, str):
         raise ValueError(f"{what}={value!r} must be a packaged file name or a path")
-    if value not in cfg.PACKAGED_HYPERPARAMS and not Path(value).is_absolute() and (base / value).is_file():
+    if value not in PACKAGED_HYPERPARAMS and not Path(value).is_absolute() and (base / value).is_file():
         value = str((base / value).resolve())
     try:
-        cfg.load_hyperparams_file(value)
+        load_hyperparams_file(value)
     except ValueError as exc:
         raise ValueError(f"{what}: {exc}") from None
     return value
@@ -466,7 +467,8 @@ def study_path(name_or_path: os.PathLike | str) -> Path:
     shipped = packaged_studies()
     if str(name_or_path) in shipped:
         return shipped[str(name_or_path)]
-    raise ValueError(f"no study file {str(name_or_path)!r}; give a path or a packaged study: {', '.join(sorted(shipped))}")
+    raise ValueError(f"no study file {str(name_or_path)!r}; give a path or a packaged study: "
+                     f"{', '.join(sorted(shipped))}")
 
 
 def load_study_file(name_or_path: os.PathLike | str) -> tuple[Study, Path]:
@@ -477,7 +479,7 @@ def load_study_file(name_or_path: os.PathLike | str) -> tuple[Study, Path]:
     except OSError as exc:
         raise ValueError(f"cannot read study file {str(path)!r}: {exc.strerror or exc}") from None
     try:
-        data = cfg.yaml_load(text)
+        data = yaml_load(text)
     except Exception as exc:
         raise ValueError(f"study file {str(path)!r} is not valid YAML: {' '.join(str(exc).split())}") from None
     return study_from_dict(data, f"study file {str(path)!r}", path.parent), path

@@ -10,9 +10,9 @@
         <evaluation>_<noise>.csv                            robustness: model, noise_type, sigma, episode, return
         <evaluation>.csv                                    sensitivity: element, sensitivity, obs_sd
 
-Raw per-episode returns are the study's only data: :mod:`sb3_spikeplastic.study.report` derives every table,
-interval and figure from them. Every file is written whole (into a temporary file, then renamed), so a killed
-worker never leaves half a file.
+Raw per-episode returns are the study's only data: :func:`read_study` reads back every file a study declares, and
+:mod:`sb3_spikeplastic.study.report` derives every table, interval and figure from them. Every file is written
+whole (into a temporary file, then renamed), so a killed worker never leaves half a file.
 """
 
 from __future__ import annotations
@@ -20,12 +20,13 @@ from __future__ import annotations
 import csv
 import re
 from collections import defaultdict
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
-from .declaration import model_name
+from .declaration import Study, model_name
 
 _CHECKPOINT = re.compile(r"rl_model_(\d+)_steps\.zip")
 _RUN = re.compile(r".+_\d+")
@@ -109,3 +110,49 @@ def read_sensitivity(path: Path) -> tuple[np.ndarray, np.ndarray]:
         rows = sorted(csv.DictReader(f), key=lambda r: int(r["element"]))
     return (np.array([float(r["sensitivity"]) for r in rows]),
             np.array([float(r["obs_sd"]) if r.get("obs_sd") not in (None, "") else np.nan for r in rows]))
+
+
+@dataclass
+class StudyData:
+    """What a study's folder holds, read once.
+
+    :param robustness: (env, evaluation) -> model -> noise -> (sigmas, returns (n_sigma, n_episodes))
+    :param final: (env, evaluation) -> model -> {"return", "length", "success"}
+    :param sensitivity: (env, evaluation) -> model -> (sensitivity per element, observation s.d. per element)
+    :param training: env -> (variant, seed) -> (timesteps, mean return)
+    :param missing: one line per missing cell or evaluation file
+    """
+
+    robustness: dict = field(default_factory=dict)
+    final: dict = field(default_factory=dict)
+    sensitivity: dict = field(default_factory=dict)
+    training: dict = field(default_factory=dict)
+    missing: list = field(default_factory=list)
+
+
+def read_study(study: Study, folder: Path) -> StudyData:
+    """Every raw file the study declares, and the list of those not there."""
+    layout, data = StudyFolder(folder), StudyData()
+    for env, variant, seed in study.cells():
+        path = layout.training_file(env, variant, seed)
+        if path.is_file():
+            data.training.setdefault(env, {})[(variant, seed)] = read_training(path)
+        elif study.eval_freq:
+            data.missing.append(f"{env} {variant} seed {seed}: training curve")
+        for budget in study.budgets_of(variant):
+            model = model_name(variant, budget, seed)
+            episodes = layout.episodes_dir(env, variant, budget, seed)
+            for name, evaluation, files in study.evaluations_of(variant, seed, budget):
+                for file in files:
+                    path = episodes / file
+                    if not path.is_file():
+                        data.missing.append(f"{env} {model}: {file}")
+                    elif evaluation.kind == "final":
+                        data.final.setdefault((env, name), {})[model] = read_final(path)
+                    elif evaluation.kind == "sensitivity":
+                        data.sensitivity.setdefault((env, name), {})[model] = read_sensitivity(path)
+                    else:
+                        noise = file[len(name) + 1:-len(".csv")]
+                        runs = data.robustness.setdefault((env, name), {}).setdefault(model, {})
+                        runs[noise] = read_robustness(path)
+    return data

@@ -23,15 +23,15 @@ from __future__ import annotations
 
 import csv
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
+from .declaration import Evaluation, Study
+from .groups import comparisons, group_of, groups_of, kinds, variant_of
 from .intervals import Interval, bootstrap_mean_differences, bootstrap_mean_intervals
-from .declaration import Evaluation, Study, budget_label, model_name
-from .layout import StudyFolder, read_final, read_robustness, read_sensitivity, read_training
+from .layout import StudyFolder, read_study
 from .protocol import auc, ratio_to_r0
 
 
@@ -63,111 +63,6 @@ def verdict(difference: Interval, better: str, worse: str) -> str:
     if difference.high < 0:
         return worse
     return "not resolved"
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# The raw data of a study
-
-@dataclass
-class StudyData:
-    """What a study's folder holds, read once.
-
-    :param robustness: (env, evaluation) -> model -> noise -> (sigmas, returns (n_sigma, n_episodes))
-    :param final: (env, evaluation) -> model -> {"return", "length", "success"}
-    :param sensitivity: (env, evaluation) -> model -> (sensitivity per element, observation s.d. per element)
-    :param training: env -> (variant, seed) -> (timesteps, mean return)
-    :param missing: one line per missing cell or evaluation file
-    """
-
-    robustness: dict = field(default_factory=dict)
-    final: dict = field(default_factory=dict)
-    sensitivity: dict = field(default_factory=dict)
-    training: dict = field(default_factory=dict)
-    missing: list = field(default_factory=list)
-
-
-def read_study(study: Study, folder: Path) -> StudyData:
-    """Every raw file the study declares, and the list of those not there."""
-    layout, data = StudyFolder(folder), StudyData()
-    for env, variant, seed in study.cells():
-        path = layout.training_file(env, variant, seed)
-        if path.is_file():
-            data.training.setdefault(env, {})[(variant, seed)] = read_training(path)
-        elif study.eval_freq:
-            data.missing.append(f"{env} {variant} seed {seed}: training curve")
-        for budget in study.budgets_of(variant):
-            model = model_name(variant, budget, seed)
-            episodes = layout.episodes_dir(env, variant, budget, seed)
-            for name, evaluation, files in study.evaluations_of(variant, seed, budget):
-                for file in files:
-                    path = episodes / file
-                    if not path.is_file():
-                        data.missing.append(f"{env} {model}: {file}")
-                    elif evaluation.kind == "final":
-                        data.final.setdefault((env, name), {})[model] = read_final(path)
-                    elif evaluation.kind == "sensitivity":
-                        data.sensitivity.setdefault((env, name), {})[model] = read_sensitivity(path)
-                    else:
-                        noise = file[len(name) + 1:-len(".csv")]
-                        data.robustness.setdefault((env, name), {}).setdefault(model, {})[noise] = read_robustness(path)
-    return data
-
-
-def group_of(model: str) -> str:
-    return model.rsplit("_s", 1)[0]
-
-
-def variant_of(group: str) -> str:
-    return group.split("@")[0]
-
-
-def groups_of(study: Study) -> list[str]:
-    """``<variant>@<budget>`` in report order: budgets ascending, then the study file's order of variants."""
-    budgets = sorted({b for v in study.variants for b in study.budgets_of(v)})
-    return [f"{v}@{budget_label(b)}" for b in budgets for v in study.variants if b in study.budgets_of(v)]
-
-
-def _entry(study: Study, variant: str) -> dict:
-    """The variant's resolved entry on the study's first environment; where resolving needs a package the report
-    does not (sb3-contrib for a RecurrentPPO baseline), its file's entry with the variant's rule."""
-    from ..zoo import config as cfg
-
-    try:
-        return study.config(study.envs[0], variant)
-    except ValueError:
-        data = cfg.load_hyperparams_file(study.conf_of(variant))
-        entry = dict(data.get(study.train_env(study.envs[0], variant)) or data.get("default") or {})
-        rule = study.variants[variant].rule
-        if rule is not None:
-            entry["policy_kwargs"] = {**(entry.get("policy_kwargs") or {}), "rule": rule}
-        return entry
-
-
-def kinds(study: Study) -> dict[str, str]:
-    """Variant -> ``plastic``, ``static`` or ``baselines``, from its entry (the study's first env)."""
-    out = {}
-    for variant in study.variants:
-        config = _entry(study, variant)
-        if config.get("policy") != "SpikePlasticPolicy":
-            out[variant] = "baselines"
-        else:
-            rule = (config.get("policy_kwargs") or {}).get("rule", "dp-oja")
-            out[variant] = "static" if rule == "static" else "plastic"
-    return out
-
-
-def members(names: tuple[str, ...], kind: dict[str, str]) -> list[str]:
-    """Variant names and groups (``plastic``, ``static``, ``spiking``, ``baselines``) -> variants."""
-    out: list[str] = []
-    for name in names:
-        if name in kind:
-            chosen = [name]
-        elif name == "spiking":
-            chosen = [v for v, k in kind.items() if k != "baselines"]
-        else:
-            chosen = [v for v, k in kind.items() if k == name]
-        out += [v for v in chosen if v not in out]
-    return out
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -232,12 +127,13 @@ def robustness_section(env: str, name: str, evaluation: Evaluation, models: dict
                 points.append(dict(env=env, evaluation=name, group=group, noise=noise, sigma=sigma, seeds=len(seeds),
                                    **{f"return_{k}": round(v, 1) for k, v in ret._asdict().items()},
                                    **{f"ratio_{k}": round(v, 4) for k, v in rat._asdict().items()}))
-            lines.append(f"| {group} | {len(seeds)} | " + " | ".join(
-                f"{ret.estimate:.0f} ({rat.estimate:.2f})" for ret, rat in zip(returns, ratios)) + f" | {fmt(area, 2)} |")
+            per_sigma = " | ".join(f"{ret.estimate:.0f} ({rat.estimate:.2f})" for ret, rat in zip(returns, ratios))
+            lines.append(f"| {group} | {len(seeds)} | {per_sigma} | {fmt(area, 2)} |")
             summary[group].append(fmt(area, 2))
             for row, values in ((0, returns), (1, ratios)):
                 axes[row, col].errorbar(sigmas, [v.estimate for v in values],
-                                        yerr=[[v.estimate - v.low for v in values], [v.high - v.estimate for v in values]],
+                                        yerr=[[v.estimate - v.low for v in values],
+                                              [v.high - v.estimate for v in values]],
                                         capsize=3, marker="o", ms=3, color=colours[group], ls=styles[group],
                                         label=f"{group} (n={len(seeds)})")
         for group in groups:
@@ -257,7 +153,8 @@ def robustness_section(env: str, name: str, evaluation: Evaluation, models: dict
                 reference_seeds=len(ref), **{f"auc_difference_{k}": round(v, 4) for k, v in d_auc._asdict().items()},
                 **{f"return_at_sigma_{sigmas[top]:g}_difference_{k}": round(v, 1) for k, v in d_top._asdict().items()},
                 **{f"r0_difference_{k}": round(v, 1) for k, v in d_r0._asdict().items()},
-                auc_verdict=verdict(d_auc, "loses less", "loses more"), return_verdict=verdict(d_top, "higher", "lower")))
+                auc_verdict=verdict(d_auc, "loses less", "loses more"),
+                return_verdict=verdict(d_top, "higher", "lower")))
     # One legend for the whole figure (a group's label once, with the seeds of its first panel), right of the panels.
     handles = {}
     for ax in axes[0]:
@@ -270,27 +167,6 @@ def robustness_section(env: str, name: str, evaluation: Evaluation, models: dict
                      "|---|---|---|" + "---|" * len(noises)]
     summary_lines += [f"| {g} | " + " | ".join(cells) + " |" for g, cells in summary.items()]
     return lines, points, verdicts, fig, summary_lines
-
-
-def comparisons(study: Study, kind: dict[str, str], groups: list[str],
-                has_data: Callable[[str], bool]) -> list[tuple[str, str, list[str]]]:
-    """``(label, reference group, groups compared)`` of every declared comparison, budget by budget: each variant
-    against each reference of the same budget, then the variants pooled (when declared and more than one)."""
-    rows = []
-    for budget in dict.fromkeys(g.split("@")[1] for g in groups):
-        at_budget = {variant_of(g): g for g in groups if g.split("@")[1] == budget and has_data(g)}
-        for comparison in study.comparisons:
-            chosen = [v for v in members(comparison.variants, kind) if v in at_budget]
-            for ref_variant in members(comparison.against, kind):
-                if ref_variant not in at_budget:
-                    continue
-                reference = at_budget[ref_variant]
-                mine = [v for v in chosen if v != ref_variant]
-                rows += [(at_budget[v], reference, [at_budget[v]]) for v in mine]
-                if comparison.pooled and len(mine) > 1:
-                    rows.append((f"{' + '.join(comparison.variants)}@{budget} (pooled: {', '.join(mine)})", reference,
-                                 [at_budget[v] for v in mine]))
-    return rows
 
 
 def final_section(env: str, name: str, models: dict, study: Study, kind: dict[str, str],
@@ -382,7 +258,8 @@ def verdict_table(rows: list[dict]) -> list[str]:
             for r in mine:
                 lines.append(f"| {r['model']} | {r['reference']} | {r['seeds']} vs {r['reference_seeds']} | "
                              f"{ival(r, 'return_difference', 3)} | {r['return_verdict']} |" + (
-                                 f" {ival(r, 'success_difference', 3)} | {r['success_verdict']} |" if has_success else ""))
+                                 f" {ival(r, 'success_difference', 3)} | {r['success_verdict']} |"
+                                 if has_success else ""))
             lines.append("")
             continue
         top_key = next(k for k in mine[0] if k.startswith("return_at_sigma_")).split("_difference")[0]

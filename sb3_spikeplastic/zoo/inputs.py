@@ -61,7 +61,7 @@ def check_output_path(path: os.PathLike, flag: str, directory: bool) -> Path:
 def parse_env_kwargs(items: Optional[Sequence[str]]) -> Optional[dict]:
     """``--env-kwargs key=value ...`` (or rl-zoo's ``key:value``; values as YAML) as a dict; ``None`` when not
     given. Errors name ``--env-kwargs``."""
-    from .config import parse_override
+    from .zoo_yaml import parse_override
 
     if items is None:
         return None

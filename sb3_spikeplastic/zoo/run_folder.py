@@ -101,7 +101,7 @@ class RunInfo:
 
 def read_run_config(run_dir: Path) -> tuple[Optional[str], Optional[dict]]:
     """``(env_id, config)`` from ``run_dir/<EnvId>/config.yml``, or ``(None, None)`` if there is none."""
-    from .config import yaml_load
+    from .zoo_yaml import yaml_load
 
     for cfg in sorted(Path(run_dir).glob("*/config.yml")):
         data = yaml_load(cfg.read_text())
@@ -113,7 +113,7 @@ def read_run_config(run_dir: Path) -> tuple[Optional[str], Optional[dict]]:
 
 def read_run_args(run_dir: Path, env_id: str) -> dict:
     """The arguments of the command that wrote ``run_dir`` (``<EnvId>/args.yml``; ``{}`` if absent)."""
-    from .config import yaml_load
+    from .zoo_yaml import yaml_load
 
     path = Path(run_dir) / env_id / "args.yml"
     return (yaml_load(path.read_text()) or {}) if path.is_file() else {}
@@ -157,7 +157,7 @@ def locate_run(path: os.PathLike, best: bool = False) -> RunInfo:
 
 def load_model(info: RunInfo, device: str = "cpu"):
     """The model of ``info``, loaded with the algorithm its run used (``algo`` of its config)."""
-    from .config import algorithm_class
+    from .validation import algorithm_class
 
     try:
         algorithm = algorithm_class(info.config.get("algo", "ppo"))
