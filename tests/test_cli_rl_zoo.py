@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from helpers import run_cli, tmaze_model
+from helpers import tmaze_model
 
 from sb3_spikeplastic import PPO, __version__, cli
 
@@ -66,7 +66,7 @@ def test_train_command_line_of_rl_zoo_on_halfcheetah(tmp_path, monkeypatch, caps
 
 @pytest.mark.skipif("log_interval" not in inspect.signature(experiment.train_command).parameters,
                     reason="train_command does not take log_interval yet")
-def test_log_interval_reaches_learn(tmp_path, monkeypatch, capsys):
+def test_log_interval_reaches_learn(tmp_path, monkeypatch, run_cli):
     seen = {}
 
     def learn(self, total_timesteps, callback=None, **kwargs):
@@ -74,7 +74,7 @@ def test_log_interval_reaches_learn(tmp_path, monkeypatch, capsys):
         return self
 
     monkeypatch.setattr(PPO, "learn", learn)
-    code, _, err = run_cli(capsys, "train", "--env", "TMazeCue-v0", "-n", "64", "--log-interval", "10", "-f",
+    code, _, err = run_cli("train", "--env", "TMazeCue-v0", "-n", "64", "--log-interval", "10", "-f",
                            tmp_path, "-v", "0", "--hyperparams", "n_envs:2", "n_steps:32", "batch_size:32",
                            "bptt_steps:16", "policy_kwargs.hidden_sizes=[16]")
     assert code == 0, err
@@ -92,8 +92,8 @@ def test_log_interval_reaches_learn(tmp_path, monkeypatch, capsys):
     (["train", "--env", "TMazeCue-v0", "-params", "policy_kwargs.rule=dp-bcm", "policy_kwargs.rule_kwargs:"
       "{eta_phi_init: 1.5}"], "policy_kwargs.rule_kwargs.eta_phi_init=1.5 must lie in (0, 1)"),
 ])
-def test_bad_input_is_one_line_naming_its_option(argv, message, tmp_path, capsys):
-    code, out, err = run_cli(capsys, *argv, "-f" if argv[0] == "train" else "--run", tmp_path / "logs")
+def test_bad_input_is_one_line_naming_its_option(argv, message, tmp_path, run_cli):
+    code, out, err = run_cli(*argv, "-f" if argv[0] == "train" else "--run", tmp_path / "logs")
     assert code == 2 and out == ""
     assert err.splitlines() == [f"sb3-spikeplastic: error: {err.split('error: ', 1)[1].strip()}"]
     assert message in err and "hyperparameter override" not in err, err
@@ -154,8 +154,8 @@ def test_enjoy_command_line_of_rl_zoo(zoo_logs, monkeypatch, capsys):
         assert seen["args"][0] == 1 and seen["kwargs"]["total_steps"] is None  # one episode, as without -n
 
 
-def test_enjoy_n_plays_that_many_steps_in_all(zoo_logs, capsys):
-    code, out, err = run_cli(capsys, "enjoy", "--env", "TMazeCue-v0", "-f", zoo_logs, "--exp-id", "1",
+def test_enjoy_n_plays_that_many_steps_in_all(zoo_logs, run_cli):
+    code, out, err = run_cli("enjoy", "--env", "TMazeCue-v0", "-f", zoo_logs, "--exp-id", "1",
                              "--load-checkpoint", "128", "-n", "40", "--seed", "0", "--no-render")
     assert code == 0, err
     lengths = [int(line.split(", ")[1].split()[0]) for line in out.splitlines() if line.startswith("episode ")]
@@ -169,9 +169,9 @@ def test_enjoy_n_plays_that_many_steps_in_all(zoo_logs, capsys):
     (["--load-best", "--load-last-checkpoint"], "--best and --load-last-checkpoint: give one of them"),
     (["--run", "somewhere"], "give one of --run FOLDER, --model PATH or -f/--folder LOGS with --env ID"),
 ])
-def test_bad_zoo_model_choice_is_one_line(zoo_logs, capsys, argv, message):
+def test_bad_zoo_model_choice_is_one_line(zoo_logs, run_cli, argv, message):
     for command in ("enjoy", "evaluate"):
-        code, out, err = run_cli(capsys, command, "--env", "TMazeCue-v0", "-f", zoo_logs, *argv)
+        code, out, err = run_cli(command, "--env", "TMazeCue-v0", "-f", zoo_logs, *argv)
         assert code == 2 and len(err.splitlines()) == 1 and message in err, err
-    code, _, err = run_cli(capsys, "evaluate", "-f", zoo_logs)
+    code, _, err = run_cli("evaluate", "-f", zoo_logs)
     assert code == 2 and "-f/--folder needs --env ID" in err

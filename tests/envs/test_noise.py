@@ -1,17 +1,11 @@
 """Observation, action and joint-friction noise wrappers, the factory and the NoisyHalfCheetah-v5 id."""
 
-import ast
-import importlib
-import warnings
-from pathlib import Path
-
 import gymnasium
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
-import sb3_spikeplastic.envs
 from sb3_spikeplastic.envs import (
     NOISE_TYPES,
     ActionNoise,
@@ -30,12 +24,7 @@ MAKE_WRAPPER = {
     "friction": lambda env, sigma: FrictionNoise(env, sigma),
     "geom_friction": lambda env, sigma: FrictionNoise(env, sigma, target="geom_friction"),
 }
-
-
-@pytest.fixture(autouse=True)
-def _mujoco_log_in_tmp(tmp_path, monkeypatch):
-    # MuJoCo 4.0 warns that HalfCheetah's `settotalmass` is deprecated and appends that to ./MUJOCO_LOG.TXT.
-    monkeypatch.chdir(tmp_path)
+pytestmark = pytest.mark.usefixtures("mujoco_log_in_tmp")  # HalfCheetah writes ./MUJOCO_LOG.TXT
 
 
 def cheetah(max_episode_steps: int = 1000) -> gymnasium.Env:
@@ -79,14 +68,6 @@ def test_noisy_halfcheetah_spec_recreates_the_stack():
     assert bitwise_equal(rollout(env, 1, ACTIONS), rollout(gymnasium.make(env.spec), 1, ACTIONS))
     wrapped = make_noisy_env("HalfCheetah-v5", action_noise=0.2)
     assert bitwise_equal(rollout(wrapped, 1, ACTIONS), rollout(gymnasium.make(wrapped.spec), 1, ACTIONS))
-
-
-def test_reimport_registers_silently():
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        importlib.reload(sb3_spikeplastic.envs)
-    for env_id in ("TMazeCue-v0", "TMazeCueNoisy-v0", "NoisyHalfCheetah-v5"):
-        assert env_id in gymnasium.registry
 
 
 @pytest.mark.parametrize("kind", list(MAKE_WRAPPER))
@@ -133,18 +114,8 @@ def test_observation_noise_on_some_indices_perturbs_only_those_with_the_all_elem
     assert ObservationNoise(cheetah(), 0.5, indices=[8, 0, 3]).indices == (0, 3, 8)
 
 
-class _ActionRecorder(gymnasium.Wrapper):
-    def __init__(self, env):
-        super().__init__(env)
-        self.actions = []
-
-    def step(self, action):
-        self.actions.append(action)
-        return self.env.step(action)
-
-
-def test_action_noise_is_multiplicative_per_dimension():
-    recorder = _ActionRecorder(cheetah())
+def test_action_noise_is_multiplicative_per_dimension(action_recorder):
+    recorder = action_recorder(cheetah())
     env = ActionNoise(recorder, 0.2)
     env.reset(seed=0)
     action = np.full(6, 0.5, np.float32)
@@ -204,7 +175,14 @@ def test_make_noisy_env_wraps_only_the_non_zero_noises():
 
 
 def test_noise_kwargs_maps_every_noise_type():
-    assert NOISE_TYPES == ("obs", "action", "friction")
+    # every noise type's arguments make make_noisy_env apply that noise, with that sigma, and no other
+    wrapper = {"obs": ObservationNoise, "action": ActionNoise, "friction": FrictionNoise}
+    for noise_type in NOISE_TYPES:
+        env, applied = make_noisy_env(cheetah(), **noise_kwargs(noise_type, 0.3)), []
+        while isinstance(env, gymnasium.Wrapper):
+            applied += [(type(env), env.sigma)] if type(env) in wrapper.values() else []
+            env = env.env
+        assert applied == [(wrapper[noise_type], 0.3)], noise_type
     assert noise_kwargs("obs", 0.1) == {"obs_noise": 0.1}
     assert noise_kwargs("action", 0.2) == {"action_noise": 0.2}
     assert noise_kwargs("friction", 0.3, "geom_friction") == {"friction_noise": 0.3, "friction_target": "geom_friction"}
@@ -241,46 +219,3 @@ def test_bad_arguments_name_the_value(make, bad):
         assert "[0, 16]" in message
     if "gravity" in message:
         assert all(repr(name) in message for name in NOISE_TYPES)
-
-
-def test_envs_import_neither_torch_nor_the_plugin():
-    allowed = {"__future__", "collections", "typing", "math", "warnings", "gymnasium", "numpy", "mujoco",
-               "sb3_spikeplastic"}
-    for source in Path(sb3_spikeplastic.envs.__file__).parent.glob("*.py"):
-        for node in ast.walk(ast.parse(source.read_text())):
-            if isinstance(node, ast.Import):
-                names = [alias.name for alias in node.names]
-            elif isinstance(node, ast.ImportFrom):
-                names = [node.module]
-            else:
-                continue
-            for name in names:
-                assert name.split(".")[0] in allowed, (source.name, name)
-                if name.startswith("sb3_spikeplastic"):
-                    assert name.startswith("sb3_spikeplastic.envs"), (source.name, name)
-
-
-def test_route_mujoco_warnings_drops_the_halfcheetah_deprecation_and_the_log_file(tmp_path):
-    """Without the route, every HalfCheetah build appends MuJoCo's `settotalmass` deprecation to ./MUJOCO_LOG.TXT;
-    with it, nothing is written and no Python warning is raised; MuJoCo's other warnings become RuntimeWarnings."""
-    import warnings
-
-    import mujoco
-
-    from sb3_spikeplastic.envs import route_mujoco_warnings
-
-    previous = mujoco.get_mju_user_warning()
-    try:
-        mujoco.set_mju_user_warning(None)  # MuJoCo's own handler, whatever an earlier test installed
-        cheetah().close()
-        assert (tmp_path / "MUJOCO_LOG.TXT").exists()
-        (tmp_path / "MUJOCO_LOG.TXT").unlink()
-        route_mujoco_warnings()
-        with warnings.catch_warnings():
-            warnings.simplefilter("error")
-            cheetah().close()
-        assert not (tmp_path / "MUJOCO_LOG.TXT").exists()
-        with pytest.warns(RuntimeWarning, match="^MuJoCo: too many contacts$"):
-            mujoco.get_mju_user_warning()("too many contacts\n")
-    finally:
-        mujoco.set_mju_user_warning(previous)

@@ -1,26 +1,17 @@
 """DynamicsSwitch, make_switch_env and the HalfCheetahSwitch-v5 id: a change of dynamics during an episode."""
 
-import importlib
-import warnings
-
 import gymnasium
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
-import sb3_spikeplastic.envs
 from sb3_spikeplastic.envs import SWITCH_KINDS, DynamicsSwitch, FrictionNoise, TMazeCueEnv, make_switch_env
 
 MODEL_KINDS = ("actuator_gain", "friction", "mass")
 ARRAY = {"actuator_gain": "actuator_gear", "friction": "dof_damping", "mass": "body_mass"}
 ACTIONS = np.random.default_rng(0).uniform(-1, 1, size=(40, 6)).astype(np.float32)
-
-
-@pytest.fixture(autouse=True)
-def _mujoco_log_in_tmp(tmp_path, monkeypatch):
-    # MuJoCo 4.0 warns that HalfCheetah's `settotalmass` is deprecated and appends that to ./MUJOCO_LOG.TXT.
-    monkeypatch.chdir(tmp_path)
+pytestmark = pytest.mark.usefixtures("mujoco_log_in_tmp")  # HalfCheetah writes ./MUJOCO_LOG.TXT
 
 
 def cheetah(max_episode_steps: int = 1000) -> gymnasium.Env:
@@ -44,16 +35,6 @@ def changed(nominal: np.ndarray, kind: str, target: int, factor: float) -> np.nd
     else:
         out[target] = nominal[target] * factor
     return out
-
-
-class _ActionRecorder(gymnasium.Wrapper):
-    def __init__(self, env):
-        super().__init__(env)
-        self.actions = []
-
-    def step(self, action):
-        self.actions.append(np.array(action))
-        return self.env.step(action)
 
 
 @pytest.mark.parametrize("kind", SWITCH_KINDS)
@@ -157,8 +138,8 @@ def test_reset_and_close_restore_the_nominal_values_without_drift(kind):
     assert np.array_equal(getattr(model, ARRAY[kind]), nominal)
 
 
-def test_action_flip_flips_exactly_the_chosen_dimension_from_the_switch_step_on():
-    recorder = _ActionRecorder(cheetah())
+def test_action_flip_flips_exactly_the_chosen_dimension_from_the_switch_step_on(action_recorder):
+    recorder = action_recorder(cheetah())
     env = DynamicsSwitch(recorder, "action_flip", window=(4, 8), target=2)
     _, info = env.reset(seed=0)
     s = info["switch_step"]
@@ -229,13 +210,6 @@ def test_make_switch_env_wraps_an_id_or_an_environment():
     for _ in range(3):
         wrapped.step(np.zeros(6, np.float32))
     assert bare.unwrapped.model.body_mass[1] == 2.0 * mass
-
-
-def test_reimport_registers_silently():
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        importlib.reload(sb3_spikeplastic.envs)
-    assert "HalfCheetahSwitch-v5" in gymnasium.registry
 
 
 @pytest.mark.parametrize(

@@ -1,11 +1,16 @@
-"""Shared test helpers (importable from the test modules: pytest puts tests/ on sys.path)."""
+"""Small spiking plastic PPO models on the cue T-maze, for the tests of every folder.
 
-import numpy as np
+A plain module, not a test module: pytest's ``pythonpath`` (pyproject.toml) puts this folder on ``sys.path``, and the
+subprocesses of test_ppo.py import it from this folder, their working directory.
+"""
+
+from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.monitor import Monitor
-from stable_baselines3.common.vec_env import DummyVecEnv
+from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
 from sb3_spikeplastic import PPO
 from sb3_spikeplastic.envs.tmaze import TMazeCueEnv
+from sb3_spikeplastic.zoo.config import model_arguments, normalize_arguments, resolve_hyperparams
 
 
 def vec(make, n, seed=0):
@@ -28,33 +33,14 @@ def tmaze_model(rule="ndp-oja", n_envs=2, env_kwargs=None, **ppo_kwargs):
     return PPO("SpikePlasticPolicy", tmaze(n_envs, **(env_kwargs or {})), **{**kwargs, **ppo_kwargs})
 
 
-def deterministic_success(model, env, n_episodes):
-    """Success rate (``info["is_success"]``) of ``model`` over the first ``n_episodes`` episodes that end in the
-    vectorised, already seeded ``env``, with deterministic actions and the recurrent state carried through."""
-    obs, state, starts, successes = env.reset(), None, np.ones(env.num_envs, bool), []
-    while len(successes) < n_episodes:
-        actions, state = model.predict(obs, state=state, episode_start=starts, deterministic=True)
-        obs, _, starts, infos = env.step(actions)
-        successes += [infos[i]["is_success"] for i in np.flatnonzero(starts)]
-    return float(np.mean(successes[:n_episodes]))
-
-
-#: A CartPole hyperparameter file of a few hundred steps (MlpPolicy: no spike kernels to compile), for commands
-#: that train many short runs (optimize, grid).
-TINY_CARTPOLE = """CartPole-v1:
-  policy: MlpPolicy
-  n_timesteps: 512
-  n_envs: 2
-  n_steps: 32
-  batch_size: 32
-  n_epochs: 1
-"""
-
-
-def run_cli(capsys, *argv):
-    """``sb3-spikeplastic ARGV`` in this process: ``(exit status, stdout, stderr)``."""
-    from sb3_spikeplastic import cli
-
-    code = cli.main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
+def shipped_model(env_id, conf=None, rule=None, seed=0, **overrides):
+    """A model of the packaged entry of ``env_id`` (``conf``: another packaged file; ``rule``: the entry's rule
+    replaced) with ``overrides`` (e.g. a smaller rollout), on ``make_vec_env`` environments seeded with ``seed``,
+    normalised by VecNormalize where the entry says so."""
+    config = resolve_hyperparams(env_id, conf, [f"{k}={v}" for k, v in overrides.items()], rule=rule)
+    policy, ppo_kwargs, policy_kwargs = model_arguments(config)
+    env = make_vec_env(env_id, config["n_envs"], seed=seed)
+    norm = normalize_arguments(config)
+    if norm is not None:
+        env = VecNormalize(env, **norm)
+    return PPO(policy, env, **ppo_kwargs, policy_kwargs=policy_kwargs, seed=seed)

@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 import torch
-from helpers import run_cli, tmaze, tmaze_model
+from helpers import tmaze, tmaze_model
 
 from sb3_spikeplastic import PPO
 from sb3_spikeplastic.sb3.ablation import AblatedState, Ablation, ablated
@@ -179,14 +179,14 @@ def test_learn_ignores_the_mode():
     assert all(torch.equal(v, expected[k]) for k, v in model.policy.state_dict().items())
 
 
-def test_command_line(tmp_path, capsys):
+def test_command_line(tmp_path, run_cli):
     tmaze_model().save(tmp_path / "m.zip")
     model = ["--model", tmp_path / "m.zip", "--env", "TMazeCue-v0", "--env-kwargs", "neurons_per_population=4"]
-    code, out, _ = run_cli(capsys, "evaluate", *model, "--episodes", "2", "--ablation", "frozen", "-o",
+    code, out, _ = run_cli("evaluate", *model, "--episodes", "2", "--ablation", "frozen", "-o",
                            tmp_path / "eval.json", "--no-progress")
     assert code == 0 and "over 2 episodes (deterministic, ablation frozen)" in out
     assert json.loads((tmp_path / "eval.json").read_text())["ablation"] == "frozen"
-    code, out, _ = run_cli(capsys, "robustness", "--models", f"a={tmp_path / 'm.zip'}", "--env", "TMazeCue-v0",
+    code, out, _ = run_cli("robustness", "--models", f"a={tmp_path / 'm.zip'}", "--env", "TMazeCue-v0",
                            "--env-kwargs", "neurons_per_population=4", "--noise", "obs", "--sigmas", "0.1",
                            "--episodes", "2", "--n-envs", "2", "--ablation", "reset-every:5", "-o", tmp_path / "r",
                            "--no-progress")
@@ -199,5 +199,5 @@ def test_command_line(tmp_path, capsys):
                             "frozen"], "ablation 'frozen' needs a spiking plastic policy"),
                           (["robustness", "--models", f"a={tmp_path / 'm.zip'}", "--env", "TMazeCue-v0",
                             "--noise", "obs", "--ablation", "reset-every:-1"], "needs N")]:
-        code, out, err = run_cli(capsys, *argv)
+        code, out, err = run_cli(*argv)
         assert code == 2 and message in err and err.count("\n") == 1, (argv, err)

@@ -136,7 +136,8 @@ def run_steps(step, model, deterministic):
     device, state, results = model.device, model.policy.initial_state(model.n_envs), []
     for k in range(len(obs)):
         actions, values, log_prob, state, out = step(
-            obs[k].to(device), state, starts[k].to(device), deterministic, None if masks is None else masks[k].to(device))
+            obs[k].to(device), state, starts[k].to(device), deterministic,
+            None if masks is None else masks[k].to(device))
         results.append([actions, values, log_prob, *flatten_state(state)[0], out.action, *out.rates])
     return results
 

@@ -1,6 +1,6 @@
-"""The bare line, ``PPO("SpikePlasticPolicy", env)`` with no other argument: its gradients stay finite and moderate
-for every built-in rule, its updates move the policy, the observation standardisation is saved with the model,
-``MlpPolicy`` keeps SB3's defaults, and (``slow``) it learns HalfCheetah."""
+"""PPO's defaults, the bare line ``PPO("SpikePlasticPolicy", env)`` with no other argument: its gradients stay
+finite and moderate for every built-in rule, its updates move the policy, only the documented defaults differ from
+SB3's (``MlpPolicy`` keeps SB3's), and (``slow``) it learns HalfCheetah. The bare policy itself: test_policy.py."""
 
 import inspect
 import math
@@ -12,11 +12,8 @@ import stable_baselines3
 import torch
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
-from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_spikeplastic import PPO
-from sb3_spikeplastic.sb3.policy import previous_defaults_filled
-from sb3_spikeplastic.sb3.ppo import POLICY_DEPENDENT_DEFAULTS
 
 CHEETAH = "HalfCheetah-v5"
 RULES = ["static", "dp-linear", "dp-oja", "dp-bcm", "ndp-oja", "ndp-bcm"]
@@ -67,95 +64,23 @@ def test_every_rule_of_the_bare_halfcheetah_line_has_finite_gradients(rule):
 def test_spiking_defaults_differ_from_sb3_only_where_documented_and_mlp_keeps_sb3s():
     sb3 = inspect.signature(stable_baselines3.PPO.__init__).parameters
     ours = inspect.signature(PPO.__init__).parameters
-    for name, parameter in sb3.items():
-        if name not in POLICY_DEPENDENT_DEFAULTS:
-            assert ours[name].default == parameter.default, name
+    # Two of SB3's defaults depend on the policy (``None``, resolved when the model is built), as does grad_clip.
+    assert {name for name, parameter in sb3.items() if ours[name].default != parameter.default} == {
+        "learning_rate", "batch_size"}
+    assert ours["learning_rate"].default is ours["batch_size"].default is ours["grad_clip"].default is None
     mlp = PPO("MlpPolicy", "CartPole-v1")
     reference = stable_baselines3.PPO("MlpPolicy", "CartPole-v1")
     for key in ("learning_rate", "n_steps", "batch_size", "n_epochs", "gamma", "gae_lambda", "max_grad_norm"):
         assert getattr(mlp, key) == getattr(reference, key), key
     assert mlp.grad_clip == "global"
+    # A spiking policy's values, as PPO's docstring gives them (and the shipped entries use).
     spiking = PPO("SpikePlasticPolicy", "CartPole-v1")
-    assert (spiking.learning_rate, spiking.batch_size, spiking.grad_clip) == tuple(
-        POLICY_DEPENDENT_DEFAULTS[k][1] for k in ("learning_rate", "batch_size", "grad_clip"))
+    assert (spiking.learning_rate, spiking.batch_size, spiking.grad_clip) == (1e-3, 256, "per-parameter")
 
 
 def test_a_batch_size_that_does_not_tile_the_default_chunks_is_one_line():
     with pytest.raises(ValueError, match=r"^batch_size=100 \(transitions\) must be a multiple of bptt_steps=32$"):
         PPO("SpikePlasticPolicy", "CartPole-v1", batch_size=100)
-
-
-def test_bare_policy_shapes_by_observation_kind():
-    cheetah = PPO("SpikePlasticPolicy", CHEETAH).policy
-    assert cheetah.snn.sizes == [17 * 10, 64, 64, 6 * 20] and cheetah.snn.steps == 10
-    assert cheetah.snn.neuron.tau_s == 2.0 and cheetah.snn_config["critic"] == "mlp"
-    assert cheetah.obs_standardizer.active
-    assert float(torch.exp(cheetah.log_std.detach()).mean()) == pytest.approx(math.exp(-2))
-    alpha = torch.cat([layer.alpha.flatten() for layer in cheetah.snn.layers])
-    assert abs(alpha.mean().item()) < 0.1 and alpha.std().item() == pytest.approx(1.0, rel=0.1)
-    for rule in ("ndp-oja", "ndp-bcm"):
-        snn = PPO("SpikePlasticPolicy", CHEETAH, policy_kwargs=dict(rule=rule)).policy.snn
-        assert {layer.rule.modulation_form for layer in snn.layers} == {"tanh"}
-    paper_form = PPO("SpikePlasticPolicy", CHEETAH, policy_kwargs=dict(rule="ndp-oja",
-                                                                     rule_kwargs=dict(modulation="linear")))
-    assert {layer.rule.modulation_form for layer in paper_form.policy.snn.layers} == {"linear"}
-    # Spike rasters: the raster length as T, the paper's neuron constants, the rules' positive alpha, the spiking
-    # critic; nothing is standardised. Finite bounds (Pendulum) are not standardised either.
-    tmaze = PPO("SpikePlasticPolicy", "TMazeCue-v0").policy
-    assert tmaze.snn.steps == 25 and tmaze.snn.neuron.tau_s == 10.0 and tmaze.snn_config["critic"] == "snn"
-    assert tmaze.snn.layers[0].alpha.mean().item() > 5 and not tmaze.obs_standardizer.active
-    assert not PPO("SpikePlasticPolicy", "Pendulum-v1").policy.obs_standardizer.active
-
-
-def test_observation_standardisation_is_saved_and_loaded_and_frozen_outside_training(tmp_path):
-    env = make_vec_env(CHEETAH, n_envs=2, seed=0)
-    model = PPO("SpikePlasticPolicy", env, n_steps=32, batch_size=64, n_epochs=1, seed=0)
-    standardizer = model.policy.obs_standardizer
-    model.learn(3 * 2 * 32)  # the first two rollouts join the statistics at the next rollout's start
-    assert float(standardizer.count) == pytest.approx(2 * 2 * 32, abs=1e-3)
-    assert not torch.allclose(standardizer.var, torch.ones_like(standardizer.var))
-    obs = env.reset()
-    actions, _ = model.predict(obs, deterministic=True)
-    evaluate_policy(model, env, n_eval_episodes=1)  # evaluation leaves the statistics as they are
-    assert float(standardizer.count) == pytest.approx(2 * 2 * 32, abs=1e-3)
-    model.save(tmp_path / "bare")
-    loaded = PPO.load(tmp_path / "bare", env=env)
-    for name in ("mean", "var", "count"):
-        assert torch.equal(getattr(loaded.policy.obs_standardizer, name), getattr(standardizer, name)), name
-    assert loaded.policy.snn_config == model.policy.snn_config
-    np.testing.assert_allclose(loaded.predict(obs, deterministic=True)[0], actions, rtol=0, atol=1e-6)
-    # Without the standardisation (e.g. where VecNormalize does it), the same observation gives other actions.
-    raw = PPO("SpikePlasticPolicy", env, n_steps=32, batch_size=64, seed=0, policy_kwargs=dict(standardize_obs=False))
-    raw.policy.load_state_dict(model.policy.state_dict())
-    assert not raw.policy.obs_standardizer.active
-    assert not np.allclose(raw.predict(obs, deterministic=True)[0], actions)
-
-
-def test_a_model_saved_under_the_previous_defaults_loads_as_it_was_built(tmp_path):
-    env = make_vec_env(CHEETAH, n_envs=1, seed=0)
-    given = {"rule": "ndp-oja", "hidden_sizes": (16,)}
-    old = PPO("SpikePlasticPolicy", env, n_steps=64, batch_size=64, seed=0,
-              policy_kwargs=previous_defaults_filled(given, env.observation_space, env.action_space))
-    assert old.policy.snn.sizes == [17 * 50, 16, 6 * 100] and old.policy.snn.steps == 50
-    assert old.policy.snn.layers[0].rule.modulation_form == "linear" and not old.policy.obs_standardizer.active
-    old.policy_kwargs = dict(given)  # what the model recorded then: only its user's arguments
-    old.save(tmp_path / "old")
-    loaded = PPO.load(tmp_path / "old")
-    assert loaded.policy.snn_config == old.policy.snn_config
-    obs = env.reset()
-    np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], old.predict(obs, deterministic=True)[0])
-    # A model saved now records what its defaults resolved to.
-    assert PPO("SpikePlasticPolicy", env).policy_kwargs["encoder_pop_size"] == 10
-
-
-def test_the_standardisation_composes_with_vecnormalize():
-    env = VecNormalize(make_vec_env(CHEETAH, n_envs=2, seed=0))
-    model = PPO("SpikePlasticPolicy", env, n_steps=32, batch_size=64, n_epochs=1, seed=0)
-    model.learn(3 * 2 * 32)
-    mean, var = model.policy.obs_standardizer.mean, model.policy.obs_standardizer.var
-    # VecNormalize's output is already standardised: the policy's statistics stay near the identity.
-    assert mean.abs().max() < 3 and var.max() < 10
-    assert math.isfinite(model.logger.name_to_value["train/grad_norm"])
 
 
 def random_policy_return(env_id, episodes, seed):

@@ -1,7 +1,9 @@
 """The plastic SNN (SPEC §2–§4): default-initialisation activity and gradients, episode resets, the rule
-registry, plasticity intervals, sequences."""
+registry, plasticity intervals, sequences, and every available device against the pure-PyTorch CPU reference."""
 
 from __future__ import annotations
+
+import copy
 
 import numpy as np
 import pytest
@@ -34,8 +36,8 @@ def paper_network(rule: str) -> SpikingPlasticNetwork:
 
 def small_network(rule: str, **kw) -> SpikingPlasticNetwork:
     kw.setdefault("steps", 50)
-    return SpikingPlasticNetwork(PopulationEncoder([-3] * 4, [3] * 4), ContinuousDecoder([-1] * 2, [1] * 2, pop_size=10),
-                                 (32,), rule=rule, **kw)
+    return SpikingPlasticNetwork(PopulationEncoder([-3] * 4, [3] * 4),
+                                 ContinuousDecoder([-1] * 2, [1] * 2, pop_size=10), (32,), rule=rule, **kw)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -307,7 +309,8 @@ def test_forward_sequence_equals_stepwise_forward_with_resets():
             assert torch.equal(a, b)
         # without the resets the outputs differ (so the resets were applied)
         outs_nr, _ = net.forward_sequence(obs, torch.zeros(Lseq, B), state0)
-    assert not torch.equal(outs_nr[4].action[0], outs[4].action[0]) or not torch.equal(outs_nr[3].action, outs[3].action)
+    assert not torch.equal(outs_nr[4].action[0], outs[4].action[0]) or not torch.equal(outs_nr[3].action,
+                                                                                      outs[3].action)
 
 
 @pytest.mark.skipif(_fast.interval_ops() is None, reason="the estimate describes the compiled CPU ops' graph")
@@ -336,3 +339,45 @@ def test_backward_bytes_per_step_estimates_what_backpropagation_keeps(rule, inte
         outs, _ = net.forward_sequence(obs, torch.zeros(Lseq, B), net.initial_state(B))
     estimate = Lseq * B * net.backward_bytes_per_step()
     assert sum(saved.values()) == pytest.approx(estimate, rel=0.1)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Devices: parametrised over ``cpu`` and, where present, ``cuda``. The reference runs on the CPU with the compiled
+# ops disabled (``SB3_SPIKEPLASTIC_NO_COMPILE=1``), so on ``cpu`` this compares the compiled CPU path with the
+# fallback and on ``cuda`` the CUDA path (its spike-loop kernel and eager PyTorch elsewhere) with the same fallback.
+# float64 keeps the two summation orders' differences (~1e-15) far from flipping a spike.
+
+
+def run_network(net: SpikingPlasticNetwork, device: str):
+    """Five environment steps (with a reset) from a fixed state and a loss over all outputs; returns the
+    actions, rates, final state and parameter gradients, all on the CPU."""
+    g = torch.Generator().manual_seed(1)
+    obs = (torch.rand(5, 6, 4, generator=g, dtype=torch.float64) * 6 - 3).to(device)
+    starts = torch.zeros(5, 6, dtype=torch.float64, device=device)
+    starts[3, 2] = 1
+    weights = torch.randn(5, 6, 2, generator=g, dtype=torch.float64).to(device)
+    net.zero_grad()
+    outputs, final = net.forward_sequence(obs, starts, net.initial_state(6, seed=4, dtype=torch.float64))
+    loss = sum((o.action * w).sum() + sum(r.sum() for r in o.rates) for o, w in zip(outputs, weights))
+    loss.backward()
+    return ([o.action.detach().cpu() for o in outputs], [r.detach().cpu() for o in outputs for r in o.rates],
+            [t.detach().cpu() for t in tensor_leaves(final)], {n: p.grad.cpu() for n, p in net.named_parameters()})
+
+
+@pytest.mark.parametrize("rule", BUILTIN_RULES)
+def test_network_on_device_matches_the_cpu_fallback(device, rule, monkeypatch):
+    torch.manual_seed(3)
+    net = SpikingPlasticNetwork(PopulationEncoder([-3] * 4, [3] * 4), ContinuousDecoder([-1] * 2, [1] * 2, pop_size=10),
+                                (32, 24), steps=25, rule=rule).double()
+    candidate = copy.deepcopy(net).to(device)
+    monkeypatch.setenv(_fast.NO_COMPILE_ENV, "1")
+    actions, rates, state, grads = run_network(net, "cpu")
+    monkeypatch.delenv(_fast.NO_COMPILE_ENV)
+    got_actions, got_rates, got_state, got_grads = run_network(candidate, device)
+    assert 0 < torch.cat(rates, 1).mean() < 1  # the network spikes, so the comparison is not of zeros
+    for got, want in zip(got_actions + got_rates + got_state, actions + rates + state):
+        torch.testing.assert_close(got, want, rtol=1e-9, atol=1e-12)
+    assert got_grads.keys() == grads.keys()
+    for name, want in grads.items():
+        assert want.abs().max() > 0, name
+        torch.testing.assert_close(got_grads[name], want, rtol=1e-7, atol=1e-10, msg=name)

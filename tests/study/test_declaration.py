@@ -5,35 +5,21 @@ import copy
 
 import pytest
 import yaml
-from helpers import TINY_CARTPOLE, run_cli
 
 from sb3_spikeplastic.study import FIG4, load_study_file, study_from_dict
 from sb3_spikeplastic.study.declaration import budget_label, model_name
 from sb3_spikeplastic.study.engine import prepare
 
-TINY = {"conf": "cartpole.yml", "envs": ["CartPole-v1"], "seeds": [0, 1], "budgets": [128, 256],
-        "eval_freq": 64, "eval_episodes": 2,
-        "variants": {"small": {"hyperparams": ["policy_kwargs.net_arch=[8]"]},
-                     "large": {"hyperparams": ["policy_kwargs.net_arch=[16]"]}},
-        "evaluations": {"final": {"episodes": 4, "seed": 100},
-                        "robustness": {"noises": ["obs"], "sigmas": [0, 0.5], "episodes": 3, "n_envs": 3}},
-        "report": {"learned_threshold": 0, "compare": [{"variants": ["large"], "against": "small"}]}}
 
-
-@pytest.fixture
-def files(tmp_path):
-    (tmp_path / "cartpole.yml").write_text(TINY_CARTPOLE)
-    return tmp_path
-
-
-def changed(change):
-    data = copy.deepcopy(TINY)
+def changed(tiny_study, change):
+    """A copy of the tiny study's mapping changed by ``change``."""
+    data = copy.deepcopy(tiny_study)
     change(data)
     return data
 
 
-def test_the_tiny_study_reads(files):
-    study = study_from_dict(TINY, "tiny.yml", files)
+def test_the_tiny_study_reads(files, tiny_study):
+    study = study_from_dict(tiny_study, "tiny.yml", files)
     assert study.cells() == [("CartPole-v1", "small", 0), ("CartPole-v1", "large", 0),
                              ("CartPole-v1", "small", 1), ("CartPole-v1", "large", 1)]
     assert study.conf == str(files / "cartpole.yml")  # a relative conf is read from the study file's folder
@@ -69,9 +55,9 @@ def test_the_tiny_study_reads(files):
     (lambda d: d["variants"].update({"a@b": {}}), "variant name 'a@b'"),
     (lambda d: d.pop("envs"), "needs 'envs'"),
 ])
-def test_bad_study_files_are_one_line(files, change, message):
+def test_bad_study_files_are_one_line(files, change, message, tiny_study):
     with pytest.raises(ValueError) as error:
-        study_from_dict(changed(change), "tiny.yml", files)
+        study_from_dict(changed(tiny_study, change), "tiny.yml", files)
     assert message in str(error.value) and "\n" not in str(error.value), str(error.value)
 
 
@@ -90,40 +76,40 @@ def write(files, data, name="bad.yml"):
      "variant 'small' on CartPole-v1"),
     (lambda d: d.update(envs=["CartPol-v1"]), "'CartPol-v1'"),
 ])
-def test_studies_that_cannot_run_are_refused_before_anything_is_written(files, capsys, change, message):
-    data = changed(change)
+def test_studies_that_cannot_run_are_refused_before_anything_is_written(files, run_cli, change, message, tiny_study):
+    data = changed(tiny_study, change)
     with pytest.raises(ValueError, match="^[^\n]*$") as error:
         prepare(study_from_dict(data, "bad.yml", files), files / "s", "bad")
     assert message in str(error.value)
-    code, out, err = run_cli(capsys, "study", write(files, data), "-f", files / "logs")
+    code, out, err = run_cli("study", write(files, data), "-f", files / "logs")
     assert code == 2 and err.count("\n") == 1 and err.startswith("sb3-spikeplastic: error: ") and message in err
     assert not (files / "s").exists() and not (files / "logs").exists()
 
 
-def test_bad_files_and_options_through_the_cli(files, capsys):
+def test_bad_files_and_options_through_the_cli(files, run_cli, tiny_study):
     for text, message in (("- a list\n", "must be a mapping"), ("a: [\n", "is not valid YAML"),
-                          (yaml.safe_dump({**TINY, "budget": 1}), "did you mean 'budgets'")):
+                          (yaml.safe_dump({**tiny_study, "budget": 1}), "did you mean 'budgets'")):
         (files / "bad.yml").write_text(text)
-        code, out, err = run_cli(capsys, "study", files / "bad.yml", "-f", files / "logs")
+        code, out, err = run_cli("study", files / "bad.yml", "-f", files / "logs")
         assert code == 2 and err.count("\n") == 1 and message in err, err
-    good = write(files, TINY, "tiny.yml")
+    good = write(files, tiny_study, "tiny.yml")
     for argv, message in (([good, "--workers", "0"], "--workers=0"),
                           ([good, "--variants", "medium"], "unknown variant 'medium'"),
                           (["no-such-study"], "no study file 'no-such-study'")):
-        code, out, err = run_cli(capsys, "study", *argv, "-f", files / "logs")
+        code, out, err = run_cli("study", *argv, "-f", files / "logs")
         assert code == 2 and err.count("\n") == 1 and message in err, err
     assert not (files / "logs").exists()
 
 
-def test_report_of_a_folder_without_study_data(files, capsys):
-    good = write(files, TINY, "tiny.yml")
-    code, out, err = run_cli(capsys, "study", "report", good, "-f", files / "logs")
+def test_report_of_a_folder_without_study_data(files, run_cli, tiny_study):
+    good = write(files, tiny_study, "tiny.yml")
+    code, out, err = run_cli("study", "report", good, "-f", files / "logs")
     assert code == 2 and err.count("\n") == 1 and "holds no study" in err, err
     assert not (files / "logs").exists()
     # a study that was prepared but has not written a raw file yet
     (files / "logs" / "study" / "tiny").mkdir(parents=True)
     (files / "logs" / "study" / "tiny" / "study.db").write_bytes(b"")
-    code, out, err = run_cli(capsys, "study", "report", good, "-f", files / "logs")
+    code, out, err = run_cli("study", "report", good, "-f", files / "logs")
     assert code == 2 and "holds no study" in err and "logs/study/tiny" in err, err
 
 

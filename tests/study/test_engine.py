@@ -15,30 +15,12 @@ from pathlib import Path
 import optuna
 import pytest
 import yaml
-from helpers import TINY_CARTPOLE, run_cli
 
 from sb3_spikeplastic import cli
 from sb3_spikeplastic.study import engine, study_from_dict
 from sb3_spikeplastic.study.layout import StudyFolder, read_final, read_robustness, read_training
 
 ENV = "CartPole-v1"
-TINY = """conf: cartpole.yml
-envs: [CartPole-v1]
-seeds: [0, 1]
-budgets: [128, 256]
-eval_freq: 64
-eval_episodes: 2
-variants:
-  small: {hyperparams: ["policy_kwargs.net_arch=[8]"]}
-  large: {hyperparams: ["policy_kwargs.net_arch=[16]"]}
-evaluations:
-  final: {episodes: 4, seed: 100}
-  robustness: {noises: [obs], sigmas: [0, 0.5], episodes: 3, n_envs: 3}
-report:
-  learned_threshold: 0
-  compare:
-    - {variants: [large], against: small}
-"""
 CELLS = [(v, s) for v in ("small", "large") for s in (0, 1)]
 #: A study of one short run per cell and one evaluation: what the queue tests need, in a second or two per cell.
 MINI = {"conf": "cartpole.yml", "envs": [ENV], "seeds": [0], "budgets": [64],
@@ -62,12 +44,12 @@ def files_of(folder):
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
+def tiny(tmp_path_factory, tiny_cartpole, tiny_study):
     """The tiny study run by two workers, once for the module; paths relative to the returned root (the run
     folders record them: a copy of the root is a study of its own)."""
     root = tmp_path_factory.mktemp("tiny")
-    (root / "cartpole.yml").write_text(TINY_CARTPOLE)
-    (root / "tiny.yml").write_text(TINY)
+    (root / "cartpole.yml").write_text(tiny_cartpole)
+    (root / "tiny.yml").write_text(yaml.safe_dump(tiny_study, sort_keys=False))
     with pytest.MonkeyPatch.context() as mp:
         mp.chdir(root)
         assert cli.main(["study", "tiny.yml", "--workers", "2", "-f", "logs"]) == 0
@@ -120,24 +102,24 @@ def test_two_workers_run_every_cell_once(tiny):
     assert "| large@256 | small@256 | 2 vs 2 |" in (folder / "verdicts.md").read_text()
 
 
-def test_running_it_again_queues_and_trains_nothing(copy_of, capsys):
+def test_running_it_again_queues_and_trains_nothing(copy_of, run_cli):
     folder = copy_of / "logs" / "study" / "tiny"
     n_trials = len(load(folder).trials)
     before = {part: files_of(folder / part) for part in ("runs", "training", "episodes")}
-    code, out, err = run_cli(capsys, "study", "tiny.yml", "-f", "logs")
+    code, out, err = run_cli("study", "tiny.yml", "-f", "logs")
     assert code == 0, err
     assert "cells: 4 done" in out and "started" not in out
     assert len(load(folder).trials) == n_trials
     assert {part: files_of(folder / part) for part in ("runs", "training", "episodes")} == before
 
 
-def test_a_raised_budget_continues_each_run_and_writes_only_its_files(copy_of, capsys):
+def test_a_raised_budget_continues_each_run_and_writes_only_its_files(copy_of, run_cli, tiny_study):
     folder = copy_of / "logs" / "study" / "tiny"
     layout = StudyFolder(folder)
     old_episodes = files_of(folder / "episodes")
     old_runs = {(v, s): files_of(layout.run_folders(ENV, v, s)[0]) for v, s in CELLS}
-    (copy_of / "tiny.yml").write_text(TINY.replace("budgets: [128, 256]", "budgets: [128, 256, 384]"))
-    code, out, err = run_cli(capsys, "study", "tiny.yml", "-f", "logs")
+    (copy_of / "tiny.yml").write_text(yaml.safe_dump({**tiny_study, "budgets": [128, 256, 384]}, sort_keys=False))
+    code, out, err = run_cli("study", "tiny.yml", "-f", "logs")
     assert code == 0, err
 
     study = load(folder)
@@ -181,12 +163,6 @@ def deadline(seconds):
     finally:
         signal.alarm(0)
         signal.signal(signal.SIGALRM, previous)
-
-
-@pytest.fixture
-def files(tmp_path):
-    (tmp_path / "cartpole.yml").write_text(TINY_CARTPOLE)
-    return tmp_path
 
 
 @pytest.mark.filterwarnings("ignore:Heartbeat of storage")  # the dead worker's trial is taken by hand
@@ -239,7 +215,7 @@ def test_a_cell_queued_twice_runs_once(files):
     ({"evaluations": {"final": {"episodes": 3, "seed": 100}}}, "evaluation 'final'"),
     ({"eval_freq": 64}, "other evaluations during training"),
 ])
-def test_a_study_declared_otherwise_is_refused(files, capsys, changes, what):
+def test_a_study_declared_otherwise_is_refused(files, run_cli, changes, what):
     folder = files / "logs" / "study" / "mini"
     job = engine.prepare(mini(files), folder, "mini")
     engine.queue_cells(job, job.open())  # the study exists: its declaration recorded, its cells queued
@@ -249,7 +225,7 @@ def test_a_study_declared_otherwise_is_refused(files, capsys, changes, what):
         engine.prepare(mini(files, **changes), folder, "mini")
     assert "\n" not in str(error.value)
     (files / "mini.yml").write_text(yaml.safe_dump({**MINI, **changes}))
-    code, out, err = run_cli(capsys, "study", files / "mini.yml", "-f", files / "logs")
+    code, out, err = run_cli("study", files / "mini.yml", "-f", files / "logs")
     assert code == 2 and err.count("\n") == 1 and what in err, err
     assert files_of(folder) == before and load(folder, "mini").user_attrs == stored  # nothing written
 

@@ -1,6 +1,8 @@
 """A study shared through a real PostgreSQL server by two worker processes, as on two machines: one worker is
 killed (SIGKILL) in the middle of a cell; the other takes the cell over, every cell is done exactly once and no raw
-file is lost."""
+file is lost. ``slow`` (~20 s: two ``sb3-spikeplastic study`` processes train every cell of a study end to end); the
+default suite runs the study command on SQLite and a journal file (test_engine.py) and PostgreSQL's storage
+(test_storage.py)."""
 
 import csv
 import os
@@ -10,7 +12,6 @@ import sys
 import time
 
 import pytest
-from helpers import TINY_CARTPOLE
 
 optuna = pytest.importorskip("optuna")
 pytest.importorskip("psycopg2")
@@ -37,8 +38,9 @@ def worker(files, url):
                             env={**os.environ, "OMP_NUM_THREADS": "1"})
 
 
-def test_a_killed_workers_cell_is_taken_over(tmp_path, postgres_url):
-    (tmp_path / "cartpole.yml").write_text(TINY_CARTPOLE.replace("512", "1024"))
+@pytest.mark.slow
+def test_a_killed_workers_cell_is_taken_over(tmp_path, postgres_url, tiny_cartpole):
+    (tmp_path / "cartpole.yml").write_text(tiny_cartpole.replace("512", "1024"))
     (tmp_path / "pg.yml").write_text(STUDY)
     victim, survivor = worker(tmp_path, postgres_url), worker(tmp_path, postgres_url)
     try:

@@ -4,8 +4,14 @@ widens it by the spread between seeds, coverage of a known mean, paired resampli
 import numpy as np
 import pytest
 
-from sb3_spikeplastic.study.intervals import (Interval, bootstrap_difference, bootstrap_interval, bootstrap_mean_differences,
-                                         bootstrap_mean_intervals, resample)
+from sb3_spikeplastic.study.intervals import (
+    Interval,
+    bootstrap_difference,
+    bootstrap_interval,
+    bootstrap_mean_differences,
+    bootstrap_mean_intervals,
+    resample,
+)
 
 
 def grand_mean(groups):
@@ -61,7 +67,8 @@ def test_difference_of_two_independent_sets():
     assert difference.low < difference.estimate < difference.high and difference.excludes_zero()
     same = bootstrap_difference(a, a, grand_mean)
     assert not same.excludes_zero()
-    assert bootstrap_interval(a, grand_mean, seed=7) == bootstrap_interval(a, grand_mean, seed=7)  # reproducible
+    seven = bootstrap_interval(a, grand_mean, seed=7)
+    assert seven == bootstrap_interval(a, grand_mean, seed=7) != bootstrap_interval(a, grand_mean, seed=8)  # seeded
 
 
 def test_a_constant_has_a_degenerate_interval():

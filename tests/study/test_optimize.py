@@ -1,14 +1,18 @@
 """``sb3-spikeplastic optimize``: the search space, trials with intermediate evaluations and pruning, the best
 entry that ``train --conf`` reads, and bad input."""
 
-
 import optuna
 import pytest
-from helpers import TINY_CARTPOLE, run_cli
 
-from sb3_spikeplastic.zoo import config as cfg
-from sb3_spikeplastic.study.optimize import OptimizeSettings, load_search_space, prepare, sample_overrides, searched_space
+from sb3_spikeplastic.study.optimize import (
+    OptimizeSettings,
+    load_search_space,
+    prepare,
+    sample_overrides,
+    searched_space,
+)
 from sb3_spikeplastic.study.storage import default_storage_url
+from sb3_spikeplastic.zoo import config as cfg
 
 SMALL_SPACE = """default:
   learning_rate: {log: [1.0e-4, 1.0e-2]}
@@ -19,10 +23,10 @@ SMALL_SPACE = """default:
 
 
 @pytest.fixture
-def files(tmp_path):
-    (tmp_path / "cartpole.yml").write_text(TINY_CARTPOLE)
-    (tmp_path / "space.yml").write_text(SMALL_SPACE)
-    return tmp_path
+def files(files):
+    """The study tests' ``files`` (``cartpole.yml``) and ``space.yml``, a small search space."""
+    (files / "space.yml").write_text(SMALL_SPACE)
+    return files
 
 
 def tiny_search(files, **kwargs):
@@ -31,8 +35,8 @@ def tiny_search(files, **kwargs):
             "-f", files / "logs", *[str(x) for kv in kwargs.items() for x in kv]]
 
 
-def test_optimize_writes_a_best_entry_that_train_reads(files, capsys):
-    code, out, err = run_cli(capsys, *tiny_search(files), "--n-trials", "3", "--n-startup-trials", "1")
+def test_optimize_writes_a_best_entry_that_train_reads(files, run_cli):
+    code, out, err = run_cli(*tiny_search(files), "--n-trials", "3", "--n-startup-trials", "1")
     assert code == 0, err
     assert "3 trials: 3 complete, 0 pruned, 0 failed" in out
     folder = files / "logs" / "optimize" / "CartPole-v1_cartpole"
@@ -49,7 +53,7 @@ def test_optimize_writes_a_best_entry_that_train_reads(files, capsys):
     for override in study.best_trial.user_attrs["overrides"]:
         (key,), value = cfg.parse_override(override)
         assert best[key] == value
-    code, out, err = run_cli(capsys, "train", "--env", "CartPole-v1", "--conf", best_file, "-n", "64", "--seed", "0",
+    code, out, err = run_cli("train", "--env", "CartPole-v1", "--conf", best_file, "-n", "64", "--seed", "0",
                              "-f", files / "train", "-v", "0", "--no-progress")
     assert code == 0, err
     run = cfg.load_hyperparams_file(files / "train" / "ppo" / "CartPole-v1_1" / "CartPole-v1" / "config.yml")
@@ -60,7 +64,7 @@ def test_optimize_writes_a_best_entry_that_train_reads(files, capsys):
     assert (best.get("policy_kwargs") or {}).items() <= (resolved.get("policy_kwargs") or {}).items()
 
     # The same study with trials of another length: refused before anything runs.
-    code, out, err = run_cli(capsys, *tiny_search(files, **{"-n": "256"}), "--n-trials", "1")
+    code, out, err = run_cli(*tiny_search(files, **{"-n": "256"}), "--n-trials", "1")
     assert code == 2 and err.count("\n") == 1 and "differ in entry" in err
     assert len(optuna.load_study(study_name="CartPole-v1_cartpole", storage=default_storage_url(folder)).trials) == 3
 
@@ -145,17 +149,17 @@ BAD_OPTIONS = {
 
 
 @pytest.mark.parametrize("options", BAD_OPTIONS)
-def test_bad_input_is_one_line_and_writes_nothing(files, capsys, options):
-    code, out, err = run_cli(capsys, *tiny_search(files), *options.split())
+def test_bad_input_is_one_line_and_writes_nothing(files, run_cli, options):
+    code, out, err = run_cli(*tiny_search(files), *options.split())
     assert code == 2 and err.count("\n") == 1 and err.startswith("sb3-spikeplastic: error: ")
     assert BAD_OPTIONS[options] in err
     assert not (files / "logs").exists()
 
 
-def test_an_output_path_under_a_file_is_refused(files, capsys):
+def test_an_output_path_under_a_file_is_refused(files, run_cli):
     (files / "file").write_text("x")
-    code, out, err = run_cli(capsys, *tiny_search(files)[:-2], "-f", files / "file" / "logs")
+    code, out, err = run_cli(*tiny_search(files)[:-2], "-f", files / "file" / "logs")
     assert code == 2 and "lies under the file" in err and err.count("\n") == 1
-    code, out, err = run_cli(capsys, *tiny_search(files), "--storage", files / "file" / "journal.log")
+    code, out, err = run_cli(*tiny_search(files), "--storage", files / "file" / "journal.log")
     assert code == 2 and "--storage" in err and err.count("\n") == 1
     assert not (files / "logs").exists()

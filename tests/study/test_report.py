@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import TINY_CARTPOLE
 
 from sb3_spikeplastic.study import load_study_file, study_from_dict
 from sb3_spikeplastic.study.layout import StudyFolder
@@ -53,11 +52,10 @@ def write_study(root: Path) -> None:
 
 
 @pytest.fixture
-def report(tmp_path):
+def report(files):
     """The study written by hand and its report: ``(study, folder)``."""
-    (tmp_path / "cartpole.yml").write_text(TINY_CARTPOLE)
-    study = study_from_dict(STUDY, "synthetic.yml", tmp_path)
-    folder = tmp_path / "study"
+    study = study_from_dict(STUDY, "synthetic.yml", files)
+    folder = files / "study"
     write_study(folder)
     write_report(study, folder, log=None)
     return study, folder
@@ -185,13 +183,12 @@ def test_ratio_to_r0_and_auc():
     assert auc(np.ones(5), SIGMAS + [0.6, 0.8]) == pytest.approx(1.0)
 
 
-def test_a_folder_without_study_data(tmp_path):
-    (tmp_path / "cartpole.yml").write_text(TINY_CARTPOLE)
+def test_a_folder_without_study_data(files):
     with pytest.raises(ValueError, match="holds no study"):
-        write_report(study_from_dict(STUDY, "synthetic.yml", tmp_path), tmp_path / "empty", log=None)
+        write_report(study_from_dict(STUDY, "synthetic.yml", files), files / "empty", log=None)
 
 
-FIG4 = Path(__file__).resolve().parent.parent / "results" / "halfcheetah" / "fig4"
+FIG4 = Path(__file__).resolve().parents[2] / "results" / "halfcheetah" / "fig4"
 
 
 def test_the_fig4_report_regenerates_the_committed_tables(tmp_path):

@@ -14,12 +14,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 from sb3_spikeplastic.study.robustness import RobustnessRow, evaluate_robustness, format_table, write_csv, write_report
 
 SHORT = {"max_episode_steps": 5}
-
-
-@pytest.fixture(autouse=True)
-def _mujoco_log_in_tmp(tmp_path, monkeypatch):
-    # MuJoCo 4.0 warns that HalfCheetah's `settotalmass` is deprecated and appends that to ./MUJOCO_LOG.TXT.
-    monkeypatch.chdir(tmp_path)
+pytestmark = pytest.mark.usefixtures("mujoco_log_in_tmp")  # HalfCheetah writes ./MUJOCO_LOG.TXT
 
 
 class RecurrentStub:
@@ -154,7 +149,8 @@ def test_report_is_written_as_csv_markdown_and_figure(tmp_path):
     assert table == format_table(rows) and stem.with_suffix(".md").read_text() == table + "\n"
     with stem.with_suffix(".csv").open() as f:
         read = list(csv.DictReader(f))
-    assert [(r["sigma"], r["mean_return"], r["ratio"]) for r in read] == [("0.0", "10.0", "1.0"), ("0.2", "7.5", "0.75")]
+    assert [(r["sigma"], r["mean_return"], r["ratio"]) for r in read] == [("0.0", "10.0", "1.0"),
+                                                                          ("0.2", "7.5", "0.75")]
     assert stem.with_suffix(".png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 

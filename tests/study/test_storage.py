@@ -1,17 +1,22 @@
-"""Optuna studies in a real PostgreSQL server (started by the ``postgres_url`` fixture), the way studies are shared
-between machines, and the error for a server that cannot be reached."""
+"""The studies' storage: Optuna studies in a real PostgreSQL server (started by the ``postgres_url`` fixture), the
+way studies are shared between machines, the error for a server that cannot be reached, and the install hint where
+Optuna is missing."""
+
+import sys
 
 import pytest
 
-from postgres_server import free_port
-
-optuna = pytest.importorskip("optuna")
-pytest.importorskip("psycopg2")
-
-from sb3_spikeplastic.study.storage import open_storage  # noqa: E402
+from sb3_spikeplastic.study.storage import open_storage
 
 
-def test_study_round_trip(postgres_url, tmp_path):
+@pytest.fixture
+def optuna():
+    """Optuna, with psycopg2 for PostgreSQL URLs (skips without them)."""
+    pytest.importorskip("psycopg2")
+    return pytest.importorskip("optuna")
+
+
+def test_study_round_trip(optuna, postgres_url, tmp_path):
     """Trials run through the project's storage (with heartbeats and retries) read back from another storage."""
     storage = open_storage(postgres_url, tmp_path, heartbeat_interval=1, grace_period=3, retry=True)
     study = optuna.create_study(study_name="smoke", storage=storage, direction="maximize")
@@ -23,17 +28,25 @@ def test_study_round_trip(postgres_url, tmp_path):
     assert again.best_value == 1.0
 
 
-def _unreachable_error(tmp_path) -> str:
+@pytest.fixture
+def unreachable_error(optuna, unused_port, tmp_path) -> str:
     """The message of ``open_storage`` for a PostgreSQL URL (with a password) where no server listens."""
     with pytest.raises(ValueError) as error:
-        open_storage(f"postgresql+psycopg2://u:secret@127.0.0.1:{free_port()}/x", tmp_path)
+        open_storage(f"postgresql+psycopg2://u:secret@127.0.0.1:{unused_port}/x", tmp_path)
     return str(error.value)
 
 
-def test_unreachable_server_is_one_line(tmp_path):
-    message = _unreachable_error(tmp_path)
-    assert "\n" not in message and "127.0.0.1" in message
+def test_unreachable_server_is_one_line(unreachable_error):
+    assert "\n" not in unreachable_error and "127.0.0.1" in unreachable_error
 
 
-def test_unreachable_server_hides_password(tmp_path):
-    assert "secret" not in _unreachable_error(tmp_path)
+def test_unreachable_server_hides_password(unreachable_error):
+    assert "secret" not in unreachable_error
+
+
+def test_optimize_without_optuna_is_the_install_hint(tmp_path, run_cli, monkeypatch):
+    monkeypatch.setitem(sys.modules, "optuna", None)  # import optuna fails as if it were not installed
+    code, out, err = run_cli("optimize", "--env", "TMazeCue-v0", "-f", tmp_path / "logs")
+    assert code == 2 and err.count("\n") == 1, err
+    assert 'need Optuna: pip install "sb3-spikeplastic[optimize]"' in err and "Traceback" not in err
+    assert not (tmp_path / "logs").exists()

@@ -1,26 +1,25 @@
-"""What ``train`` and the other commands print: steps per second that count the updates, the rounding of ``-n``
-to whole rollouts, a line per evaluation, a summary before the first episode ends, the overrides that drop keys,
-the install hint of ``optimize``, and the progress bar only on a terminal unless asked for."""
+"""The training callbacks: what ``train`` prints (steps per second that count the updates, the rounding of ``-n``
+to whole rollouts, a line per evaluation, a summary before the first episode ends), and the activity figure and the
+hyperparameter text in TensorBoard."""
 
 import re
-import sys
 import time
 from types import SimpleNamespace
 
 import pytest
-from helpers import run_cli
+from helpers import tmaze_model
+from stable_baselines3.common.logger import Logger, make_output_format
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from sb3_spikeplastic import PPO, cli
-from sb3_spikeplastic.zoo.callbacks import TrainingSummary, rounding_note
-from sb3_spikeplastic.zoo.config import replaced_mappings
+from sb3_spikeplastic import PPO
+from sb3_spikeplastic.zoo.callbacks import ActivityFigureCallback, TrainingSummary, rounding_note
+from sb3_spikeplastic.zoo.hparams import write_hyperparameters
 
-TINY_TMAZE = ["n_envs=2", "n_steps=32", "batch_size=32", "bptt_steps=16", "n_epochs=1",
-              "policy_kwargs.hidden_sizes=[16]"]
 #: seconds each update is made to last, so that a rate that leaves it out is far above one that counts it
 UPDATE_SECONDS = 0.5
 
 
-def test_train_lines_count_updates_rounding_and_evaluations(tmp_path, capsys, monkeypatch):
+def test_train_lines_count_updates_rounding_and_evaluations(tmp_path, run_cli, tiny_tmaze, monkeypatch):
     update = PPO.train
 
     def slow_update(self):
@@ -28,8 +27,8 @@ def test_train_lines_count_updates_rounding_and_evaluations(tmp_path, capsys, mo
         update(self)
 
     monkeypatch.setattr(PPO, "train", slow_update)
-    code, out, err = run_cli(capsys, "train", "--env", "TMazeCue-v0", "-n", "100", "--seed", "0", "-f", tmp_path,
-                             "--hyperparams", *TINY_TMAZE, "--eval-freq", "64", "--eval-episodes", "2")
+    code, out, err = run_cli("train", "--env", "TMazeCue-v0", "-n", "100", "--seed", "0", "-f", tmp_path,
+                             "--hyperparams", *tiny_tmaze, "--eval-freq", "64", "--eval-episodes", "2")
     assert code == 0, err
     lines = out.splitlines()
     assert "trains 128 steps: -n is rounded up to whole rollouts of n_steps x n_envs = 64" in lines
@@ -61,41 +60,24 @@ def test_rounding_note():
     assert rounding_note(model, 1000).startswith("trains 512 steps (to 1,012): ")
 
 
-@pytest.mark.parametrize("flags, terminal, shown", [([], True, True), ([], False, False), (["-P"], False, True),
-                                                    (["--no-progress"], True, False)])
-def test_progress_bar_on_a_terminal_unless_asked(flags, terminal, shown, monkeypatch):
-    seen = {}
-    monkeypatch.setattr("sb3_spikeplastic.zoo.evaluation.evaluate_command", lambda **options: seen.update(options))
-    monkeypatch.setattr(sys.stderr, "isatty", lambda: terminal)
-    args = cli.build_parser().parse_args(["evaluate", "--run", "r", *flags])
-    cli.prepare(args, [])
-    assert seen["no_progress"] is not shown and "progress" not in seen
+def test_figure_callback_and_hyperparameter_text_reach_tensorboard(tmp_path, assert_png):
+    model = tmaze_model("dp-oja", env_kwargs={"neurons_per_population": 10})
+    model.set_logger(Logger(str(tmp_path), [make_output_format("tensorboard", str(tmp_path))]))
+    config = {"n_steps": 32, "policy_kwargs": {"rule": "dp-oja", "hidden_sizes": [16]}, "normalize": False}
+    assert write_hyperparameters(model.logger, config)
+    model.learn(192, callback=ActivityFigureCallback("TMazeCue-v0", every=2))
+    model.logger.close()
+    ea = EventAccumulator(str(tmp_path), size_guidance={"images": 0, "tensors": 0})
+    ea.Reload()
+    tags = ea.Tags()
+    assert "snn/layer0/spike_rate" in tags["scalars"] and "plasticity/layer0/eta" in tags["scalars"]
+    images = ea.Images("snn/activity")
+    assert [i.step for i in images] == [128]  # rollout 2 of 3, 64 steps each
+    assert_png(images[0].encoded_image_string)
+    text = ea.Tensors("hyperparameters/text_summary")[0].tensor_proto.string_val[0].decode()
+    assert "| policy_kwargs.rule | dp-oja |" in text and "| n_steps | 32 |" in text
 
 
-def test_whole_mapping_override_names_the_keys_it_drops(tmp_path, capsys):
-    lines = replaced_mappings("TMazeCue-v0", None, ["policy_kwargs=dict(hidden_sizes=[32], alpha_lr_scale=2)"])
-    assert len(lines) == 1 and lines[0].startswith("--hyperparams policy_kwargs=dict(hidden_sizes=[32], "
-                                                   "alpha_lr_scale=2) replaces the entry's whole policy_kwargs, ")
-    dropped = lines[0].split("dropping its ")[1].split(" (")[0].split(", ")
-    assert "alpha_init_mean" in dropped and "alpha_lr_scale" not in dropped  # the entry's, less those given
-    # a dotted key keeps the others; a key set again by a later override is not dropped
-    assert replaced_mappings("TMazeCue-v0", None, ["policy_kwargs.hidden_sizes=[32]"]) == []
-    again = replaced_mappings("TMazeCue-v0", None, ["policy_kwargs:{hidden_sizes: [32]}",
-                                                    "policy_kwargs.alpha_init_mean=0"])
-    assert "alpha_init_mean" not in again[0].split("dropping its ")[1]
-    # the command line prints it once the command is checked and its model built, before the run
-    argv = ["train", "--env", "HalfCheetah-v5", "-f", str(tmp_path), "--hyperparams",
-            "policy_kwargs=dict(hidden_sizes=[16], steps=5)"]
-    cli.prepare(cli.build_parser().parse_args(argv), argv)
-    out = capsys.readouterr().out
-    assert "sb3-spikeplastic: --hyperparams policy_kwargs=dict(hidden_sizes=[16], steps=5) replaces the entry's " \
-           "whole policy_kwargs, dropping its " in out
-    assert list(tmp_path.iterdir()) == []
-
-
-def test_optimize_without_optuna_is_the_install_hint(tmp_path, capsys, monkeypatch):
-    monkeypatch.setitem(sys.modules, "optuna", None)  # import optuna fails as if it were not installed
-    code, out, err = run_cli(capsys, "optimize", "--env", "TMazeCue-v0", "-f", tmp_path / "logs")
-    assert code == 2 and err.count("\n") == 1, err
-    assert 'need Optuna: pip install "sb3-spikeplastic[optimize]"' in err and "Traceback" not in err
-    assert not (tmp_path / "logs").exists()
+def test_figure_callback_validates_its_interval():
+    with pytest.raises(ValueError, match="every=0 must be >= 1"):
+        ActivityFigureCallback("TMazeCue-v0", every=0)

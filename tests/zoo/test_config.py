@@ -1,4 +1,5 @@
-"""Hyperparameter files: the packaged ppo.yml, overrides, validation, the safe string parser, model construction."""
+"""Hyperparameter files: the packaged ppo.yml and paper.yml, overrides (and the keys a whole-mapping override
+drops), validation, the safe string parser, model construction."""
 
 import inspect
 
@@ -8,7 +9,7 @@ import torch
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
 import sb3_spikeplastic
-from sb3_spikeplastic import PPO, SpikePlasticPolicy
+from sb3_spikeplastic import PPO, SpikePlasticPolicy, cli
 from sb3_spikeplastic.zoo import config
 from sb3_spikeplastic.zoo.config import (
     algorithm_class,
@@ -19,6 +20,7 @@ from sb3_spikeplastic.zoo.config import (
     normalize_arguments,
     parse_override,
     parse_python_literal,
+    replaced_mappings,
     resolve_hyperparams,
     yaml_load,
 )
@@ -61,7 +63,7 @@ def test_spiking_entries_state_only_what_differs_from_the_defaults(conf):
 @pytest.mark.parametrize("env_id", ["CartPole-v1", *ENTRIES])
 def test_entries_are_consistent(env_id):
     """Chunking fits every entry; HalfCheetah normalises and starts alpha at zero mean (a positive mean makes the
-    trace loop explode, tests/test_halfcheetah.py), and the packaged paper file has the paper's network and GAE
+    trace loop explode, tests/sb3/test_policy.py), and the packaged paper file has the paper's network and GAE
     lambda (appendix 5.2-5.5)."""
     entry = resolve_hyperparams(env_id)
     bptt, batch = entry.get("bptt_steps", _default(PPO, "bptt_steps")), entry.get("batch_size", 256)
@@ -145,13 +147,17 @@ def test_parse_override():
     ("n_steps=abc", r"n_steps='abc' must be an integer"),
     ("gamma=high", r"gamma='high' must be a number"),
     ("n_timesteps=1.5", r"n_timesteps=1.5 must be an integer"),
-    ("policy_kwargs.hidden_sizez=[3]", r"unknown policy_kwargs key 'hidden_sizez' \(did you mean 'hidden_sizes'\?\); accepted: .*hidden_sizes"),
+    ("policy_kwargs.hidden_sizez=[3]",
+     r"unknown policy_kwargs key 'hidden_sizez' \(did you mean 'hidden_sizes'\?\); accepted: .*hidden_sizes"),
     ("policy_kwargs.hidden_sizes=16", r"policy_kwargs.hidden_sizes=16 must be a list of integers"),
     ("policy_kwargs.rule=hebb", r"unknown rule 'hebb'; accepted: static, .*dp-oja"),
-    ("policy_kwargs.rule_kwargs.foo=1", r"unknown policy_kwargs.rule_kwargs key 'foo' for rule 'dp-oja'; accepted: eta_init"),
-    ("policy_kwargs.neuron.thet=1", r"unknown policy_kwargs.neuron key 'thet' \(did you mean 'theta'\?\); accepted: .*theta"),
+    ("policy_kwargs.rule_kwargs.foo=1",
+     r"unknown policy_kwargs.rule_kwargs key 'foo' for rule 'dp-oja'; accepted: eta_init"),
+    ("policy_kwargs.neuron.thet=1",
+     r"unknown policy_kwargs.neuron key 'thet' \(did you mean 'theta'\?\); accepted: .*theta"),
     ("normalize.clip_obs=5", r"normalize is False, not a mapping \(set normalize=true first\)"),
-    ("normalize={clip_obz: 5}", r"unknown normalize \(VecNormalize\) key 'clip_obz' \(did you mean 'clip_obs'\?\); accepted: clip_obs"),
+    ("normalize={clip_obz: 5}",
+     r"unknown normalize \(VecNormalize\) key 'clip_obz' \(did you mean 'clip_obs'\?\); accepted: clip_obs"),
     ("learning_rate=lin_x", r"learning_rate='lin_x' must be a number or lin_<number>"),
     ("grad_clip=layer", r"grad_clip='layer' is not accepted; accepted: global, per-parameter"),
     ("policy=TransformerPolicy", r"unknown policy 'TransformerPolicy'; accepted: .*SpikePlasticPolicy"),
@@ -174,7 +180,8 @@ def test_lin_schedules_and_class_names():
                                                              "policy_kwargs.optimizer_class=th.optim.AdamW",
                                                              "policy_kwargs.optimizer_kwargs={eps: 1.0e-5}"])
     policy, ppo_kwargs, policy_kwargs = model_arguments(resolved)
-    assert ppo_kwargs["learning_rate"](1.0) == pytest.approx(1e-3) and ppo_kwargs["learning_rate"](0.5) == pytest.approx(5e-4)
+    assert ppo_kwargs["learning_rate"](1.0) == pytest.approx(1e-3)
+    assert ppo_kwargs["learning_rate"](0.5) == pytest.approx(5e-4)
     assert ppo_kwargs["clip_range"](0.0) == 0.0
     assert policy_kwargs["optimizer_class"] is torch.optim.AdamW
     assert "n_timesteps" not in ppo_kwargs and "policy_kwargs" not in ppo_kwargs and "normalize" not in ppo_kwargs
@@ -219,7 +226,8 @@ def test_bad_files(tmp_path):
 
 def test_accepted_keys_follow_the_signatures():
     keys = config.accepted_keys()
-    assert {"bptt_steps", "n_steps", "batch_size", "learning_rate", "n_timesteps", "policy_kwargs", "normalize"} <= set(keys)
+    assert {"bptt_steps", "n_steps", "batch_size", "learning_rate", "n_timesteps", "policy_kwargs",
+            "normalize"} <= set(keys)
     assert "tensorboard_log" not in keys and "seed" not in keys
     assert {"rule", "hidden_sizes", "steps", "encoder_pop_size", "action_pop_size"} <= set(config.policy_kwarg_hints())
 
@@ -252,7 +260,8 @@ def test_load_hyperparams_rule_and_other_files():
         model = algorithm_class(zoo.algo)(zoo.policy, "HalfCheetah-v5", **zoo.model_kwargs)
         assert type(model).__name__ == cls and (model.n_steps, model.batch_size, model.n_epochs) == (512, 64, 20)
         assert model.learning_rate == pytest.approx(2.0633e-05) and model.policy.log_std.mean().item() == -2.0
-        assert [m.out_features for m in model.policy.mlp_extractor.policy_net if hasattr(m, "out_features")] == [256, 256]
+        layers = model.policy.mlp_extractor.policy_net
+        assert [m.out_features for m in layers if hasattr(m, "out_features")] == [256, 256]
     # a registered id without an entry gets `default`, as on the command line
     assert load_hyperparams("CartPole-v1").model_kwargs["policy_kwargs"] == {}
     # fresh copies: changing one result leaves the next alone
@@ -261,8 +270,10 @@ def test_load_hyperparams_rule_and_other_files():
 
 
 @pytest.mark.parametrize("args, message", [
-    (("TMazeCu-v0",), r"^unknown environment id 'TMazeCu-v0'; did you mean TMazeCue-v0.*accepted: an entry of the file \(TMazeCue-v0, "),
-    (("TMazeCue-v0", "ppo2"), r"^cannot read hyperparameter file 'ppo2'.*packaged files: ppo, paper, mlp, ppo_lstm, mlp_zoo, ppo_lstm_zoo"),
+    (("TMazeCu-v0",),
+     r"^unknown environment id 'TMazeCu-v0'; did you mean TMazeCue-v0.*accepted: an entry of the file \(TMazeCue-v0, "),
+    (("TMazeCue-v0", "ppo2"),
+     r"^cannot read hyperparameter file 'ppo2'.*packaged files: ppo, paper, mlp, ppo_lstm, mlp_zoo, ppo_lstm_zoo"),
     (("TMazeCue-v0", "ppo", "hebb"), r"^unknown rule 'hebb'; accepted: static, "),
     (("HalfCheetah-v5", "mlp", "dp-oja"), r"^rule='dp-oja' needs policy SpikePlasticPolicy, not 'MlpPolicy'"),
 ])
@@ -282,3 +293,34 @@ def test_load_hyperparams_builds_and_trains_a_model():
     model.learn(32)
     assert model.num_timesteps == 32
     env.close()
+
+
+def test_packaged_paper_configuration():
+    config = load_hyperparams_file("paper")["HalfCheetah-v5"]
+    kwargs = config["policy_kwargs"]
+    assert kwargs["obs_indices"] == [2, 3, 4, 5, 6, 7, 11, 12, 13, 14, 15, 16]
+    assert (kwargs["encoder_pop_size"], kwargs["action_pop_size"], kwargs["steps"]) == (50, 100, 50)
+    assert "hidden_sizes" not in kwargs and "n_epochs" not in config  # the defaults, 64-64 and 10, are the paper's
+    assert config["n_steps"] * config["n_envs"] == 3000 and config["gae_lambda"] == 0.97
+    assert config["learning_rate"] == "lin_5e-4"
+
+
+def test_whole_mapping_override_names_the_keys_it_drops(tmp_path, capsys):
+    lines = replaced_mappings("TMazeCue-v0", None, ["policy_kwargs=dict(hidden_sizes=[32], alpha_lr_scale=2)"])
+    assert len(lines) == 1 and lines[0].startswith("--hyperparams policy_kwargs=dict(hidden_sizes=[32], "
+                                                   "alpha_lr_scale=2) replaces the entry's whole policy_kwargs, ")
+    dropped = lines[0].split("dropping its ")[1].split(" (")[0].split(", ")
+    assert "alpha_init_mean" in dropped and "alpha_lr_scale" not in dropped  # the entry's, less those given
+    # a dotted key keeps the others; a key set again by a later override is not dropped
+    assert replaced_mappings("TMazeCue-v0", None, ["policy_kwargs.hidden_sizes=[32]"]) == []
+    again = replaced_mappings("TMazeCue-v0", None, ["policy_kwargs:{hidden_sizes: [32]}",
+                                                    "policy_kwargs.alpha_init_mean=0"])
+    assert "alpha_init_mean" not in again[0].split("dropping its ")[1]
+    # the command line prints it once the command is checked and its model built, before the run
+    argv = ["train", "--env", "HalfCheetah-v5", "-f", str(tmp_path), "--hyperparams",
+            "policy_kwargs=dict(hidden_sizes=[16], steps=5)"]
+    cli.prepare(cli.build_parser().parse_args(argv), argv)
+    out = capsys.readouterr().out
+    assert "sb3-spikeplastic: --hyperparams policy_kwargs=dict(hidden_sizes=[16], steps=5) replaces the entry's " \
+           "whole policy_kwargs, dropping its " in out
+    assert list(tmp_path.iterdir()) == []

@@ -10,12 +10,10 @@ import gymnasium
 import imageio
 import numpy as np
 import pytest
-from test_cli import TINY_TMAZE, run_cli
 
 from sb3_spikeplastic import cli
-
-from sb3_spikeplastic.zoo import enjoy
 from sb3_spikeplastic.envs.tmaze import TMazeCueEnv
+from sb3_spikeplastic.zoo import enjoy
 
 
 #: .mp4 videos need the ffmpeg binary of imageio-ffmpeg (the test extras install it; a GIF needs only Pillow)
@@ -24,10 +22,10 @@ needs_ffmpeg = pytest.mark.skipif(importlib.util.find_spec("imageio_ffmpeg") is 
 
 
 @pytest.fixture(scope="module")
-def tmaze_run(tmp_path_factory):
+def tmaze_run(tmp_path_factory, tiny_tmaze):
     """A run folder of a spiking plastic PPO trained for 64 steps on the T-maze."""
     logs = tmp_path_factory.mktemp("enjoy") / "logs"
-    argv = ["train", "--env", "TMazeCue-v0", "-n", "64", "--seed", "0", "-f", logs, "--hyperparams", *TINY_TMAZE,
+    argv = ["train", "--env", "TMazeCue-v0", "-n", "64", "--seed", "0", "-f", logs, "--hyperparams", *tiny_tmaze,
             "-v", "0", "--no-progress"]
     assert cli.main([str(a) for a in argv]) == 0
     return logs / "ppo" / "TMazeCue-v0_1"
@@ -38,9 +36,9 @@ def episode_lengths(out: str) -> list[int]:
 
 
 @needs_ffmpeg
-def test_tmaze_video_has_one_frame_per_reset_and_per_step(tmaze_run, tmp_path, capsys):
+def test_tmaze_video_has_one_frame_per_reset_and_per_step(tmaze_run, tmp_path, run_cli):
     video = tmp_path / "videos" / "tmaze.mp4"
-    code, out, err = run_cli(capsys, "enjoy", "--run", tmaze_run, "--n-episodes", "2", "--video", video,
+    code, out, err = run_cli("enjoy", "--run", tmaze_run, "--n-episodes", "2", "--video", video,
                              "--no-progress")
     assert code == 0, err
     lengths = episode_lengths(out)
@@ -54,9 +52,9 @@ def test_tmaze_video_has_one_frame_per_reset_and_per_step(tmaze_run, tmp_path, c
     assert sorted(p.name for p in video.parent.iterdir()) == ["tmaze.mp4"]  # no temporary file left
 
 
-def test_tmaze_gif_with_fps_and_size(tmaze_run, tmp_path, capsys):
+def test_tmaze_gif_with_fps_and_size(tmaze_run, tmp_path, run_cli):
     video = tmp_path / "tmaze.gif"
-    code, out, err = run_cli(capsys, "enjoy", "--run", tmaze_run, "--video", video, "--fps", "5", "--size", "80",
+    code, out, err = run_cli("enjoy", "--run", tmaze_run, "--video", video, "--fps", "5", "--size", "80",
                              "50", "--seed", "3", "--stochastic", "--no-progress")
     assert code == 0, err
     frames = imageio.v3.imread(video, index=None)
@@ -66,7 +64,7 @@ def test_tmaze_gif_with_fps_and_size(tmaze_run, tmp_path, capsys):
 
 
 @needs_ffmpeg
-def test_raster_beside_the_frames_while_the_network_records(tmaze_run, tmp_path, capsys):
+def test_raster_beside_the_frames_while_the_network_records(tmaze_run, tmp_path, run_cli):
     from sb3_spikeplastic import PPO
 
     model = PPO.load(tmaze_run / "TMazeCue-v0.zip")
@@ -82,7 +80,7 @@ def test_raster_beside_the_frames_while_the_network_records(tmaze_run, tmp_path,
 
     mlp = PPO("MlpPolicy", "TMazeCue-v0", n_steps=16, batch_size=16)
     mlp.save(tmp_path / "mlp.zip")
-    code, _, err = run_cli(capsys, "enjoy", "--model", tmp_path / "mlp.zip", "--env", "TMazeCue-v0", "--video",
+    code, _, err = run_cli("enjoy", "--model", tmp_path / "mlp.zip", "--env", "TMazeCue-v0", "--video",
                            tmp_path / "mlp.mp4", "--raster")
     assert code == 2 and "--raster needs a SpikePlasticPolicy model, not ActorCriticPolicy" in err
     assert not (tmp_path / "mlp.mp4").exists()
@@ -214,12 +212,12 @@ BAD_ENJOY = [
 
 
 @pytest.mark.parametrize("argv, message", BAD_ENJOY)
-def test_bad_enjoy_input_exits_2_with_one_line_and_writes_nothing(argv, message, tmaze_run, tmp_path, capsys,
+def test_bad_enjoy_input_exits_2_with_one_line_and_writes_nothing(argv, message, tmaze_run, tmp_path, run_cli,
                                                                  monkeypatch):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "afile").write_text("")
     (tmp_path / "videos").mkdir()
-    code, out, err = run_cli(capsys, "enjoy", "--run", tmaze_run, *argv, "--no-progress")
+    code, out, err = run_cli("enjoy", "--run", tmaze_run, *argv, "--no-progress")
     lines = err.strip().splitlines()
     assert code == 2 and len(lines) == 1 and lines[0].startswith("sb3-spikeplastic: error: ") and not out, err
     assert message in lines[0]
@@ -227,16 +225,16 @@ def test_bad_enjoy_input_exits_2_with_one_line_and_writes_nothing(argv, message,
     assert not any((tmp_path / "videos").iterdir())
 
 
-def test_missing_video_packages_name_the_extra(tmaze_run, tmp_path, capsys, monkeypatch):
+def test_missing_video_packages_name_the_extra(tmaze_run, tmp_path, run_cli, monkeypatch):
     monkeypatch.setitem(__import__("sys").modules, "imageio_ffmpeg", None)  # as if it were not installed
-    code, _, err = run_cli(capsys, "enjoy", "--run", tmaze_run, "--video", tmp_path / "x.mp4")
+    code, _, err = run_cli("enjoy", "--run", tmaze_run, "--video", tmp_path / "x.mp4")
     assert code == 2 and err.strip() == ('sb3-spikeplastic: error: --video .mp4 needs imageio_ffmpeg (not installed): '
                                          'pip install "sb3-spikeplastic[video]"')
     assert not list(tmp_path.iterdir())
 
 
 @needs_ffmpeg
-def test_halfcheetah_video(tmp_path, capsys, monkeypatch):
+def test_halfcheetah_video(tmp_path, run_cli, monkeypatch):
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
     from sb3_spikeplastic import PPO
@@ -252,7 +250,7 @@ def test_halfcheetah_video(tmp_path, capsys, monkeypatch):
     model.save(tmp_path / "cheetah.zip")
     VecNormalize(env).save(tmp_path / "vecnormalize.pkl")  # found beside the model
     video = tmp_path / "cheetah.mp4"
-    code, out, err = run_cli(capsys, "enjoy", "--model", tmp_path / "cheetah.zip", "--env", "HalfCheetah-v5",
+    code, out, err = run_cli("enjoy", "--model", tmp_path / "cheetah.zip", "--env", "HalfCheetah-v5",
                              "--max-steps", "4", "--video", video, "--size", "64", "48", "--no-progress")
     assert code == 0, err
     assert "VecNormalize: " in out and "episode 1: return" in out and "4 steps (cut by --max-steps)" in out
@@ -261,8 +259,8 @@ def test_halfcheetah_video(tmp_path, capsys, monkeypatch):
     assert frames.shape == (5, 48, 64, 3) and frames.std() > 10  # a scene, not a blank image
 
 
-def test_default_first_episode_ends_as_most_episodes_do(tmaze_run, capsys):
-    code, out, err = run_cli(capsys, "enjoy", "--run", tmaze_run, "--no-progress")
+def test_default_first_episode_ends_as_most_episodes_do(tmaze_run, run_cli):
+    code, out, err = run_cli("enjoy", "--run", tmaze_run, "--no-progress")
     assert code == 0, err
     chosen = re.search(r"first episode: seed (\d) \((\d+) of 10 episodes from seed 0 succeeded", out)
     assert chosen, out

@@ -1,11 +1,19 @@
-"""``plot``'s parts: the Monitor files of run folders, their labels and the summary line of each run."""
+"""Figures: ``plot``'s parts (the Monitor files of run folders, their labels and the summary line of each run) and
+the activity figure of one recorded episode."""
 
+import io
 import json
 
+import gymnasium as gym
 import numpy as np
 import pytest
+from helpers import tmaze_model
+from stable_baselines3.common.vec_env import DummyVecEnv
 
-from sb3_spikeplastic.zoo.figures import curve_summaries, plot_command, read_runs
+from sb3_spikeplastic import PPO
+from sb3_spikeplastic.envs.tmaze import TMazeCueEnv
+from sb3_spikeplastic.zoo.figures import activity_figure, curve_summaries, plot_command, read_runs
+from sb3_spikeplastic.zoo.recording import record_episode
 
 
 def monitor_file(path, episodes, t_start=1000.0):
@@ -49,3 +57,23 @@ def test_plot_checks_its_runs_before_writing(tmp_path):
         with pytest.raises(ValueError, match=message):
             plot_command(runs, output=tmp_path / "out" / "curves.png", **options)
     assert not (tmp_path / "out").exists()
+
+
+def test_activity_figure_png(tmp_path, assert_png):
+    model = tmaze_model("ndp-oja", n_envs=1, env_kwargs={"neurons_per_population": 10})
+    activity = record_episode(model.policy, TMazeCueEnv(), seed=0)
+    assert activity.modulation[0] is not None
+    fig = activity_figure(activity, title="test")
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=60)
+    assert_png(buffer.getvalue())
+    # continuous actions, several hidden layers, cut episode
+    env = gym.make("Pendulum-v1")
+    model = PPO("SpikePlasticPolicy", DummyVecEnv([lambda: gym.make("Pendulum-v1")]), n_steps=16, batch_size=16,
+                bptt_steps=8, policy_kwargs=dict(rule="ndp-bcm", hidden_sizes=(8, 8), steps=10, encoder_pop_size=8,
+                                                 action_pop_size=4))
+    activity = record_episode(model.policy, env, max_steps=7)
+    assert activity.n_steps == 7 and not activity.done and len(activity.spikes) == 3
+    fig = activity_figure(activity)
+    fig.savefig(tmp_path / "pendulum.png", dpi=60)
+    assert_png(tmp_path / "pendulum.png")

@@ -1,4 +1,5 @@
-"""A real PostgreSQL server for tests, started and stopped by the test that uses it.
+"""Fixtures of the study tests: the tiny CartPole hyperparameter file and study that the commands run in seconds,
+and a real PostgreSQL server (``postgres_url``).
 
 The server runs from a fresh folder under /tmp (data, unix socket, log), listens on 127.0.0.1 only, trusts every
 local connection and is stopped, and its folder removed, when the test ends, failed or not. PostgreSQL refuses to
@@ -17,6 +18,28 @@ import subprocess
 import tempfile
 from pathlib import Path
 from typing import Iterator, List, Optional
+
+import pytest
+
+#: A CartPole hyperparameter file of a few hundred steps (MlpPolicy: no spike kernels to compile), for commands
+#: that train many short runs (optimize, study).
+TINY_CARTPOLE = """CartPole-v1:
+  policy: MlpPolicy
+  n_timesteps: 512
+  n_envs: 2
+  n_steps: 32
+  batch_size: 32
+  n_epochs: 1
+"""
+#: A study of two variants, two seeds and two budgets of ``cartpole.yml`` (TINY_CARTPOLE), with evaluations during
+#: training, a final evaluation, a robustness evaluation and a comparison in its report.
+TINY_STUDY = {"conf": "cartpole.yml", "envs": ["CartPole-v1"], "seeds": [0, 1], "budgets": [128, 256],
+              "eval_freq": 64, "eval_episodes": 2,
+              "variants": {"small": {"hyperparams": ["policy_kwargs.net_arch=[8]"]},
+                           "large": {"hyperparams": ["policy_kwargs.net_arch=[16]"]}},
+              "evaluations": {"final": {"episodes": 4, "seed": 100},
+                              "robustness": {"noises": ["obs"], "sigmas": [0, 0.5], "episodes": 3, "n_envs": 3}},
+              "report": {"learned_threshold": 0, "compare": [{"variants": ["large"], "against": "small"}]}}
 
 #: Seconds the server may take to start (pg_ctl's wait); each command is stopped 15 s after that.
 TIMEOUT = 60
@@ -118,3 +141,42 @@ def postgres_server(tmp_path: Path) -> Iterator[str]:
             with contextlib.suppress(OSError):
                 shutil.copyfile(log, Path(tmp_path) / "postgres.log")
         shutil.rmtree(root, ignore_errors=True)
+
+
+@pytest.fixture(scope="session")
+def tiny_cartpole():
+    """The text of a CartPole hyperparameter file of 512 steps with MlpPolicy (runs of a second or two)."""
+    return TINY_CARTPOLE
+
+
+@pytest.fixture
+def files(tmp_path, tiny_cartpole):
+    """The test's ``tmp_path``, holding ``cartpole.yml`` (``tiny_cartpole``), the file the tiny studies name."""
+    (tmp_path / "cartpole.yml").write_text(tiny_cartpole)
+    return tmp_path
+
+
+@pytest.fixture(scope="session")
+def tiny_study():
+    """The tiny study (``TINY_STUDY``) as a study file's mapping, shared by the session: deep-copy it to change it."""
+    return TINY_STUDY
+
+
+@pytest.fixture
+def unused_port():
+    """A TCP port of 127.0.0.1 that nothing listens on now."""
+    return free_port()
+
+
+@pytest.fixture
+def postgres_url(tmp_path):
+    """The URL of a real PostgreSQL server's empty database, started for the test and stopped after it. Skips where
+    PostgreSQL is not installed, except in CI (``CI=true``), which installs it: a skip there would hide a failed
+    install."""
+    if find_postgres_bin() is None:
+        message = "PostgreSQL server not installed (apt-get install postgresql)"
+        if os.environ.get("CI") == "true":
+            pytest.fail(message)
+        pytest.skip(message)
+    with postgres_server(tmp_path) as url:
+        yield url
