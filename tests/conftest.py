@@ -1,4 +1,10 @@
+"""Fixtures of the whole suite. Each test folder mirrors a subpackage (tests/snn, tests/sb3, tests/zoo, tests/study,
+tests/envs); tests/study/conftest.py adds the study files and the PostgreSQL server, tests/envs/conftest.py the
+action recorder. The small T-maze models are plain functions in tests/sb3/helpers.py (on pytest's pythonpath)."""
+
+import io
 import os
+from pathlib import Path
 
 import pytest
 import torch
@@ -45,17 +51,62 @@ def compiled_cuda_ops(monkeypatch):
     return _built(monkeypatch, cuda=True)
 
 
-@pytest.fixture
-def postgres_url(tmp_path):
-    """The URL of a real PostgreSQL server's empty database, started for the test and stopped after it
-    (tests/postgres_server.py). Skips where PostgreSQL is not installed, except in CI (``CI=true``), which installs
-    it: a skip there would hide a failed install."""
-    from postgres_server import find_postgres_bin, postgres_server
+@pytest.fixture(params=["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(),
+                                                                          reason="needs a CUDA device"))])
+def device(request):
+    """Every available device: ``cpu`` and, where present, ``cuda`` (a test per device)."""
+    return request.param
 
-    if find_postgres_bin() is None:
-        message = "PostgreSQL server not installed (apt-get install postgresql)"
-        if os.environ.get("CI") == "true":
-            pytest.fail(message)
-        pytest.skip(message)
-    with postgres_server(tmp_path) as url:
-        yield url
+
+#: The T-maze entry shrunk to one 64-step rollout per update (2 environments x 32 steps) and 16 hidden neurons:
+#: ``--hyperparams`` of the commands that train spiking models in a second or two.
+TINY_TMAZE = ("n_envs=2", "n_steps=32", "batch_size=32", "bptt_steps=16", "n_epochs=1",
+              "policy_kwargs.hidden_sizes=[16]")
+
+
+@pytest.fixture(scope="session")
+def tiny_tmaze():
+    """``--hyperparams`` overrides that make the T-maze entry train in a second or two (a list: ``*tiny_tmaze``)."""
+    return list(TINY_TMAZE)
+
+
+@pytest.fixture
+def run_cli(capsys):
+    """``run_cli(*argv)`` runs ``sb3-spikeplastic ARGV`` in this process and returns ``(exit status, stdout,
+    stderr)``; the arguments may be paths or numbers."""
+    from sb3_spikeplastic import cli
+
+    def run(*argv):
+        code = cli.main([str(a) for a in argv])
+        out, err = capsys.readouterr()
+        return code, out, err
+
+    return run
+
+
+@pytest.fixture
+def mujoco_log_in_tmp(tmp_path, monkeypatch):
+    """The test's working directory is its ``tmp_path``: MuJoCo 4.0 warns that HalfCheetah's ``settotalmass`` is
+    deprecated and appends that to ./MUJOCO_LOG.TXT."""
+    monkeypatch.chdir(tmp_path)
+    return tmp_path
+
+
+def _assert_png(image):
+    """``image`` (PNG bytes, or the path of a PNG file) is a picture: over 5 kB, in colour, more than one colour."""
+    import matplotlib.image
+
+    if isinstance(image, (str, os.PathLike)):
+        assert Path(image).is_file(), image
+        image = Path(image).read_bytes()
+    assert len(image) > 5_000
+    pixels = matplotlib.image.imread(io.BytesIO(image), format="png")
+    assert pixels.ndim == 3
+    pixels = pixels.reshape(-1, pixels.shape[-1])
+    assert (pixels != pixels[0]).any()  # more than one colour
+
+
+@pytest.fixture(scope="session")
+def assert_png():
+    """``assert_png(image)``: fails unless ``image`` (PNG bytes or a path) is a picture of more than one colour."""
+    return _assert_png
