@@ -83,18 +83,26 @@ class CounterBernoulli:
 
     def uniform(self, keys: Tensor, steps: int, n: int) -> Tensor:
         """Uniform variates of shape ``(batch, steps, n)`` for the given keys."""
-        h = hash32(self.index_hash(steps, n, keys.device).unsqueeze(0) ^ hash32(keys).view(-1, 1, 1))
-        return ((h >> 8) & 0xFFFFFF).to(torch.float32) * (1.0 / (1 << 24))
+        return _uniform(keys, self.index_hash(steps, n, keys.device))
 
     def sample(self, p: Tensor, keys: Tensor, steps: int) -> Tensor:
         """Spikes ``(batch, steps, n)`` with per-neuron probability ``p`` of shape ``(batch, n)``.
 
         On CPU the compiled sampler of :mod:`sb3_spikeplastic.snn._fast` (bit-identical, one pass), else eager."""
-        fast = _fast.bernoulli_spikes(p, keys, self.index_hash(steps, p.shape[-1], keys.device))
-        if fast is not None:
-            return fast
-        u = self.uniform(keys, steps, p.shape[-1])
-        return (u < p.unsqueeze(1)).to(p.dtype)
+        return _fast.dispatch(_fast.BERNOULLI_SPIKES, _bernoulli_eager, p, keys,
+                              self.index_hash(steps, p.shape[-1], keys.device))
+
+
+def _uniform(keys: Tensor, index_hash: Tensor) -> Tensor:
+    """:meth:`CounterBernoulli.uniform` from the cached index hashes ``(steps, n)``."""
+    h = hash32(index_hash.unsqueeze(0) ^ hash32(keys).view(-1, 1, 1))
+    return ((h >> 8) & 0xFFFFFF).to(torch.float32) * (1.0 / (1 << 24))
+
+
+def _bernoulli_eager(p: Tensor, keys: Tensor, index_hash: Tensor) -> Tensor:
+    """:meth:`CounterBernoulli.sample` in eager ops, with the compiled op's arguments
+    (:data:`~._fast.BERNOULLI_SPIKES`)."""
+    return (_uniform(keys, index_hash) < p.unsqueeze(1)).to(p.dtype)
 
 
 class PopulationEncoder(nn.Module):

@@ -185,31 +185,34 @@ def srm_spike_loop(
     ``state`` holds the refractory filter (``h1``, ``h2``) of the layer's own spikes. Returns
     ``(spikes, membrane, new_state)``, all without autograd (see :class:`SRMSpikeRecursion`).
 
-    On CPU (float32/float64) this runs the compiled loop of :mod:`sb3_spikeplastic.snn._fast`, built on first use;
-    elsewhere, with ``SB3_SPIKEPLASTIC_NO_COMPILE=1``, or if the build failed (one warning), it runs
-    :func:`_srm_spike_loop_reference`. Both give bit-identical spikes, membrane and state.
+    On CPU (float32/float64) and CUDA this runs the compiled loop of :mod:`sb3_spikeplastic.snn._fast`, built on
+    first use; elsewhere, with ``SB3_SPIKEPLASTIC_NO_COMPILE=1``, or if the build failed (one warning), the eager
+    loop (:func:`_srm_spike_loop_reference`). Both give bit-identical spikes, membrane and state.
     """
     d, kappa, *_ = spike_constants(params)
-    fast = _fast.srm_loop(synaptic, state.h1, state.h2, d, kappa, params.theta)
-    if fast is not None:
-        spikes, membrane, h1, h2 = fast
-        return spikes, membrane, AlphaFilterState(h1, h2)
-    return _srm_spike_loop_reference(synaptic, state, params)
+    out = _fast.dispatch(_fast.SRM_LOOP, _srm_loop_eager, synaptic, state.h1, state.h2, d, kappa, params.theta)
+    return out.spikes, out.membrane, AlphaFilterState(out.h1, out.h2)
 
 
 def _srm_spike_loop_reference(
     synaptic: Tensor, state: AlphaFilterState, params: SRMParameters
 ) -> tuple[Tensor, Tensor, AlphaFilterState]:
-    """Pure-PyTorch :func:`srm_spike_loop`: the fallback (any device) and the specification of the fast path.
+    """Pure-PyTorch :func:`srm_spike_loop`: the fallback (any device) and the specification of the fast path."""
+    d, kappa, *_ = spike_constants(params)
+    out = _srm_loop_eager(synaptic, state.h1, state.h2, d, kappa, params.theta)
+    return out.spikes, out.membrane, AlphaFilterState(out.h1, out.h2)
+
+
+def _srm_loop_eager(synaptic: Tensor, h1: Tensor, h2: Tensor, d: float, kappa: float,
+                    theta: float) -> _fast.SpikeLoopOutputs:
+    """The recursion in eager PyTorch, with the compiled op's arguments and outputs (:data:`~._fast.SRM_LOOP`).
 
     Per step, in the tensors' dtype: ``h2 = (h2 + h1) * d``, ``u = syn - h2 * kappa``, ``s = (u >= theta)``,
     ``h1 = h1 * d + s``, every operation rounded separately. ``u`` is deliberately two ops rather than
     ``torch.sub(syn, h2, alpha=kappa)``, which PyTorch's vectorised CPU kernels evaluate with a fused
     multiply-add (depending on the CPU capability), so its rounding cannot be reproduced portably.
     """
-    d, c = _decay_and_gain(params.tau_ref, params.dt)
-    kappa = params.scale_ref * params.theta * c
-    h1, h2 = state.h1.clone(), state.h2.clone()
+    h1, h2 = h1.clone(), h2.clone()
     spikes = torch.empty_like(synaptic)
     membrane = torch.empty_like(synaptic)
     # In-place ops on preallocated slices (~1.5x over fresh tensors when this loop is the hot path).
@@ -219,9 +222,9 @@ def _srm_spike_loop_reference(
         torch.mul(h2, kappa, out=u)
         torch.sub(synaptic[:, t], u, out=u)
         s = spikes[:, t]
-        torch.ge(u, params.theta, out=s)
+        torch.ge(u, theta, out=s)
         h1.mul_(d).add_(s)
-    return spikes, membrane, AlphaFilterState(h1, h2)
+    return _fast.SpikeLoopOutputs(spikes, membrane, h1, h2)
 
 
 class SRMSpikeRecursion(torch.autograd.Function):

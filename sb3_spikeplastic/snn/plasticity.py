@@ -22,6 +22,7 @@ import torch
 from torch import Tensor, nn
 
 from . import _fast
+from ._fast.interval import RuleForm
 
 
 class HebbianTerms(NamedTuple):
@@ -83,10 +84,13 @@ def hebbian_trace_step(E: Tensor, eta: Tensor, terms: HebbianTerms, e_max: float
     one backward instead of ~20 eager ones); elsewhere, or when it is unavailable, the eager ops, which give the
     same values to float rounding.
     """
-    fused = _fast.trace_step(E, terms.post, terms.pre, eta, e_max, terms.subtract_prediction)
-    if fused is not None:
-        return fused
-    return hebbian_update(E, eta, terms).clamp(-e_max, e_max)
+    return _fast.dispatch(_fast.TRACE_STEP, _trace_step_eager, E, terms.post, terms.pre, eta, e_max,
+                          terms.subtract_prediction)
+
+
+def _trace_step_eager(E: Tensor, post: Tensor, pre: Tensor, eta: Tensor, e_max: float, oja: bool) -> Tensor:
+    """:func:`hebbian_trace_step` in eager ops, with the compiled op's arguments (:data:`~._fast.TRACE_STEP`)."""
+    return hebbian_update(E, eta, HebbianTerms(post, pre, oja)).clamp(-e_max, e_max)
 
 
 def dp_linear_update(E: Tensor, r_pre: Tensor, r_post: Tensor, eta: Tensor) -> Tensor:
@@ -392,29 +396,17 @@ class NDPBCMRule(_ModulatedMixin, _BCMRule):
         return HebbianTerms(self.modulation(r_post) * r_post, r_beta, False, (phi,))
 
 
-class CompiledForm(NamedTuple):
-    """How the compiled CPU layer op (``_fast/srm_interval.cpp``) evaluates a built-in rule's terms, op for op as
-    :meth:`PlasticityRule.hebbian_terms`.
-
-    :param oja: the Oja forms (subtract the trace's prediction).
-    :param bcm: the BCM presynaptic term and sliding threshold.
-    :param modulation: 0 unmodulated, 1 :math:`M = W_m r_{post}`, 2 :math:`M = \\tanh(W_m r_{post})`.
-    """
-
-    oja: bool
-    bcm: bool
-    modulation: int
-
-
 _COMPILED_FORMS = {DPLinearRule: (False, False), DPOjaRule: (True, False), DPBCMRule: (False, True),
                    NDPOjaRule: (True, False), NDPBCMRule: (False, True)}
 
 
-def compiled_form(rule: PlasticityRule) -> Optional[CompiledForm]:
-    """The :class:`CompiledForm` of a built-in rule; ``None`` for any other rule, subclasses of the built-in ones
-    included (they may change the terms), which then run :meth:`PlasticityRule.step` as written."""
+def compiled_form(rule: PlasticityRule) -> Optional[RuleForm]:
+    """How the compiled layer op (``_fast/srm_interval.cpp``) evaluates a built-in rule's terms, op for op as
+    :meth:`PlasticityRule.hebbian_terms` (:class:`~sb3_spikeplastic.snn._fast.interval.RuleForm`); ``None`` for any
+    other rule, subclasses of the built-in ones included (they may change the terms), which then run
+    :meth:`PlasticityRule.step` as written."""
     flags = _COMPILED_FORMS.get(type(rule))
     if flags is None:
         return None
     modulation = 1 + MODULATION_FORMS.index(rule.modulation_form) if rule.modulated else 0
-    return CompiledForm(*flags, modulation)
+    return RuleForm(*flags, modulation)

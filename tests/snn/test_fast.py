@@ -152,7 +152,7 @@ def test_srm_spike_loop_dispatches_to_compiled(compiled, monkeypatch):
     def forbidden(*args, **kwargs):
         raise AssertionError("fallback used although the compiled loop is available")
 
-    monkeypatch.setattr(neurons, "_srm_spike_loop_reference", forbidden)
+    monkeypatch.setattr(neurons, "_srm_loop_eager", forbidden)
     assert_identical(srm_spike_loop(syn, state, p), expected)
 
 

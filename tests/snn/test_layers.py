@@ -1,16 +1,18 @@
 """The CPU layer interval, with a built-in rule's trace update, as one compiled op each way
-(``layers._FusedInterval``, ``_fast/srm_interval.cpp``) against the eager layer: the same spikes, the membrane and
-states to float rounding (the op filters by the alpha filter's recurrence, ``_fast/alpha_filter.cpp``), and the
-gradients of the eager graph."""
+(``fused_interval._FusedInterval``, ``_fast/srm_interval.cpp``) against the eager layer: the same spikes, the
+membrane and states to float rounding (the op filters by the alpha filter's recurrence, ``_fast/alpha_filter.cpp``),
+and the gradients of the eager graph."""
 
 import pytest
 import torch
 
 from sb3_spikeplastic.snn import _fast, layers
-from sb3_spikeplastic.snn.layers import PlasticSRMLayer, _FusedInterval
+from sb3_spikeplastic.snn._fast import interval
+from sb3_spikeplastic.snn.fused_interval import _FusedInterval, interval_inputs
+from sb3_spikeplastic.snn.layers import PlasticSRMLayer
 from sb3_spikeplastic.snn.network import tensor_leaves
 from sb3_spikeplastic.snn.neurons import SRMParameters, alpha_filter_operator, slayer_surrogate
-from sb3_spikeplastic.snn.plasticity import DPOjaRule, get_rule_class
+from sb3_spikeplastic.snn.plasticity import DPOjaRule, compiled_form, get_rule_class
 
 pytestmark = pytest.mark.skipif(_fast.load_ops() is None, reason="compiled ops unavailable")
 
@@ -243,11 +245,13 @@ def test_float32_surrogate_within_two_ulp_of_slayer_surrogate():
     with torch.no_grad():
         layer.weight.mul_(100.0)  # membranes up to thousands of mV from the threshold
     spikes_in = (torch.rand(4, 50, 20, generator=torch.Generator().manual_seed(2)) < 0.4).float()
-    constants = layer._interval_constants(50, torch.float32, spikes_in.device)
+    parameters = layer.interval_parameters(50, torch.float32, spikes_in.device)
+    form = compiled_form(layer.rule)
     with torch.no_grad():
-        outputs = _FusedInterval.run(*_FusedInterval.arguments(layer, constants, spikes_in, layer.initial_state(4),
-                                                               _fast.interval_ops()))
-    membrane, surrogate = outputs.membrane, outputs.surrogate
+        outputs, residuals = interval.forward(_fast.interval_ops(),
+                                              interval_inputs(spikes_in, layer.initial_state(4), parameters, form),
+                                              parameters.constants, form, need_surrogate=True)
+    membrane, surrogate = outputs.membrane, residuals.surrogate
     assert torch.equal(outputs.r_post, outputs.spikes.mean(1))  # counted in the same loop
     width = layer.neuron.tau_rho * layer.neuron.theta
     distance = (membrane - layer.neuron.theta).abs() / width

@@ -1,36 +1,55 @@
-"""Compiled CPU fast paths of the two inner loops that eager PyTorch runs slowest.
+"""Compiled kernels of the spiking network's hot loops (C++ sources beside this file), and the one place that
+decides whether a compiled op or eager PyTorch runs: :func:`dispatch`.
 
-* :func:`srm_loop` (``srm_loop.cpp``), for :func:`sb3_spikeplastic.snn.neurons.srm_spike_loop`: the SRM
-  threshold/refractory recursion is sequential in time and element-wise across neurons, so eager PyTorch spends
-  its time launching ~7 tiny kernels per step; the compiled loop runs it in one pass and gives **bit-identical**
-  spikes, membrane and state (the same IEEE operations in the same order and dtype, compiled with
-  ``-ffp-contract=off`` and without fast-math).
-* :func:`trace_step` (``trace_step.cpp``), for :func:`sb3_spikeplastic.snn.plasticity.hebbian_trace_step`: the
-  trace update and clip of every built-in rule, forward and backward, in one pass over the trace each instead of
-  ~20 eager passes; equal to the eager ops to float rounding (a dot product is summed in another order).
-* :func:`plastic_linear` (``plastic_linear.cpp``), for :meth:`sb3_spikeplastic.snn.layers.PlasticSRMLayer.project`:
-  the synaptic product ``X[b] (W + alpha * E[b])^T`` with the efficacy of a few environments at a time in a
-  cache-sized buffer, so that neither the ``(B, n_out, n_in)`` efficacy nor its gradient is ever materialised
-  (eager: four extra passes over trace-sized arrays); equal to the eager ops to float rounding. Where an
-  environment's ``x`` is binary spikes at most :func:`spike_density_limit` of which fire (the input layer's place
-  cells), its forward and gradient products add up the firing inputs' columns instead of multiplying through the
-  zeros (``spike_product.h``, AVX2 builds); a one-environment block's float32 input gradient runs register tiles of
-  broadcast-FMA (``small_gemm.h``, where the CPU has FMA) instead of BLAS.
-* :func:`interval_ops` (``srm_interval.cpp``), for :class:`sb3_spikeplastic.snn.layers.PlasticSRMLayer`: a whole
-  layer interval (filter, product, spike loop, surrogate, rates and, for the built-in rules, the trace update) as
-  one op forward and one backward, built from the kernels above; one autograd node per layer and interval where
-  eager autograd records ~15, whose overhead dominated the small CPU networks' training step. It filters by the
-  alpha filter's recurrence (``alpha_filter.cpp``, ~4 operations per value and step) where the eager layer
-  multiplies by the filter's ``(L + 2, L + 2)`` operator; states and gradients are equal to float rounding.
-* :func:`bernoulli_spikes` (``bernoulli.cpp``), for :meth:`sb3_spikeplastic.snn.coding.CounterBernoulli.sample`:
-  the hash sampler in one pass instead of ~12, **bit-identical** (integer hashing, exact comparisons).
-* ``cache_cpu_blocks`` (``block_cache.cpp``), for :func:`sb3_spikeplastic.snn.cpu_settings.cache_freed_blocks`:
-  torch's CPU allocator replaced by one that keeps freed large blocks by exact size for the next allocation of
-  that size (a training step allocates the same sizes in every BPTT step), where glibc searches its bins.
+Each op serves one Python function, which :func:`dispatch` hands either to the op (through its :class:`Kernel`)
+or to the eager code that stands in for it, by the operands (dtype, device, shapes), ``SB3_SPIKEPLASTIC_NO_COMPILE``
+and whether the build succeeded:
 
-On CUDA, :func:`srm_loop` runs ``srm_loop_cuda.cu`` instead: one thread per neuron walks the interval's steps,
-one launch per layer where eager PyTorch launches ~350 kernels (T = 50), **bit-identical** to the eager loop on
-the same GPU. The other three fall back to eager PyTorch on CUDA, where their few large ops are already fast.
+* ``srm_loop`` (``srm_loop.cpp``; :data:`SRM_LOOP`), for :func:`sb3_spikeplastic.snn.neurons.srm_spike_loop`: the SRM
+  threshold/refractory recursion, sequential in time and element-wise across neurons, where eager PyTorch spends its
+  time launching ~7 tiny kernels per step; one pass, **bit-identical** spikes, membrane and state (the same IEEE
+  operations in the same order and dtype, compiled with ``-ffp-contract=off`` and without fast-math).
+* ``trace_step_forward`` / ``trace_step_backward`` (``trace_step.cpp``; :data:`TRACE_STEP`), for
+  :func:`sb3_spikeplastic.snn.plasticity.hebbian_trace_step`: the trace update and clip of every built-in rule,
+  forward and backward, in one pass over the trace each instead of ~20 eager passes; equal to the eager ops to float
+  rounding (a dot product is summed in another order).
+* ``plastic_linear_forward`` / ``plastic_linear_backward`` (``plastic_linear.cpp``; :data:`PLASTIC_LINEAR`), for
+  :func:`sb3_spikeplastic.snn.functional.project`: the synaptic product ``X[b] (W + alpha * E[b])^T`` with the
+  efficacy of a few environments at a time in a cache-sized buffer, so that neither the ``(B, n_out, n_in)`` efficacy
+  nor its gradient is ever materialised (eager: four extra passes over trace-sized arrays); equal to the eager ops to
+  float rounding. Where an environment's ``x`` is binary spikes at most :func:`spike_density_limit` of which fire (the
+  input layer's place cells), its forward and gradient products add up the firing inputs' columns instead of
+  multiplying through the zeros (``spike_product.h``, AVX2 builds); a one-environment block's float32 input gradient
+  runs register tiles of broadcast-FMA (``small_gemm.h``, where the CPU has FMA) instead of BLAS.
+* ``srm_interval_forward`` / ``srm_interval_backward`` and their deferred forms ``srm_interval_deferred_*``
+  (``srm_interval.cpp``; :data:`sb3_spikeplastic.snn.fused_interval.FUSED_INTERVAL`), for
+  :class:`sb3_spikeplastic.snn.layers.PlasticSRMLayer`'s interval (the eager step:
+  :func:`sb3_spikeplastic.snn.functional.interval_step`): a whole layer interval (filter, product, spike loop,
+  surrogate, rates and, for the built-in rules, the trace update) as one op forward and one backward, built from the
+  kernels above; one autograd node per layer and interval where eager autograd records ~15, whose overhead dominated
+  the small CPU networks' training step. The deferred forms apply the previous intervals' trace updates in the
+  product's pass over the trace. The op filters by the alpha filter's recurrence (``alpha_filter_rows`` and its
+  adjoint, ``alpha_filter.cpp``, ~4 operations per value and step) where the eager step multiplies by the filter's
+  ``(L + 2, L + 2)`` operator; states and gradients are equal to float rounding. Its tensors travel as named structs
+  (:mod:`sb3_spikeplastic.snn._fast.interval`, ``op_fields.h``).
+* ``bernoulli_spikes`` (``bernoulli.cpp``; :data:`BERNOULLI_SPIKES`), for
+  :meth:`sb3_spikeplastic.snn.coding.CounterBernoulli.sample`: the hash sampler in one pass instead of ~12,
+  **bit-identical** (integer hashing, exact comparisons).
+* ``cache_cpu_blocks`` / ``uncache_cpu_blocks`` (``block_cache.cpp``), for
+  :func:`sb3_spikeplastic.snn.cpu_settings.cache_freed_blocks` and ``release_block_cache``: torch's CPU allocator
+  replaced, while a spiking model trains, by one that keeps freed large blocks by exact size for the next
+  allocation of that size (a training step allocates the same sizes in every BPTT step), where glibc searches its
+  bins.
+* Small ops that read or set a kernel's state or describe an interface: ``spike_density_limit`` and
+  ``spike_product_counts`` (``plastic_linear.cpp``) for the functions of the same names here,
+  ``cpu_block_cache_bytes`` and ``cpu_block_cache_active`` (``block_cache.cpp``) for the allocator's state,
+  ``srm_interval_fields`` for the test that holds the interval's NamedTuples to the C++ structs; the alpha filter's ``alpha_filter_*`` are registered on
+  their own too, for their tests.
+
+On CUDA, ``srm_loop`` runs ``srm_loop_cuda.cu`` instead: one thread per neuron walks the interval's steps, one
+launch per layer where eager PyTorch launches ~350 kernels (T = 50), **bit-identical** to the eager loop on the same
+GPU. Every other op runs on CPU tensors only; on CUDA :func:`dispatch` runs the eager code, whose few large ops are
+already fast there.
 
 The CPU ops are compiled together with :func:`torch.utils.cpp_extension.load` the first time one is needed (never
 at import) and cached on disk; the CUDA op likewise, the first time a CUDA tensor needs it (needs ``nvcc``).
@@ -39,8 +58,9 @@ at import) and cached on disk; the CUDA op likewise, the first time a CUDA tenso
   ``${XDG_CACHE_HOME:-~/.cache}/sb3_spikeplastic/<python>_<torch>_<cpu-flags>_<sources hash>`` (the CUDA op in its
   ``cuda<version>_sm<arch>`` subfolder). It compiles copies of the sources kept in the folder's ``src/``, so every
   checkout or install of the same sources reuses one build. Building needs a C++ compiler and ``ninja``, says one
-  line on stderr and takes a minute or two once on two cores; later processes only load the cached library
-  (~0.3 s). Folders of other source versions are never used again and may be deleted.
+  line on stderr and takes a while once (measured in ``docs/install.md``, "First use compiles the kernels"); later
+  processes only load the cached library. Folders of other source versions are never used again and may be
+  deleted.
 * ``SB3_SPIKEPLASTIC_NO_COMPILE=1`` disables the compiled path (read at every call), for tests and debugging.
 * If a build fails, a single :class:`RuntimeWarning` is issued and the pure-PyTorch code is used instead; it
   gives the same results, only slower.
@@ -57,19 +77,32 @@ import threading
 import time
 import warnings
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Callable, Optional, TypeVar
 
 import torch
 from torch import Tensor
 
-__all__ = ["NO_COMPILE_ENV", "bernoulli_spikes", "build_directory", "compiled_disabled", "cpu_float_operands",
-           "interval_ops", "load_cuda_ops", "load_ops", "plastic_linear", "spike_density_limit", "spike_product_counts",
-           "srm_loop", "trace_step"]
+from .kernels import (
+    BERNOULLI_SPIKES,
+    PLASTIC_LINEAR,
+    SRM_LOOP,
+    TRACE_STEP,
+    Kernel,
+    SpikeLoopOutputs,
+    cpu_float_operands,
+)
+
+__all__ = ["BERNOULLI_SPIKES", "Kernel", "NO_COMPILE_ENV", "PLASTIC_LINEAR", "SRM_LOOP", "TRACE_STEP",
+           "bernoulli_spikes", "build_directory", "compiled", "compiled_disabled", "compiled_ops", "cpu_float_operands",
+           "dispatch", "interval_ops", "load_cuda_ops", "load_ops", "plastic_linear", "spike_density_limit",
+           "spike_product_counts", "srm_loop", "trace_step"]
+
+T = TypeVar("T")
 
 NO_COMPILE_ENV = "SB3_SPIKEPLASTIC_NO_COMPILE"
 BUILD_DIR_ENV = "SB3_SPIKEPLASTIC_BUILD_DIR"
-#: the first build's time, as said while compiling (measured: ``benchmarks/README.md``)
-COMPILE_TIME = "a minute or two on two cores"
+#: where the first build's time is measured, as said while compiling
+COMPILE_TIME = 'docs/install.md, "First use compiles the kernels"'
 _EXTENSION = "sb3_spikeplastic_fast"
 _SOURCES = [Path(__file__).with_name(name)
             for name in ("srm_loop.cpp", "trace_step.cpp", "plastic_linear.cpp", "srm_interval.cpp",
@@ -78,7 +111,8 @@ _SOURCES = [Path(__file__).with_name(name)
 _CUDA_EXTENSION = "sb3_spikeplastic_fast_cuda"
 _CUDA_SOURCES = [Path(__file__).with_name("srm_loop_cuda.cu")]
 _HEADERS = [Path(__file__).with_name(name)
-            for name in ("srm_loop_checks.h", "denormal_mode.h", "kernels.h", "lanes.h", "small_gemm.h", "spike_product.h")]
+            for name in ("srm_loop_checks.h", "denormal_mode.h", "kernels.h", "lanes.h", "op_fields.h", "small_gemm.h",
+                          "spike_product.h")]
 
 _lock = threading.Lock()
 _tried = False
@@ -155,7 +189,8 @@ def _ninja_directory() -> Optional[str]:
 def _clear_stale_lock(directory: Path, max_age_s: float = 600.0) -> None:
     """Remove a build lock left by a process killed while compiling (torch would wait on it forever).
 
-    A build takes well under a minute, so a lock older than ``max_age_s`` is stale.
+    A build takes far less than ``max_age_s`` (``docs/install.md``, "First use compiles the kernels"), so an older
+    lock is stale.
     """
     lock = directory / "lock"
     try:
@@ -196,7 +231,7 @@ def _compile(name: str, sources: list[Path], directory: Path, **options: Any) ->
     _clear_stale_lock(directory)
     sources = _sources_in(directory, sources)
     if not (directory / f"{name}.so").exists():
-        print(f"sb3_spikeplastic: compiling {name} once into {directory} (about {COMPILE_TIME}) ...",
+        print(f"sb3_spikeplastic: compiling {name} once into {directory} (build time: {COMPILE_TIME}) ...",
               file=sys.stderr, flush=True)
     path = os.environ.get("PATH", "")
     extra = None if shutil.which("ninja") else _ninja_directory()
@@ -273,7 +308,7 @@ def load_ops() -> Optional[Any]:
         return _ops
     with _lock:
         if not _tried:
-            _ops, _error = _try_build(_build, "inner loops", build_directory() / FAILED_BUILD_RECORD)
+            _ops, _error = _try_build(_build, "CPU kernels", build_directory() / FAILED_BUILD_RECORD)
             _tried = True
     return _ops
 
@@ -309,136 +344,63 @@ def _enabled_cuda_ops() -> Optional[Any]:
     return _cuda_ops if _cuda_tried else load_cuda_ops()
 
 
-def cpu_float_operands(first: Tensor, *others: Tensor) -> bool:
-    """Whether ``first`` is a CPU float32/float64 tensor and ``others`` are CPU tensors of its dtype (what every
-    compiled op needs besides its shapes)."""
-    dtype = first.dtype
-    if not (first.is_cpu and (dtype is torch.float32 or dtype is torch.float64)):
-        return False
-    return all(t.dtype is dtype and t.is_cpu for t in others)
-
-
-def srm_loop(
-    synaptic: Tensor, h1: Tensor, h2: Tensor, d: float, kappa: float, theta: float
-) -> Optional[tuple[Tensor, Tensor, Tensor, Tensor]]:
-    """Run the compiled recursion, or return ``None`` when it does not apply (then use the PyTorch loop).
-
-    It applies to float32/float64 tensors ``synaptic (batch, L, n)`` and ``h1, h2 (batch, n)`` of one dtype, all
-    on the CPU (``srm_loop.cpp``) or all on one CUDA device (``srm_loop_cuda.cu``), unless disabled by
-    ``SB3_SPIKEPLASTIC_NO_COMPILE`` or the build failed. Returns ``(spikes, membrane, h1, h2)``, which never carry
-    autograd history.
-    """
-    if not (synaptic.dim() == 3 and h1.shape == h2.shape == (synaptic.shape[0], synaptic.shape[2])):
+def compiled_ops(kernel: Kernel, *operands) -> Optional[Any]:
+    """The one place that decides between a compiled op and eager PyTorch: the compiled namespace that runs
+    ``kernel`` on ``operands``, or ``None`` where the eager code runs them (operands the op does not take, disabled by
+    ``SB3_SPIKEPLASTIC_NO_COMPILE``, or the build failed). Builds the library on the first call that needs it."""
+    if not kernel.applies(*operands):
         return None
-    if synaptic.is_cuda:
-        usable = (synaptic.dtype in (torch.float32, torch.float64)
-                  and all(t.dtype is synaptic.dtype and t.device == synaptic.device for t in (h1, h2)))
-        ops = _enabled_cuda_ops() if usable else None
-    else:
-        ops = _enabled_ops() if cpu_float_operands(synaptic, h1, h2) else None
-    if ops is None:
-        return None
-    with torch.no_grad():
-        return ops.srm_loop(synaptic, h1, h2, d, kappa, theta)
+    if kernel.cuda and operands[0].is_cuda:
+        return _enabled_cuda_ops()
+    return _enabled_ops()
 
 
-class _TraceStep(torch.autograd.Function):
-    """``clamp((1-eta) E + (eta p) (x) pre, +-e_max)`` with ``p = post - [E pre]``, fused (see ``trace_step.cpp``).
+def dispatch(kernel: Kernel, eager: Callable[..., T], *operands) -> T:
+    """``kernel``'s compiled op on ``operands`` where :func:`compiled_ops` finds one, else ``eager(*operands)``; the
+    two return the same values (bit for bit or to float rounding, as the module docstring says per op)."""
+    ops = compiled_ops(kernel, *operands)
+    return eager(*operands) if ops is None else kernel.run(ops, *operands)
 
-    Forward: one pass over ``E``. Backward: one pass over ``E`` and the incoming gradient, recomputing the clip
-    mask instead of storing the pre-clip trace; returns the gradients of ``E``, ``post``, ``pre`` and ``eta``.
-    """
 
-    @staticmethod
-    def forward(ctx, E: Tensor, post: Tensor, pre: Tensor, eta: Tensor, e_max: float, oja: bool) -> Tensor:
-        eta_value = float(eta)
-        new, p = _ops.trace_step_forward(E, post, pre, eta_value, e_max, oja)
-        ctx.save_for_backward(E, p, pre)
-        ctx.constants = (eta_value, e_max, oja, eta.shape, eta.dtype)
-        return new
+def compiled(kernel: Kernel, *operands) -> Optional[Any]:
+    """``kernel``'s compiled op alone on ``operands``, or ``None`` where :func:`compiled_ops` finds none (for tests
+    and benchmarks that hold it against the eager code; the network goes through :func:`dispatch`)."""
+    ops = compiled_ops(kernel, *operands)
+    return None if ops is None else kernel.run(ops, *operands)
 
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, grad: Tensor):
-        E, p, pre = ctx.saved_tensors
-        eta_value, e_max, oja, eta_shape, eta_dtype = ctx.constants
-        d_e, d_post, d_pre, d_eta = _ops.trace_step_backward(grad, E, p, pre, eta_value, e_max, oja)
-        return d_e, d_post, d_pre, d_eta.to(eta_dtype).reshape(eta_shape), None, None
+
+def srm_loop(synaptic: Tensor, h1: Tensor, h2: Tensor, d: float, kappa: float,
+             theta: float) -> Optional[SpikeLoopOutputs]:
+    """:data:`SRM_LOOP` alone (see :func:`compiled`): float32/float64 ``synaptic (batch, L, n)`` and ``h1, h2
+    (batch, n)`` of one dtype, all on the CPU (``srm_loop.cpp``) or all on one CUDA device (``srm_loop_cuda.cu``).
+    Its outputs never carry autograd history."""
+    return compiled(SRM_LOOP, synaptic, h1, h2, d, kappa, theta)
 
 
 def trace_step(E: Tensor, post: Tensor, pre: Tensor, eta: Tensor, e_max: float, oja: bool) -> Optional[Tensor]:
-    """The fused trace update, or ``None`` when it does not apply (then use the eager ops).
-
-    It applies to CPU float32/float64 ``E (B, n_out, n_in)``, ``post (B, n_out)``, ``pre (B, n_in)`` and a
-    one-element ``eta`` of one dtype, unless disabled by ``SB3_SPIKEPLASTIC_NO_COMPILE`` or the build failed.
-    Differentiable once (no double backward).
-    """
-    if not (
-        cpu_float_operands(E, post, pre)
-        and eta.dtype is E.dtype
-        and eta.numel() == 1
-        and E.dim() == 3
-        and post.shape == E.shape[:2]
-        and pre.shape == (E.shape[0], E.shape[2])
-    ):
-        return None
-    if _enabled_ops() is None:
-        return None
-    return _TraceStep.apply(E, post, pre, eta, float(e_max), bool(oja))
-
-
-class _PlasticLinear(torch.autograd.Function):
-    """``X[b] (W + alpha * E[b])^T`` per environment, and the same product of the rows ``C[b]`` carried beside ``X``
-    (when given: a layer's PSP state), the efficacy of a few environments at a time, blocks split between torch's
-    threads (see ``plastic_linear.cpp``); the gradients of ``X`` and ``C`` are computed only when needed."""
-
-    @staticmethod
-    def forward(ctx, x: Tensor, weight: Tensor, alpha: Tensor, E: Tensor, carried: Optional[Tensor]):
-        ctx.save_for_backward(x, weight, alpha, E, carried)
-        ctx.set_materialize_grads(False)  # an unused output's gradient is read as zero, not filled with it
-        y, y_carried = _ops.plastic_linear_forward(x, weight, alpha, E, carried)
-        if carried is None:
-            ctx.mark_non_differentiable(y_carried)
-        return y, y_carried
-
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, grad: Optional[Tensor], grad_carried: Optional[Tensor]):
-        x, weight, alpha, E, carried = ctx.saved_tensors
-        if grad is None:
-            grad = x.new_zeros(x.shape[0], x.shape[1], weight.shape[0])
-        need_rows = ctx.needs_input_grad[0] or ctx.needs_input_grad[4]
-        d_x, d_w, d_alpha, d_e, d_c = _ops.plastic_linear_backward(grad, grad_carried, x, weight, alpha, E, carried,
-                                                                   need_rows)
-        return (d_x if ctx.needs_input_grad[0] else None, d_w, d_alpha, d_e,
-                d_c if ctx.needs_input_grad[4] else None)
+    """:data:`TRACE_STEP` alone (see :func:`compiled`): CPU float32/float64 ``E (B, n_out, n_in)``, ``post
+    (B, n_out)``, ``pre (B, n_in)`` and a one-element ``eta`` of one dtype. Differentiable once (no double
+    backward)."""
+    return compiled(TRACE_STEP, E, post, pre, eta, e_max, oja)
 
 
 def plastic_linear(x: Tensor, weight: Tensor, alpha: Tensor, E: Tensor,
                    carried: Optional[Tensor] = None) -> Optional[Tensor]:
-    """The fused ``x[b] @ (W + alpha * E[b]).T`` for CPU float32/float64 ``x (B, L, n_in)``, ``W, alpha
-    (n_out, n_in)`` and ``E (B, n_out, n_in)`` of one dtype, or ``None`` when it does not apply (then use the eager
-    ops). With ``carried (B, 2, n_in)``, the product of the rows ``[x; carried]`` ``(B, L + 2, n_out)``, without
-    copying them into one tensor: the carried rows are multiplied in the pass that builds the efficacy.
-    Differentiable once."""
-    if not (
-        cpu_float_operands(E, x, weight, alpha, *([] if carried is None else [carried]))
-        and E.dim() == 3
-        and x.dim() == 3
-        and weight.shape == alpha.shape == E.shape[1:]
-        and x.shape[0] == E.shape[0]
-        and x.shape[2] == E.shape[2]
-        and (carried is None or carried.shape == (x.shape[0], 2, x.shape[2]))
-    ):
-        return None
-    if _enabled_ops() is None:
-        return None
-    y, y_carried = _PlasticLinear.apply(x, weight, alpha, E, carried)
-    return y if carried is None else torch.cat([y, y_carried], 1)
+    """:data:`PLASTIC_LINEAR` alone (see :func:`compiled`): ``x[b] @ (W + alpha * E[b]).T`` for CPU float32/float64
+    ``x (B, L, n_in)``, ``W, alpha (n_out, n_in)`` and ``E (B, n_out, n_in)`` of one dtype. With ``carried
+    (B, 2, n_in)``, the product of the rows ``[x; carried]`` ``(B, L + 2, n_out)``, without copying them into one
+    tensor: the carried rows are multiplied in the pass that builds the efficacy. Differentiable once."""
+    return compiled(PLASTIC_LINEAR, x, weight, alpha, E, carried)
+
+
+def bernoulli_spikes(p: Tensor, keys: Tensor, index_hash: Tensor) -> Optional[Tensor]:
+    """:data:`BERNOULLI_SPIKES` alone (see :func:`compiled`): CPU float32/float64 ``p (B, n)``, int32 ``keys (B,)``
+    and ``index_hash (T, n)``. No autograd (spikes are samples)."""
+    return compiled(BERNOULLI_SPIKES, p, keys, index_hash)
 
 
 def spike_density_limit(limit: Optional[float] = None) -> Optional[float]:
-    """The largest fraction of an environment's ``x`` values that may be spikes for :func:`plastic_linear` (and the
+    """The largest fraction of an environment's ``x`` values that may be spikes for :data:`PLASTIC_LINEAR` (and the
     fused interval) to take the spike products (default 0.3; 0 turns them off); sets it when ``limit`` is given and
     returns the previous one. ``None`` without the compiled ops."""
     ops = _enabled_ops()
@@ -461,27 +423,6 @@ def spike_product_counts() -> Optional[tuple[int, int]]:
 
 
 def interval_ops() -> Optional[Any]:
-    """The compiled ops' namespace for :class:`sb3_spikeplastic.snn.layers.PlasticSRMLayer`'s fused interval
-    (``srm_interval_forward`` / ``srm_interval_backward``, ``srm_interval.cpp``), or ``None`` when disabled or
-    unavailable."""
+    """The compiled CPU namespace where it is enabled and built (the fused interval's ops among it), else ``None``:
+    whether the layers' intervals can run compiled at all (:func:`compiled_ops` decides per call)."""
     return _enabled_ops()
-
-
-def bernoulli_spikes(p: Tensor, keys: Tensor, index_hash: Tensor) -> Optional[Tensor]:
-    """The compiled counter-based sampler for CPU float32/float64 ``p (B, n)``, int32 ``keys (B,)`` and
-    ``index_hash (T, n)``, or ``None`` when it does not apply (then use the eager hash). No autograd (spikes are
-    samples)."""
-    if not (
-        cpu_float_operands(p)
-        and keys.is_cpu
-        and p.dim() == 2
-        and keys.dtype is torch.int32
-        and keys.shape == p.shape[:1]
-        and index_hash.shape[1:] == p.shape[1:]
-    ):
-        return None
-    ops = _enabled_ops()
-    if ops is None:
-        return None
-    with torch.no_grad():
-        return ops.bernoulli_spikes(p, keys, index_hash)

@@ -190,9 +190,9 @@ std::tuple<at::Tensor, at::Tensor> alpha_filter_end_and_mean(const at::Tensor& r
 }  // namespace sb3_spikeplastic_fast
 
 TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
-  m.def("alpha_filter_rows(Tensor z, Tensor? a, Tensor? b, float d, float g) -> (Tensor, Tensor)");
-  m.def("alpha_filter_rows_adjoint(Tensor dpsp, Tensor? da, Tensor? db, float d, float g) -> (Tensor, Tensor)");
-  m.def("alpha_filter_end_and_mean(Tensor z, Tensor? a, Tensor? b, float d) -> (Tensor, Tensor)");
+  m.def("alpha_filter_rows(Tensor z, Tensor? a, Tensor? b, float d, float g) -> (Tensor psp, Tensor end)");
+  m.def("alpha_filter_rows_adjoint(Tensor dpsp, Tensor? da, Tensor? db, float d, float g) -> (Tensor z, Tensor state)");
+  m.def("alpha_filter_end_and_mean(Tensor z, Tensor? a, Tensor? b, float d) -> (Tensor end, Tensor mean)");
 }
 
 TORCH_LIBRARY_IMPL(sb3_spikeplastic_fast, CPU, m) {

@@ -21,26 +21,37 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     double width, double scale, bool need_surrogate);
 
 // plastic_linear.cpp: Y[b] = X[b] (W + alpha * E[b])^T and, for carried rows C (B, 2, n_in) when given, Yc[b] =
-// C[b] (W + alpha * E[b])^T -> (Y, Yc); its gradients (dX, dW, dalpha, dE, dC); dE starts from dE_init when it is
-// given (a gradient of E from elsewhere, added in the same pass).
+// C[b] (W + alpha * E[b])^T -> (Y, Yc); its gradients, dE starting from dE_init when it is given (a gradient of E
+// from elsewhere, added in the same pass).
+struct ProductGradients {
+  at::Tensor dX, dW, dalpha, dE, dC;  // dX and dC undefined or empty unless asked for (dC also without C)
+};
 std::tuple<at::Tensor, at::Tensor> plastic_linear_forward(const at::Tensor& X, const at::Tensor& W,
                                                           const at::Tensor& alpha, const at::Tensor& E,
                                                           const at::Tensor& C = at::Tensor());
-std::vector<at::Tensor> plastic_linear_backward(const at::Tensor& grad, const at::Tensor& grad_c, const at::Tensor& X,
-                                                const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E,
-                                                const at::Tensor& C, bool need_x_grad,
-                                                const at::Tensor& dE_init = at::Tensor());
+ProductGradients plastic_linear_backward(const at::Tensor& grad, const at::Tensor& grad_c, const at::Tensor& X,
+                                         const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E,
+                                         const at::Tensor& C, bool need_x_grad,
+                                         const at::Tensor& dE_init = at::Tensor());
 
 // The same product with the previous intervals' trace updates deferred into its pass over the trace: E_t = E with
-// clamp((1 - eta) E + (eta p0) (x) q0) applied, then likewise (p1, q1) (each pair when given), written out when write
-// -> (Y, Yc, E_t, r = E_t q), and its backward pass -> (dX, dW, dalpha, dE, dq, dq0, dp0, dq1, dp1, dL/deta of the
-// pending updates, dC), whose fill_grad (if given) writes the rows of grad of environments [b0, b0 + n) just
-// before they are multiplied.
-std::vector<at::Tensor> plastic_linear_deferred_forward(
-    const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E, const at::Tensor& C,
-    const at::Tensor& p0, const at::Tensor& q0, const at::Tensor& p1, const at::Tensor& q1, const at::Tensor& q,
-    double eta, double e_max, bool write);
-std::vector<at::Tensor> plastic_linear_deferred_backward(
+// clamp((1 - eta) E + (eta p0) (x) q0) applied, then likewise (p1, q1) (each pair when given), written out when write,
+// and the Oja term's row sums r = E_t q; its backward pass, whose fill_grad (if given) writes the rows of grad of
+// environments [b0, b0 + n) just before they are multiplied. Each tensor is empty where it is not computed.
+struct DeferredProduct {
+  at::Tensor Y, Yc, E_t, r;
+};
+struct DeferredProductGradients {
+  at::Tensor dX, dW, dalpha, dE, dq;
+  at::Tensor dp0, dq0, dp1, dq1;  // of the pending updates
+  at::Tensor deta;                // dL/deta of the pending updates
+  at::Tensor dC;
+};
+DeferredProduct plastic_linear_deferred_forward(const at::Tensor& X, const at::Tensor& W, const at::Tensor& alpha,
+                                                const at::Tensor& E, const at::Tensor& C, const at::Tensor& p0,
+                                                const at::Tensor& q0, const at::Tensor& p1, const at::Tensor& q1,
+                                                const at::Tensor& q, double eta, double e_max, bool write);
+DeferredProductGradients plastic_linear_deferred_backward(
     const at::Tensor& grad, const at::Tensor& grad_c, const at::Tensor& X, const at::Tensor& W,
     const at::Tensor& alpha, const at::Tensor& E, const at::Tensor& C, const at::Tensor& p0, const at::Tensor& q0,
     const at::Tensor& p1, const at::Tensor& q1, const at::Tensor& q, const at::Tensor& dE_t, const at::Tensor& dr,

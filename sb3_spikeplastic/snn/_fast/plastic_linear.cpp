@@ -1,4 +1,4 @@
-// The plastic layer's synaptic product (CPU fast path of sb3_spikeplastic.layers.PlasticSRMLayer.project):
+// The plastic layer's synaptic product (CPU fast path of sb3_spikeplastic.snn.functional.project):
 //
 //     Y[b] = X[b] (W + alpha * E[b])^T          X (B, R, n_in), W, alpha (n_out, n_in), E (B, n_out, n_in)
 //
@@ -550,20 +550,19 @@ std::tuple<at::Tensor, at::Tensor> plastic_linear_forward(const at::Tensor& X, c
                                                           const at::Tensor& alpha, const at::Tensor& E,
                                                           const at::Tensor& C) {
   const at::Tensor none;
-  const std::vector<at::Tensor> out =
+  const DeferredProduct out =
       plastic_linear_deferred_forward(X, W, alpha, E, C, none, none, none, none, none, 0, 1, false);
-  return std::make_tuple(out[0], out[1]);
+  return std::make_tuple(out.Y, out.Yc);
 }
 
-// Returns (dX, dW, dalpha, dE, dC); dX and dC are empty unless need_x_grad (dC also without C); dE starts from
-// dE_init when it is given.
-std::vector<at::Tensor> plastic_linear_backward(const at::Tensor& grad, const at::Tensor& grad_c, const at::Tensor& X,
-                                                const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E,
-                                                const at::Tensor& C, bool need_x_grad, const at::Tensor& dE_init) {
+// dX and dC are empty unless need_x_grad (dC also without C); dE starts from dE_init when it is given.
+ProductGradients plastic_linear_backward(const at::Tensor& grad, const at::Tensor& grad_c, const at::Tensor& X,
+                                         const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E,
+                                         const at::Tensor& C, bool need_x_grad, const at::Tensor& dE_init) {
   const at::Tensor none;
-  const std::vector<at::Tensor> g = plastic_linear_deferred_backward(
+  const DeferredProductGradients g = plastic_linear_deferred_backward(
       grad, grad_c, X, W, alpha, E, C, none, none, none, none, none, dE_init, none, need_x_grad, 0, 1, false);
-  return {g[0], g[1], g[2], g[3], g[10]};
+  return {g.dX, g.dW, g.dalpha, g.dE, g.dC};
 }
 
 namespace {
@@ -610,9 +609,9 @@ at::Tensor carried_rows(const at::Tensor& C, const at::Tensor& X) {
 //
 // E_t is written out only when write (a sequence keeps every other trace: an interval that leaves its two
 // predecessors' updates pending recomputes the trace in registers, forward and backward, instead of storing it).
-// keep = 1 - eta and eta p are computed as trace_step.cpp computes them. Returns (Y, Yc, E_t, r), each empty where
-// not computed.
-std::vector<at::Tensor> plastic_linear_deferred_forward(
+// keep = 1 - eta and eta p are computed as trace_step.cpp computes them. Y, Yc, E_t and r are each empty where not
+// computed.
+DeferredProduct plastic_linear_deferred_forward(
     const at::Tensor& X_in, const at::Tensor& W_in, const at::Tensor& alpha_in, const at::Tensor& E_in,
     const at::Tensor& C_in, const at::Tensor& p0_in, const at::Tensor& q0_in, const at::Tensor& p1_in,
     const at::Tensor& q1_in, const at::Tensor& q_in, double eta, double e_max, bool write) {
@@ -670,17 +669,22 @@ std::vector<at::Tensor> plastic_linear_deferred_forward(
       }
     });
   });
-  return {Y, Yc, Et, r};
+  DeferredProduct out;
+  out.Y = Y;
+  out.Yc = Yc;
+  out.E_t = Et;
+  out.r = r;
+  return out;
 }
 
 // The backward pass of plastic_linear_deferred_forward, one pass over E per environment (deferred_grad_row): grad_c
 // is dL/dYc (undefined: zero), dE1 the gradient of the trace the interval passes on (may be undefined): of E_t when
-// it was written, else of E itself; dr is dL/dr (undefined without q). Returns (dX (empty unless need_x_grad), dW,
-// dalpha, dE, dq (empty without q), then per pending update dq_k and dp_k (empty where none), then dL/deta of the
-// pending updates (empty without one), then dC (empty unless need_x_grad and C given)). fill_grad, when given,
+// it was written, else of E itself; dr is dL/dr (undefined without q). dX is empty unless need_x_grad, dq without q,
+// dp_k and dq_k where the pending update k is not given, deta without a pending update, dC unless need_x_grad and C
+// is given. fill_grad, when given,
 // writes grad's rows of environments [b0, b0 + n) and is called just before they are multiplied (by the thread that
 // multiplies them), so that they are read from cache rather than from wherever a pass over the whole batch left them.
-std::vector<at::Tensor> plastic_linear_deferred_backward(
+DeferredProductGradients plastic_linear_deferred_backward(
     const at::Tensor& grad_in, const at::Tensor& grad_c_in, const at::Tensor& X_in, const at::Tensor& W_in,
     const at::Tensor& alpha_in, const at::Tensor& E_in, const at::Tensor& C_in, const at::Tensor& p0_in,
     const at::Tensor& q0_in, const at::Tensor& p1_in, const at::Tensor& q1_in, const at::Tensor& q_in,
@@ -788,7 +792,19 @@ std::vector<at::Tensor> plastic_linear_deferred_backward(
   });
   const at::Tensor sums = thread_sums(acc, used);
   const at::Tensor d_eta = u.count > 0 ? deta_rows.sum().to(E.scalar_type()) : none;
-  return {dX, sums.select(0, 0), sums.select(0, 1), dE0, dq, dq0, dp0, dq1, dp1, d_eta, dC};
+  DeferredProductGradients out;
+  out.dX = dX;
+  out.dW = sums.select(0, 0);
+  out.dalpha = sums.select(0, 1);
+  out.dE = dE0;
+  out.dq = dq;
+  out.dp0 = dp0;
+  out.dq0 = dq0;
+  out.dp1 = dp1;
+  out.dq1 = dq1;
+  out.deta = d_eta;
+  out.dC = dC;
+  return out;
 }
 
 // The spike products' density limit: sets it to limit when limit >= 0 and returns the previous one (0 disables
@@ -805,10 +821,13 @@ std::vector<int64_t> spike_product_counts() { return {spike_products.load(), den
 TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
   m.def("spike_density_limit(float limit) -> float", &sb3_spikeplastic_fast::set_spike_density_limit);
   m.def("spike_product_counts() -> int[]", &sb3_spikeplastic_fast::spike_product_counts);
-  m.def("plastic_linear_forward(Tensor X, Tensor W, Tensor alpha, Tensor E, Tensor? carried) -> (Tensor, Tensor)");
+  m.def(
+      "plastic_linear_forward(Tensor X, Tensor W, Tensor alpha, Tensor E, Tensor? carried) "
+      "-> (Tensor Y, Tensor Y_carried)");
+  // the gradient of each input, named as it
   m.def(
       "plastic_linear_backward(Tensor grad, Tensor? grad_carried, Tensor X, Tensor W, Tensor alpha, Tensor E, "
-      "Tensor? carried, bool need_x_grad) -> (Tensor, Tensor, Tensor, Tensor, Tensor)");
+      "Tensor? carried, bool need_x_grad) -> (Tensor X, Tensor W, Tensor alpha, Tensor E, Tensor carried)");
 }
 
 namespace {
@@ -824,9 +843,9 @@ std::tuple<at::Tensor, at::Tensor> plastic_linear_forward_op(const at::Tensor& X
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> plastic_linear_backward_op(
     const at::Tensor& grad, const std::optional<at::Tensor>& grad_c, const at::Tensor& X, const at::Tensor& W,
     const at::Tensor& alpha, const at::Tensor& E, const std::optional<at::Tensor>& C, bool need_x_grad) {
-  const std::vector<at::Tensor> g = sb3_spikeplastic_fast::plastic_linear_backward(
+  const sb3_spikeplastic_fast::ProductGradients g = sb3_spikeplastic_fast::plastic_linear_backward(
       grad, given_or_none(grad_c), X, W, alpha, E, given_or_none(C), need_x_grad, at::Tensor());
-  return std::make_tuple(g[0], g[1], g[2], g[3], g[4]);
+  return std::make_tuple(g.dX, g.dW, g.dalpha, g.dE, g.dC);
 }
 
 }  // namespace

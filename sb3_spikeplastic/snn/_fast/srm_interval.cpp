@@ -1,6 +1,6 @@
 // One interval of a plastic SRM layer, forward and backward, each as one op (the CPU fast path of
-// sb3_spikeplastic.layers.PlasticSRMLayer). The forward pass runs the same ATen ops and
-// kernels as the eager layer, in the same order but for the filter (below):
+// sb3_spikeplastic.snn.layers.PlasticSRMLayer; the eager step is sb3_spikeplastic.snn.functional.interval_step). The
+// forward pass runs the same ATen ops and kernels as the eager step, in the same order but for the filter (below):
 //
 //     R = [S; H],  H = [h1; h2]                          (B, L + 2, n_in): the spikes and the carried PSP state
 //     filter first (n_in <= n_out):  F = K R,  syn = P(F[:L]),  (h1', h2') = F[L:]
@@ -35,6 +35,13 @@
 //
 // srm_interval_deferred_forward/backward (below) are the same interval with the trace update deferred to the next
 // interval's pass over E, as the training sequences run it.
+//
+// Each op takes its tensors as one Tensor?[] (IntervalInputs; the backward ops also the gradients of the outputs,
+// IntervalOutputs, and what the forward op kept for them, IntervalResiduals), the layer's constants and the rule's
+// form as the schema's named scalars (IntervalConstants, RuleForm), and returns named structs as Tensor[]; each
+// struct's fields() (op_fields.h) is the only place on this side that orders its tensors, and the op entries at the
+// end of this file the only place that builds the structs from the schema's arguments.
+
 
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>
@@ -42,25 +49,142 @@
 
 #include "denormal_mode.h"
 #include "kernels.h"
+#include "op_fields.h"
 
 #include <functional>
 #include <optional>
+#include <string>
+#include <tuple>
+#include <utility>
 #include <vector>
 
 namespace {
 
+using sb3_spikeplastic_fast::ProductGradients;
+using sb3_spikeplastic_fast::TensorFields;
+
+// Modulation forms of the rule terms (plasticity.MODULATION_FORMS, 0 for an unmodulated rule).
+constexpr int64_t kUnmodulated = 0, kTanh = 2;
+
+// How a built-in rule's trace update is computed (plasticity.compiled_form, interval.RuleForm on the Python side):
+// the Oja forms subtract the trace's prediction E pre, the BCM forms take the presynaptic term and sliding threshold,
+// the modulated ones M = W_m r_post (1) or tanh(W_m r_post) (2). A layer whose op does not update the trace (no eta)
+// passes the default.
+struct RuleForm {
+  bool oja = false;
+  bool bcm = false;
+  int64_t modulation = kUnmodulated;
+};
+
+// What a layer's intervals of one length share (cached per layer, length, dtype and device): the alpha-filter
+// operator's PSP rows (L, L + 2) and end-state rows (2, L + 2) (the op reads the filter's recurrence constants off
+// them), whether the layer filters its spikes before the product (n_in <= n_out), the spike loop's constants
+// (neurons.spike_constants), the trace bound, and whether the carried PSP state is multiplied beside the spikes
+// (layers.PlasticSRMLayer.carries_state).
+struct IntervalConstants {
+  at::Tensor psp_rows, end_rows;
+  bool filter_first = false;
+  double d = 0, kappa = 0, theta = 0, width = 0, scale = 0;
+  double e_max = 0;
+  bool carry_state = false;
+};
+
+// The ops' tensors, undefined where absent: the presynaptic spikes x (B, L, n_in); the layer's state: PSP filter
+// (h1, h2) and refractory filter (ref_h1, ref_h2), the trace E (plastic layers), the BCM threshold phi, the pending
+// updates (p, q) of the deferred form, oldest first; the parameters: W, alpha (plastic layers) and the rule's eta
+// (a built-in rule's update), eta_phi and psi (BCM), W_m (modulated).
+struct IntervalInputs {
+  static constexpr const char* kName = "IntervalInputs";
+  at::Tensor x, h1, h2, ref_h1, ref_h2, trace, phi, p_first, q_first, p_second, q_second, weight, alpha, eta, eta_phi,
+      psi, w_m;
+
+  static const TensorFields<IntervalInputs>& fields() {
+    static const TensorFields<IntervalInputs> list = {
+        {"x", &IntervalInputs::x},
+        {"h1", &IntervalInputs::h1},
+        {"h2", &IntervalInputs::h2},
+        {"ref_h1", &IntervalInputs::ref_h1},
+        {"ref_h2", &IntervalInputs::ref_h2},
+        {"trace", &IntervalInputs::trace},
+        {"phi", &IntervalInputs::phi},
+        {"p_first", &IntervalInputs::p_first},
+        {"q_first", &IntervalInputs::q_first},
+        {"p_second", &IntervalInputs::p_second},
+        {"q_second", &IntervalInputs::q_second},
+        {"weight", &IntervalInputs::weight},
+        {"alpha", &IntervalInputs::alpha},
+        {"eta", &IntervalInputs::eta},
+        {"eta_phi", &IntervalInputs::eta_phi},
+        {"psi", &IntervalInputs::psi},
+        {"w_m", &IntervalInputs::w_m},
+    };
+    return list;
+  }
+};
+
+// The gradient of each input, named as the input; undefined for an input that was not given or gets no gradient (the
+// refractory state; x, h1 and h2 unless need_rows).
+struct IntervalGradients : IntervalInputs {
+  static constexpr const char* kName = "IntervalGradients";
+};
+
+// What an interval produced: its spikes and membrane (B, L, n_out), PSP and refractory states, rates r_pre (B, n_in)
+// and r_post (B, n_out); the updated trace E' and BCM threshold phi' where the op updated them (the deferred form:
+// the trace it used, where it wrote it out); the deferred form's own update (p_next, q_next) for the next interval.
+// The backward ops take their gradients in the same struct (undefined where the loss does not reach an output).
+struct IntervalOutputs {
+  static constexpr const char* kName = "IntervalOutputs";
+  at::Tensor spikes, membrane, h1, h2, ref_h1, ref_h2, r_pre, r_post, trace, phi, p_next, q_next;
+
+  static const TensorFields<IntervalOutputs>& fields() {
+    static const TensorFields<IntervalOutputs> list = {
+        {"spikes", &IntervalOutputs::spikes},
+        {"membrane", &IntervalOutputs::membrane},
+        {"h1", &IntervalOutputs::h1},
+        {"h2", &IntervalOutputs::h2},
+        {"ref_h1", &IntervalOutputs::ref_h1},
+        {"ref_h2", &IntervalOutputs::ref_h2},
+        {"r_pre", &IntervalOutputs::r_pre},
+        {"r_post", &IntervalOutputs::r_post},
+        {"trace", &IntervalOutputs::trace},
+        {"phi", &IntervalOutputs::phi},
+        {"p_next", &IntervalOutputs::p_next},
+        {"q_next", &IntervalOutputs::q_next},
+    };
+    return list;
+  }
+};
+
+// What the backward pass needs from the forward pass besides the inputs: the product's input rows (the filtered or
+// raw spikes, with the carried PSP state unless carried apart), the carried rows (B, 2, n_in) when the product took
+// them apart, the surrogate gradient of the membrane (empty unless need_surrogate), the trace step's p (post - [E pre]
+// or post), pre and the modulatory signal M (modulated rules), and the rates.
+struct IntervalResiduals {
+  static constexpr const char* kName = "IntervalResiduals";
+  at::Tensor product_in, carried, surrogate, p, pre, m, r_pre, r_post;
+
+  static const TensorFields<IntervalResiduals>& fields() {
+    static const TensorFields<IntervalResiduals> list = {
+        {"product_in", &IntervalResiduals::product_in},
+        {"carried", &IntervalResiduals::carried},
+        {"surrogate", &IntervalResiduals::surrogate},
+        {"p", &IntervalResiduals::p},
+        {"pre", &IntervalResiduals::pre},
+        {"m", &IntervalResiduals::m},
+        {"r_pre", &IntervalResiduals::r_pre},
+        {"r_post", &IntervalResiduals::r_post},
+    };
+    return list;
+  }
+};
+
 // The product of rows x and, when given, of the rows carried beside them: (x W_eff^T, carried W_eff^T or undefined).
-std::pair<at::Tensor, at::Tensor> product(const at::Tensor& x, const at::Tensor& carried, const at::Tensor& W,
-                                          const std::optional<at::Tensor>& alpha,
-                                          const std::optional<at::Tensor>& E) {
+std::pair<at::Tensor, at::Tensor> product(const at::Tensor& x, const at::Tensor& carried, const IntervalInputs& in) {
   // a static layer's rows come whole (interval_forward)
-  if (!alpha.has_value()) return {at::matmul(x, W.t()), at::Tensor()};
-  auto [y, yc] = sb3_spikeplastic_fast::plastic_linear_forward(x, W, *alpha, *E, carried);
+  if (!in.alpha.defined()) return {at::matmul(x, in.weight.t()), at::Tensor()};
+  auto [y, yc] = sb3_spikeplastic_fast::plastic_linear_forward(x, in.weight, in.alpha, in.trace, carried);
   return {y, carried.defined() ? yc : at::Tensor()};
 }
-
-// (dX or undefined, dW, dalpha or undefined, dE or undefined, dC or undefined)
-using ProductGradients = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>;
 
 // Fills the rows of environments [b0, b0 + n) of a gradient before a product reads them (plastic_linear's
 // fill_grad); a product that cannot take it per environment fills them all first.
@@ -74,24 +198,21 @@ void fill_rows_in_parallel(const RowFill& fill, int64_t B) {
   });
 }
 
+// dX (undefined unless need_x), dW, and for a plastic layer dalpha, dE and dC (undefined unless need_x and carried
+// rows are given).
 ProductGradients product_backward(const at::Tensor& grad, const at::Tensor& grad_c, const at::Tensor& x,
-                                  const at::Tensor& carried, const at::Tensor& W,
-                                  const std::optional<at::Tensor>& alpha, const std::optional<at::Tensor>& E,
-                                  bool need_x, const at::Tensor& dE_init, const RowFill& fill) {
+                                  const at::Tensor& carried, const IntervalInputs& in, bool need_x,
+                                  const at::Tensor& dE_init, const RowFill& fill) {
   if (fill) fill_rows_in_parallel(fill, grad.size(0));
-  if (!alpha.has_value()) {
-    const at::Tensor dW = at::mm(grad.reshape({-1, grad.size(-1)}).t(), x.reshape({-1, x.size(-1)}));
-    return {need_x ? at::matmul(grad, W) : at::Tensor(), dW, at::Tensor(), at::Tensor(), at::Tensor()};
+  if (!in.alpha.defined()) {
+    ProductGradients g;
+    g.dW = at::mm(grad.reshape({-1, grad.size(-1)}).t(), x.reshape({-1, x.size(-1)}));
+    if (need_x) g.dX = at::matmul(grad, in.weight);
+    return g;
   }
-  const std::vector<at::Tensor> g =
-      sb3_spikeplastic_fast::plastic_linear_backward(grad, grad_c, x, W, *alpha, *E, carried, need_x, dE_init);
-  return {g[0], g[1], g[2], g[3], g[4]};
+  return sb3_spikeplastic_fast::plastic_linear_backward(grad, grad_c, x, in.weight, in.alpha, in.trace, carried,
+                                                        need_x, dE_init);
 }
-
-// Autograd passes no gradient for an output that the loss does not reach (the output layer's spikes, a hidden
-// layer's rates, a chunk's final state), where it would otherwise fill a zero tensor of the output's size. The
-// backward pass takes such a gradient as an undefined tensor and reads it as zero:
-at::Tensor given(const std::optional<at::Tensor>& t) { return t.has_value() ? *t : at::Tensor(); }
 
 // a + b, with a missing a read as zero
 at::Tensor plus(const at::Tensor& a, const at::Tensor& b) { return a.defined() ? a + b : b; }
@@ -153,9 +274,6 @@ class SynapticGradient {
   at::Tensor rho_, ds_, dr_, out_;
 };
 
-// -> spikes, membrane, psp h1', psp h2', refractory h1', refractory h2', r_pre, r_post, product input, surrogate,
-// carried rows (below; empty when there are none)
-//
 // The product P of the interval's rows: (rows, carried rows or undefined) -> (P of rows, P of the carried rows or
 // undefined). With carries (a plastic layer whose product takes its spikes, with many spike rows:
 // layers.PlasticSRMLayer.carries_state), the carried PSP state [h1; h2] is multiplied beside the spikes in the pass
@@ -165,47 +283,46 @@ using Projection = std::function<std::pair<at::Tensor, at::Tensor>(const at::Ten
 
 // The alpha filter's recurrence constants (d, g = c d) as its operator holds them (neurons.alpha_filter_matrices):
 // d is v1[L - 2] (d^L itself for L = 1), g is g2[0].
-std::pair<double, double> filter_constants(const at::Tensor& psp_rows, const at::Tensor& end_rows) {
-  const int64_t L = psp_rows.size(0);
+std::pair<double, double> filter_constants(const IntervalConstants& c) {
+  const int64_t L = c.psp_rows.size(0);
   const auto entry = [](const at::Tensor& m, int64_t i, int64_t j) {
     return AT_DISPATCH_FLOATING_TYPES(m.scalar_type(), "filter_constants", [&] {
       return static_cast<double>(m.const_data_ptr<scalar_t>()[i * m.stride(0) + j * m.stride(1)]);
     });
   };
-  return {entry(end_rows, 0, L >= 2 ? L - 2 : L), entry(psp_rows, 0, L + 1)};
+  return {entry(c.end_rows, 0, L >= 2 ? L - 2 : L), entry(c.psp_rows, 0, L + 1)};
 }
 
 // The interval's input rates r_pre = mean_t x and, for a layer that multiplies its spikes before it filters, the
 // PSP state at the interval's end (the filter's recurrence over x from (h1, h2)), both from one pass over x; end is
 // undefined for a layer that filters first (its filter's pass gives it).
-struct IntervalInputs {
+struct InputPass {
   at::Tensor r_pre, end;
 };
 
-IntervalInputs interval_inputs(const at::Tensor& x, const at::Tensor& h1, const at::Tensor& h2,
-                               const at::Tensor& psp_rows, const at::Tensor& end_rows, bool filter_first) {
-  TORCH_CHECK(x.dim() == 3 && psp_rows.dim() == 2 && psp_rows.size(0) == x.size(1) &&
-                  psp_rows.size(1) == x.size(1) + 2 && end_rows.dim() == 2 && end_rows.size(0) == 2 &&
-                  end_rows.size(1) == x.size(1) + 2,
+InputPass input_pass(const IntervalInputs& in, const IntervalConstants& c) {
+  const at::Tensor& x = in.x;
+  TORCH_CHECK(x.dim() == 3 && c.psp_rows.dim() == 2 && c.psp_rows.size(0) == x.size(1) &&
+                  c.psp_rows.size(1) == x.size(1) + 2 && c.end_rows.dim() == 2 && c.end_rows.size(0) == 2 &&
+                  c.end_rows.size(1) == x.size(1) + 2,
               "srm_interval: spikes (B, L, n_in) and the filter operator's (L, L + 2) and (2, L + 2) rows");
   const at::NoGradGuard no_grad;
-  if (filter_first) return {x.mean(1), at::Tensor()};
-  auto [end, r_pre] = sb3_spikeplastic_fast::alpha_filter_end_and_mean(
-      x, h1, h2, filter_constants(psp_rows, end_rows).first);
+  if (c.filter_first) return {x.mean(1), at::Tensor()};
+  auto [end, r_pre] = sb3_spikeplastic_fast::alpha_filter_end_and_mean(x, in.h1, in.h2, filter_constants(c).first);
   return {r_pre, end};
 }
 
-std::vector<at::Tensor> interval_forward(const at::Tensor& x, const at::Tensor& h1, const at::Tensor& h2,
-                                         const at::Tensor& ref_h1, const at::Tensor& ref_h2, const Projection& project,
-                                         bool carries, const at::Tensor& psp_rows,
-                                         const at::Tensor& end_rows, bool filter_first, double d, double kappa,
-                                         double theta, double width, double scale, bool need_surrogate,
-                                         const IntervalInputs& inputs) {
+// The interval without the trace update: the outputs spikes ... r_post, and the residuals product_in, carried,
+// surrogate, r_pre and r_post.
+std::pair<IntervalOutputs, IntervalResiduals> interval_forward(const IntervalInputs& in, const Projection& project,
+                                                               bool carries, const IntervalConstants& c,
+                                                               bool need_surrogate, const InputPass& pass) {
   const at::NoGradGuard no_grad;
+  const at::Tensor &x = in.x, &h1 = in.h1, &h2 = in.h2;
   const int64_t L = x.size(1);
-  const auto [psp_d, psp_g] = filter_constants(psp_rows, end_rows);
-  at::Tensor product_in, synaptic, end = inputs.end, carried = at::empty({0}, x.options());
-  if (filter_first) {
+  const auto [psp_d, psp_g] = filter_constants(c);
+  at::Tensor product_in, synaptic, end = pass.end, carried;
+  if (c.filter_first) {
     std::tie(product_in, end) = sb3_spikeplastic_fast::alpha_filter_rows(x, h1, h2, psp_d, psp_g);
     synaptic = project(product_in, at::Tensor()).first;
   } else if (carries) {
@@ -222,334 +339,362 @@ std::vector<at::Tensor> interval_forward(const at::Tensor& x, const at::Tensor& 
   }
   // the surrogate (neurons.slayer_surrogate) only for training: in rollouts it would be the layer's largest cost
   auto [spikes, membrane, rh1, rh2, surrogate, r_post] = sb3_spikeplastic_fast::srm_loop_interval_cpu(
-      synaptic, ref_h1, ref_h2, d, kappa, theta, width, scale, need_surrogate);
-  return {spikes, membrane, end.select(1, 0), end.select(1, 1), rh1, rh2, inputs.r_pre, r_post,
-          product_in, surrogate, carried};
+      synaptic, in.ref_h1, in.ref_h2, c.d, c.kappa, c.theta, c.width, c.scale, need_surrogate);
+  IntervalOutputs out;
+  out.spikes = spikes;
+  out.membrane = membrane;
+  out.h1 = end.select(1, 0);
+  out.h2 = end.select(1, 1);
+  out.ref_h1 = rh1;
+  out.ref_h2 = rh2;
+  out.r_pre = pass.r_pre;
+  out.r_post = r_post;
+  IntervalResiduals res;
+  res.product_in = product_in;
+  res.carried = carried;
+  res.surrogate = surrogate;
+  res.r_pre = pass.r_pre;
+  res.r_post = r_post;
+  return {out, res};
 }
 
-// -> dS, dh1, dh2 (empty unless need_rows), dW, dalpha, dE (empty for a static layer); dE_init: a gradient of E
-// from elsewhere, added to the product's. Undefined output gradients are zero.
-// The product's backward pass: (dL/dP of the rows, of the carried rows (undefined without), need_rows) -> (dX or
-// undefined, dW, dalpha or undefined, dE or undefined, dC or undefined)
+// The product's backward pass: (dL/dP of the rows, of the carried rows (undefined without), need_rows, fill) -> its
+// gradients
 using ProjectionBackward =
     std::function<ProductGradients(const at::Tensor&, const at::Tensor&, bool, const RowFill&)>;
 
-std::vector<at::Tensor> interval_backward(const at::Tensor& d_spikes, const at::Tensor& d_h1, const at::Tensor& d_h2,
-                                          const at::Tensor& d_r_pre, const at::Tensor& d_r_post,
-                                          const at::Tensor& product_in, const at::Tensor& carried,
-                                          const ProjectionBackward& project_backward, const at::Tensor& W,
-                                          const at::Tensor& surrogate,
-                                          const at::Tensor& psp_rows, const at::Tensor& end_rows, bool filter_first,
-                                          bool need_rows) {
+// The interval's backward pass without the trace update's: sets g.x, g.h1, g.h2 (undefined unless need_rows),
+// g.weight, and for a plastic layer g.alpha and g.trace (the product's dE, which the projection's dE_init may have
+// started from the trace update's). d.spikes, d.h1 and d.h2 are the outputs' gradients, undefined ones zero.
+void interval_backward(const IntervalOutputs& d, const at::Tensor& d_r_pre, const at::Tensor& d_r_post,
+                       const IntervalResiduals& res, const ProjectionBackward& project_backward,
+                       const IntervalConstants& c, bool need_rows, IntervalGradients& g) {
   const at::NoGradGuard no_grad;
-  const int64_t L = surrogate.size(1);
-  const SynapticGradient synaptic(d_spikes, d_r_post, surrogate);
-  const auto [psp_d, psp_g] = filter_constants(psp_rows, end_rows);
-  const at::Tensor like = product_in.select(1, 0);  // (B, n_in), the PSP state's shape
-  at::Tensor d_x, d_state;                          // (B, L, n_in) and (B, 2, n_in) when need_rows
-  at::Tensor d_in, dW, d_alpha, dE, d_c;
-  if (filter_first) {
+  const int64_t L = res.surrogate.size(1);
+  const SynapticGradient synaptic(d.spikes, d_r_post, res.surrogate);
+  const auto [psp_d, psp_g] = filter_constants(c);
+  const at::Tensor like = res.product_in.select(1, 0);  // (B, n_in), the PSP state's shape
+  at::Tensor d_x, d_state;                              // (B, L, n_in) and (B, 2, n_in) when need_rows
+  ProductGradients pg;
+  if (c.filter_first) {
     // each environment's dL/dsyn written just before its product reads it
-    std::tie(d_in, dW, d_alpha, dE, d_c) = project_backward(
-        synaptic.output(), at::Tensor(), need_rows, [&](int64_t b0, int64_t n) { synaptic.fill(b0, n); });
+    pg = project_backward(synaptic.output(), at::Tensor(), need_rows,
+                          [&](int64_t b0, int64_t n) { synaptic.fill(b0, n); });
     if (need_rows) {
-      std::tie(d_x, d_state) = sb3_spikeplastic_fast::alpha_filter_rows_adjoint(d_in, d_h1, d_h2, psp_d, psp_g);
+      std::tie(d_x, d_state) = sb3_spikeplastic_fast::alpha_filter_rows_adjoint(pg.dX, d.h1, d.h2, psp_d, psp_g);
     }
   } else {
     // (B, L, n_out) and (B, 2, n_out)
     const auto [d_product, d_product_state] = sb3_spikeplastic_fast::alpha_filter_rows_adjoint(
         synaptic.fill_all(), at::Tensor(), at::Tensor(), psp_d, psp_g);
-    const bool carries = carried.numel() > 0;
+    const bool carries = res.carried.defined();
     if (carries) {
-      std::tie(d_in, dW, d_alpha, dE, d_c) = project_backward(d_product, d_product_state, need_rows, {});
+      pg = project_backward(d_product, d_product_state, need_rows, {});
     } else {
-      std::tie(d_in, dW, d_alpha, dE, d_c) =
-          project_backward(at::cat({d_product, d_product_state}, 1), at::Tensor(), need_rows, {});
+      pg = project_backward(at::cat({d_product, d_product_state}, 1), at::Tensor(), need_rows, {});
     }
     if (need_rows) {
-      const at::Tensor d_end = at::stack({or_zeros(d_h1, like), or_zeros(d_h2, like)}, 1);
-      d_x = d_in.narrow(1, 0, L) + at::matmul(end_rows.narrow(1, 0, L).t(), d_end);
-      d_state = (carries ? d_c : d_in.narrow(1, L, 2)) + at::matmul(end_rows.narrow(1, L, 2).t(), d_end);
+      const at::Tensor d_end = at::stack({or_zeros(d.h1, like), or_zeros(d.h2, like)}, 1);
+      d_x = pg.dX.narrow(1, 0, L) + at::matmul(c.end_rows.narrow(1, 0, L).t(), d_end);
+      d_state = (carries ? pg.dC : pg.dX.narrow(1, L, 2)) + at::matmul(c.end_rows.narrow(1, L, 2).t(), d_end);
     }
   }
-  const at::Tensor none = at::empty({0}, W.options());
-  at::Tensor d_rh1 = none, d_rh2 = none;
   if (need_rows) {
     if (d_r_pre.defined()) d_x = d_x + (d_r_pre / L).unsqueeze(1);
-    d_rh1 = d_state.select(1, 0);
-    d_rh2 = d_state.select(1, 1);
-  } else {
-    d_x = none;
+    g.x = d_x;
+    g.h1 = d_state.select(1, 0);
+    g.h2 = d_state.select(1, 1);
   }
-  return {d_x, d_rh1, d_rh2, dW, d_alpha.defined() ? d_alpha : none, dE.defined() ? dE : none};
+  g.weight = pg.dW;
+  g.alpha = pg.dalpha;
+  g.trace = pg.dE;
 }
-
-// Modulation forms of the rule terms (plasticity.MODULATION_FORMS, 0 for an unmodulated rule).
-constexpr int64_t kUnmodulated = 0, kTanh = 2;
 
 // The rule's presynaptic term (plasticity.bcm_presynaptic_term and bcm_threshold_update with phi, else r_pre) ->
 // (pre, phi' or undefined).
-std::pair<at::Tensor, at::Tensor> presynaptic_term(const at::Tensor& r_pre, const std::optional<at::Tensor>& phi,
-                                                   const std::optional<at::Tensor>& eta_phi,
-                                                   const std::optional<at::Tensor>& psi) {
-  if (!phi.has_value()) return {r_pre, at::empty({0}, r_pre.options())};
-  return {r_pre * (r_pre - (*phi + *psi)), at::rsub(*eta_phi, 1) * *phi + *eta_phi * r_pre};
+std::pair<at::Tensor, at::Tensor> presynaptic_term(const at::Tensor& r_pre, const IntervalInputs& in,
+                                                   const RuleForm& rule) {
+  if (!rule.bcm) return {r_pre, at::Tensor()};
+  return {r_pre * (r_pre - (in.phi + in.psi)), at::rsub(in.eta_phi, 1) * in.phi + in.eta_phi * r_pre};
 }
 
 // The rule's postsynaptic term (plasticity.modulatory_signal: M * r_post with M = W_m r_post or its tanh, else
-// r_post) -> (post, M or an empty tensor).
-std::pair<at::Tensor, at::Tensor> postsynaptic_term(const at::Tensor& r_post, const std::optional<at::Tensor>& w_m,
-                                                    int64_t modulation) {
-  if (modulation == kUnmodulated) return {r_post, at::empty({0}, r_post.options())};
-  at::Tensor m = at::matmul(r_post, w_m->t());
-  if (modulation == kTanh) m = at::tanh(m);
+// r_post) -> (post, M or undefined).
+std::pair<at::Tensor, at::Tensor> postsynaptic_term(const at::Tensor& r_post, const IntervalInputs& in,
+                                                    const RuleForm& rule) {
+  if (rule.modulation == kUnmodulated) return {r_post, at::Tensor()};
+  at::Tensor m = at::matmul(r_post, in.w_m.t());
+  if (rule.modulation == kTanh) m = at::tanh(m);
   return {m * r_post, m};
 }
 
-// The postsynaptic term's backward pass: adds to d_rpost, sets d_wm (unchanged without modulation).
-void postsynaptic_backward(const at::Tensor& d_post, const at::Tensor& r_post, const std::optional<at::Tensor>& m,
-                           const std::optional<at::Tensor>& w_m, int64_t modulation, at::Tensor& d_rpost,
-                           at::Tensor& d_wm) {
-  if (modulation == kUnmodulated) {
+// The postsynaptic term's backward pass: adds to d_rpost, sets g.w_m (unchanged without modulation).
+void postsynaptic_backward(const at::Tensor& d_post, const IntervalResiduals& res, const IntervalInputs& in,
+                           const RuleForm& rule, at::Tensor& d_rpost, IntervalGradients& g) {
+  if (rule.modulation == kUnmodulated) {
     d_rpost = plus(d_rpost, d_post);
     return;
   }
-  at::Tensor d_m = d_post * r_post;
-  d_rpost = plus(d_rpost, d_post * *m);
-  if (modulation == kTanh) d_m = d_m * (1 - *m * *m);
-  d_wm = at::mm(d_m.t(), r_post);
-  d_rpost = d_rpost + at::mm(d_m, *w_m);
+  at::Tensor d_m = d_post * res.r_post;
+  d_rpost = plus(d_rpost, d_post * res.m);
+  if (rule.modulation == kTanh) d_m = d_m * (1 - res.m * res.m);
+  g.w_m = at::mm(d_m.t(), res.r_post);
+  d_rpost = d_rpost + at::mm(d_m, in.w_m);
 }
 
-// The presynaptic term's backward pass: adds to d_rpre, sets d_phi, d_psi, d_eta_phi (unchanged without phi).
-void presynaptic_backward(const at::Tensor& d_pre, const at::Tensor& r_pre, const std::optional<at::Tensor>& phi,
-                          const std::optional<at::Tensor>& eta_phi, const std::optional<at::Tensor>& psi,
-                          const at::Tensor& d_new_phi, at::Tensor& d_rpre, at::Tensor& d_phi, at::Tensor& d_psi,
-                          at::Tensor& d_eta_phi) {
-  if (!phi.has_value()) {
+// The presynaptic term's backward pass, with d_new_phi the gradient of phi': adds to d_rpre, sets g.phi, g.psi and
+// g.eta_phi (unchanged unless BCM).
+void presynaptic_backward(const at::Tensor& d_pre, const at::Tensor& d_new_phi, const IntervalResiduals& res,
+                          const IntervalInputs& in, const RuleForm& rule, at::Tensor& d_rpre, IntervalGradients& g) {
+  if (!rule.bcm) {
     d_rpre = plus(d_rpre, d_pre);
     return;
   }
-  const at::Tensor d_new_phi_or_zero = or_zeros(d_new_phi, *phi);
+  const at::Tensor& r_pre = res.r_pre;
+  const at::Tensor d_new_phi_or_zero = or_zeros(d_new_phi, in.phi);
   const at::Tensor d_threshold = -(d_pre * r_pre);  // of phi + psi
-  d_rpre = plus(d_rpre, d_pre * (2 * r_pre - (*phi + *psi))) + d_new_phi_or_zero * *eta_phi;
-  d_phi = d_threshold + d_new_phi_or_zero * at::rsub(*eta_phi, 1);
-  d_psi = d_threshold.sum(0);
-  d_eta_phi = (d_new_phi_or_zero * (r_pre - *phi)).sum();
+  d_rpre = plus(d_rpre, d_pre * (2 * r_pre - (in.phi + in.psi))) + d_new_phi_or_zero * in.eta_phi;
+  g.phi = d_threshold + d_new_phi_or_zero * at::rsub(in.eta_phi, 1);
+  g.psi = d_threshold.sum(0);
+  g.eta_phi = (d_new_phi_or_zero * (r_pre - in.phi)).sum();
 }
 
-// The interval, then (when eta is given: a built-in rule's layer) the trace update. -> spikes, membrane, psp h1',
-// psp h2', refractory h1', refractory h2', r_pre, r_post, E', phi' (empty unless BCM), then for the backward pass
-// the product's input, the surrogate (empty unless need_surrogate), p (the trace step's post - [E pre]), pre and M
-// (empty unless modulated); E', p and pre are empty without a trace update.
-std::vector<at::Tensor> srm_interval_forward(
-    const at::Tensor& x, const at::Tensor& h1, const at::Tensor& h2, const at::Tensor& ref_h1, const at::Tensor& ref_h2,
-    const at::Tensor& W, const std::optional<at::Tensor>& alpha, const std::optional<at::Tensor>& E,
-    const std::optional<at::Tensor>& phi, const std::optional<at::Tensor>& eta,
-    const std::optional<at::Tensor>& eta_phi, const std::optional<at::Tensor>& psi,
-    const std::optional<at::Tensor>& w_m, const at::Tensor& psp_rows,
-    const at::Tensor& end_rows, bool filter_first, double d, double kappa, double theta, double width, double scale,
-    double e_max, bool oja, int64_t modulation, bool need_surrogate, bool carry_state) {
-  TORCH_CHECK(!eta.has_value() || E.has_value(), "srm_interval: a trace update needs E");
-  TORCH_CHECK(phi.has_value() == eta_phi.has_value() && phi.has_value() == psi.has_value(),
-              "srm_interval: phi, eta_phi and psi come together (BCM rules)");
-  TORCH_CHECK((modulation == kUnmodulated) != w_m.has_value() && modulation >= kUnmodulated && modulation <= kTanh,
+void check_rule(const IntervalInputs& in, const RuleForm& rule) {
+  TORCH_CHECK(in.alpha.defined() == in.trace.defined(), "srm_interval: alpha and E come together");
+  TORCH_CHECK(!in.eta.defined() || in.trace.defined(), "srm_interval: a trace update needs E");
+  TORCH_CHECK(in.phi.defined() == rule.bcm && in.eta_phi.defined() == rule.bcm && in.psi.defined() == rule.bcm,
+              "srm_interval: phi, eta_phi and psi with a BCM rule form, and only then");
+  TORCH_CHECK(rule.modulation >= kUnmodulated && rule.modulation <= kTanh &&
+                  (rule.modulation != kUnmodulated) == in.w_m.defined(),
               "srm_interval: W_m with a modulation form 1 (linear) or 2 (tanh), or neither");
+}
+
+// The interval, then (when eta is given: a built-in rule's layer) the trace update: the outputs up to E' and phi'
+// (undefined unless BCM), the residuals (p, pre and M undefined without a trace update; M also unless modulated).
+std::pair<IntervalOutputs, IntervalResiduals> interval_with_update(const IntervalInputs& in,
+                                                                   const IntervalConstants& c, const RuleForm& rule,
+                                                                   bool need_surrogate) {
+  check_rule(in, rule);
+  TORCH_CHECK(!in.p_first.defined() && !in.p_second.defined(),
+              "srm_interval_forward: pending updates are srm_interval_deferred_forward's");
   const at::NoGradGuard no_grad;
-  TORCH_CHECK(alpha.has_value() == E.has_value(), "srm_interval: alpha and E come together");
-  std::vector<at::Tensor> out = interval_forward(
-      x, h1, h2, ref_h1, ref_h2,
-      [&](const at::Tensor& rows, const at::Tensor& carried) { return product(rows, carried, W, alpha, E); },
-      carry_state && alpha.has_value(), psp_rows, end_rows, filter_first, d, kappa, theta, width, scale,
-      need_surrogate, interval_inputs(x, h1, h2, psp_rows, end_rows, filter_first));
-  const at::Tensor carried = out.back();
-  out.pop_back();
-  const at::Tensor none = at::empty({0}, W.options());
-  at::Tensor new_E = none, new_phi = none, p = none, pre = none, m = none;
-  if (eta.has_value()) {
+  auto [out, res] = interval_forward(
+      in, [&](const at::Tensor& rows, const at::Tensor& carried) { return product(rows, carried, in); },
+      c.carry_state && in.alpha.defined(), c, need_surrogate, input_pass(in, c));
+  if (in.eta.defined()) {
     at::Tensor post;
-    std::tie(pre, new_phi) = presynaptic_term(out[6], phi, eta_phi, psi);
-    std::tie(post, m) = postsynaptic_term(out[7], w_m, modulation);
-    std::tie(new_E, p) = sb3_spikeplastic_fast::trace_step_forward(*E, post, pre, eta->item<double>(), e_max, oja);
+    std::tie(res.pre, out.phi) = presynaptic_term(out.r_pre, in, rule);
+    std::tie(post, res.m) = postsynaptic_term(out.r_post, in, rule);
+    std::tie(out.trace, res.p) = sb3_spikeplastic_fast::trace_step_forward(in.trace, post, res.pre,
+                                                                           in.eta.item<double>(), c.e_max, rule.oja);
   }
-  out.insert(out.begin() + 8, {new_E, new_phi});
-  out.insert(out.end(), {p, pre, m, carried});
-  return out;
+  return {out, res};
 }
 
-// -> dS, dh1, dh2 (empty unless need_rows), dW, dalpha, dE (empty for a static layer), dphi, deta_phi, dpsi (empty
-// unless BCM), deta (empty without a trace update), dW_m (empty unless modulated)
-std::vector<at::Tensor> srm_interval_backward(
-    const std::optional<at::Tensor>& d_spikes, const std::optional<at::Tensor>& d_h1,
-    const std::optional<at::Tensor>& d_h2, const std::optional<at::Tensor>& d_r_pre,
-    const std::optional<at::Tensor>& d_r_post, const std::optional<at::Tensor>& d_new_E,
-    const std::optional<at::Tensor>& d_new_phi, const at::Tensor& product_in, const at::Tensor& carried,
-    const at::Tensor& W, const std::optional<at::Tensor>& alpha,
-    const std::optional<at::Tensor>& E, const at::Tensor& surrogate, const at::Tensor& p, const at::Tensor& pre,
-    const std::optional<at::Tensor>& m, const at::Tensor& r_pre, const at::Tensor& r_post,
-    const std::optional<at::Tensor>& phi, const std::optional<at::Tensor>& eta,
-    const std::optional<at::Tensor>& eta_phi, const std::optional<at::Tensor>& psi,
-    const std::optional<at::Tensor>& w_m, const at::Tensor& psp_rows,
-    const at::Tensor& end_rows, bool filter_first, bool need_rows, double e_max, bool oja, int64_t modulation) {
+// The backward pass of interval_with_update; d holds the gradients of its outputs.
+IntervalGradients interval_with_update_backward(const IntervalOutputs& d, const IntervalResiduals& res,
+                                                const IntervalInputs& in, const IntervalConstants& c,
+                                                const RuleForm& rule, bool need_rows) {
   const at::NoGradGuard no_grad;
-  const at::Tensor none = at::empty({0}, W.options());
-  at::Tensor d_rpost = given(d_r_post), d_rpre = given(d_r_pre), dE_trace, d_eta = none,
-             d_wm = none, d_phi = none, d_eta_phi = none, d_psi = none;
-  if (eta.has_value()) {
+  IntervalGradients g;
+  at::Tensor d_rpost = d.r_post, d_rpre = d.r_pre, dE_trace;
+  if (in.eta.defined()) {
     at::Tensor d_post, d_pre;
-    std::tie(dE_trace, d_post, d_pre, d_eta) =
-        sb3_spikeplastic_fast::trace_step_backward(or_zeros(given(d_new_E), *E), *E, p, pre, eta->item<double>(),
-                                                   e_max, oja);
-    postsynaptic_backward(d_post, r_post, m, w_m, modulation, d_rpost, d_wm);
-    presynaptic_backward(d_pre, r_pre, phi, eta_phi, psi, given(d_new_phi), d_rpre, d_phi, d_psi, d_eta_phi);
+    std::tie(dE_trace, d_post, d_pre, g.eta) = sb3_spikeplastic_fast::trace_step_backward(
+        or_zeros(d.trace, in.trace), in.trace, res.p, res.pre, in.eta.item<double>(), c.e_max, rule.oja);
+    postsynaptic_backward(d_post, res, in, rule, d_rpost, g);
+    presynaptic_backward(d_pre, d.phi, res, in, rule, d_rpre, g);
   }
-  std::vector<at::Tensor> grads = interval_backward(
-      given(d_spikes), given(d_h1), given(d_h2), d_rpre, d_rpost, product_in, carried,
+  interval_backward(
+      d, d_rpre, d_rpost, res,
       [&](const at::Tensor& grad, const at::Tensor& grad_c, bool need_x, const RowFill& fill) {
-        return product_backward(grad, grad_c, product_in, carried.numel() > 0 ? carried : at::Tensor(), W, alpha, E,
-                                need_x, dE_trace, fill);
+        return product_backward(grad, grad_c, res.product_in, res.carried, in, need_x, dE_trace, fill);
       },
-      W, surrogate, psp_rows, end_rows, filter_first, need_rows);
-  grads.insert(grads.end(), {d_phi, d_eta_phi, d_psi, d_eta, d_wm});
-  return grads;
+      c, need_rows, g);
+  return g;
 }
-
 
 // The deferred form (a built-in rule's layer inside a training sequence, layers.PlasticSRMLayer with
 // defer_update): the previous intervals' trace updates, clamp((1 - eta) E + (eta p) (x) q) for each pending (p, q),
 // oldest first, run in this interval's pass over E (plastic_linear_deferred_forward), and this interval's update is
-// returned as (p, q = pre) for the next. Each interval then reads its trace once forward and once backward, where the
-// update in its own pass reads it again. Without a pending update E is the trace itself. The trace the interval used
-// is written out only when write_trace: a sequence keeps every other trace and recomputes the others from the one
-// before and the two updates since. The values are those of srm_interval_forward bit for bit. -> as
-// srm_interval_forward, with E_t (the trace this interval used; empty unless written) in the place of E', then p and
-// q as outputs of their own (B, n_out), (B, n_in) at the end.
-std::vector<at::Tensor> srm_interval_deferred_forward(
-    const at::Tensor& x, const at::Tensor& h1, const at::Tensor& h2, const at::Tensor& ref_h1, const at::Tensor& ref_h2,
-    const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E, const std::optional<at::Tensor>& p_first,
-    const std::optional<at::Tensor>& q_first, const std::optional<at::Tensor>& p_second,
-    const std::optional<at::Tensor>& q_second, const std::optional<at::Tensor>& phi, const at::Tensor& eta,
-    const std::optional<at::Tensor>& eta_phi, const std::optional<at::Tensor>& psi,
-    const std::optional<at::Tensor>& w_m, const at::Tensor& psp_rows,
-    const at::Tensor& end_rows, bool filter_first, double d, double kappa, double theta, double width, double scale,
-    double e_max, bool oja, int64_t modulation, bool need_surrogate, bool write_trace, bool carry_state) {
-  TORCH_CHECK(phi.has_value() == eta_phi.has_value() && phi.has_value() == psi.has_value(),
-              "srm_interval: phi, eta_phi and psi come together (BCM rules)");
-  TORCH_CHECK((modulation == kUnmodulated) != w_m.has_value() && modulation >= kUnmodulated && modulation <= kTanh,
-              "srm_interval: W_m with a modulation form 1 (linear) or 2 (tanh), or neither");
+// returned as (p_next, q_next = pre) for the next. Each interval then reads its trace once forward and once backward,
+// where the update in its own pass reads it again. Without a pending update E is the trace itself. The trace the
+// interval used is written out (the output trace) only when write_trace: a sequence keeps every other trace and
+// recomputes the others from the one before and the two updates since. The values are those of interval_with_update
+// bit for bit.
+std::pair<IntervalOutputs, IntervalResiduals> deferred_interval(const IntervalInputs& in, const IntervalConstants& c,
+                                                                const RuleForm& rule, bool need_surrogate,
+                                                                bool write_trace) {
+  check_rule(in, rule);
+  TORCH_CHECK(in.eta.defined(), "srm_interval_deferred_forward: a built-in rule's layer (eta given)");
   const at::NoGradGuard no_grad;
-  const double eta_value = eta.item<double>();
-  const IntervalInputs inputs = interval_inputs(x, h1, h2, psp_rows, end_rows, filter_first);
+  const double eta_value = in.eta.item<double>();
+  const InputPass pass = input_pass(in, c);
   at::Tensor pre, new_phi, post, m;  // not structured bindings: the lambda below captures pre (C++17)
-  std::tie(pre, new_phi) = presynaptic_term(inputs.r_pre, phi, eta_phi, psi);
+  std::tie(pre, new_phi) = presynaptic_term(pass.r_pre, in, rule);
   at::Tensor E_t, r;
-  std::vector<at::Tensor> out = interval_forward(
-      x, h1, h2, ref_h1, ref_h2,
+  auto [out, res] = interval_forward(
+      in,
       [&](const at::Tensor& rows, const at::Tensor& carried) {
-        const std::vector<at::Tensor> y = sb3_spikeplastic_fast::plastic_linear_deferred_forward(
-            rows, W, alpha, E, carried, given(p_first), given(q_first), given(p_second), given(q_second),
-            oja ? pre : at::Tensor(), eta_value, e_max, write_trace);
-        E_t = y[2];
-        r = y[3];
-        return std::make_pair(y[0], carried.defined() ? y[1] : at::Tensor());
+        const sb3_spikeplastic_fast::DeferredProduct y = sb3_spikeplastic_fast::plastic_linear_deferred_forward(
+            rows, in.weight, in.alpha, in.trace, carried, in.p_first, in.q_first, in.p_second, in.q_second,
+            rule.oja ? pre : at::Tensor(), eta_value, c.e_max, write_trace);
+        E_t = y.E_t;
+        r = y.r;
+        return std::make_pair(y.Y, carried.defined() ? y.Yc : at::Tensor());
       },
-      carry_state, psp_rows, end_rows, filter_first, d, kappa, theta, width, scale, need_surrogate, inputs);
-  const at::Tensor carried = out.back();
-  out.pop_back();
-  std::tie(post, m) = postsynaptic_term(out[7], w_m, modulation);
-  const at::Tensor p = oja ? post - r : post;
-  out.insert(out.begin() + 8, {E_t, new_phi});
+      c.carry_state, c, need_surrogate, pass);
+  std::tie(post, m) = postsynaptic_term(out.r_post, in, rule);
+  const at::Tensor p = rule.oja ? post - r : post;
+  if (E_t.numel() > 0) out.trace = E_t;  // empty unless written
+  out.phi = new_phi;
   // p and q as outputs of their own: without Oja's term or BCM's they are r_post and r_pre themselves
-  const at::Tensor p_next = p.is_same(out[7]) ? p.clone() : p, q_next = pre.is_same(out[6]) ? pre.clone() : pre;
-  out.insert(out.end(), {p, pre, m, p_next, q_next, carried});
-  return out;
+  out.p_next = p.is_same(out.r_post) ? p.clone() : p;
+  out.q_next = pre.is_same(out.r_pre) ? pre.clone() : pre;
+  res.p = p;
+  res.pre = pre;
+  res.m = m;
+  return {out, res};
 }
 
-// The backward pass of srm_interval_deferred_forward. d_E_t is the gradient of the trace the interval passed on (E_t
-// when written, else E itself), d_p and d_q the gradients of the returned update (p, q). -> as srm_interval_backward
-// (dE is dL/dE, the input trace), then dL/dp and dL/dq of each pending update (empty where none).
-std::vector<at::Tensor> srm_interval_deferred_backward(
-    const std::optional<at::Tensor>& d_spikes, const std::optional<at::Tensor>& d_h1,
-    const std::optional<at::Tensor>& d_h2, const std::optional<at::Tensor>& d_r_pre,
-    const std::optional<at::Tensor>& d_r_post, const std::optional<at::Tensor>& d_E_t,
-    const std::optional<at::Tensor>& d_new_phi, const std::optional<at::Tensor>& d_p_next,
-    const std::optional<at::Tensor>& d_q, const at::Tensor& product_in, const at::Tensor& carried,
-    const at::Tensor& W, const at::Tensor& alpha, const at::Tensor& E, const std::optional<at::Tensor>& p_first,
-    const std::optional<at::Tensor>& q_first,
-    const std::optional<at::Tensor>& p_second, const std::optional<at::Tensor>& q_second,
-    const at::Tensor& surrogate, const at::Tensor& p, const at::Tensor& pre, const std::optional<at::Tensor>& m,
-    const at::Tensor& r_pre, const at::Tensor& r_post, const std::optional<at::Tensor>& phi, const at::Tensor& eta,
-    const std::optional<at::Tensor>& eta_phi, const std::optional<at::Tensor>& psi,
-    const std::optional<at::Tensor>& w_m, const at::Tensor& psp_rows,
-    const at::Tensor& end_rows, bool filter_first, bool need_rows, double e_max, bool oja, int64_t modulation,
-    bool write_trace) {
+// The backward pass of deferred_interval. d.trace is the gradient of the trace the interval passed on (E_t when
+// written, else E itself), d.p_next and d.q_next those of the returned update; g.trace is dL/dE of the input trace,
+// g.p_first ... g.q_second those of the pending updates.
+IntervalGradients deferred_interval_backward(const IntervalOutputs& d, const IntervalResiduals& res,
+                                             const IntervalInputs& in, const IntervalConstants& c,
+                                             const RuleForm& rule, bool need_rows, bool write_trace) {
   const at::NoGradGuard no_grad;
-  const at::Tensor none = at::empty({0}, W.options());
-  const double eta_value = eta.item<double>();
+  const double eta_value = in.eta.item<double>();
   // p = post - r (Oja) or post
-  const at::Tensor d_p = d_p_next.has_value() ? *d_p_next : at::zeros_like(p);
-  at::Tensor d_eta = at::zeros({}, W.options());
-  at::Tensor d_rpost = given(d_r_post), d_rpre = given(d_r_pre), d_wm = none, d_phi = none, d_eta_phi = none,
-             d_psi = none;
-  postsynaptic_backward(d_p, r_post, m, w_m, modulation, d_rpost, d_wm);
-  std::vector<at::Tensor> product_grads;
-  std::vector<at::Tensor> grads = interval_backward(
-      given(d_spikes), given(d_h1), given(d_h2), at::Tensor(), d_rpost, product_in, carried,
+  const at::Tensor d_p = d.p_next.defined() ? d.p_next : at::zeros_like(res.p);
+  IntervalGradients g;
+  g.eta = at::zeros({}, in.weight.options());
+  at::Tensor d_rpost = d.r_post, d_rpre = d.r_pre;
+  postsynaptic_backward(d_p, res, in, rule, d_rpost, g);
+  sb3_spikeplastic_fast::DeferredProductGradients pg;
+  interval_backward(
+      d, at::Tensor(), d_rpost, res,
       [&](const at::Tensor& grad, const at::Tensor& grad_c, bool need_x, const RowFill& fill) {
-        product_grads = sb3_spikeplastic_fast::plastic_linear_deferred_backward(
-            grad, grad_c, product_in, W, alpha, E, carried.numel() > 0 ? carried : at::Tensor(), given(p_first),
-            given(q_first), given(p_second), given(q_second), oja ? pre : at::Tensor(), given(d_E_t),
-            oja ? -d_p : at::Tensor(), need_x, eta_value, e_max, write_trace, fill);
-        const std::vector<at::Tensor>& g = product_grads;
-        return ProductGradients{g[0], g[1], g[2], g[3], g[10]};
+        pg = sb3_spikeplastic_fast::plastic_linear_deferred_backward(
+            grad, grad_c, res.product_in, in.weight, in.alpha, in.trace, res.carried, in.p_first, in.q_first,
+            in.p_second, in.q_second, rule.oja ? res.pre : at::Tensor(), d.trace, rule.oja ? -d_p : at::Tensor(),
+            need_x, eta_value, c.e_max, write_trace, fill);
+        ProductGradients product;
+        product.dX = pg.dX;
+        product.dW = pg.dW;
+        product.dalpha = pg.dalpha;
+        product.dE = pg.dE;
+        product.dC = pg.dC;
+        return product;
       },
-      W, surrogate, psp_rows, end_rows, filter_first, need_rows);
-  // product_grads: dX, dW, dalpha, dE, dq (the Oja row sums'), dq0, dp0, dq1, dp1, deta of the pending updates, dC
+      c, need_rows, g);
   // dL/dpre: from the next interval's update and from the Oja term's row sums; then the rates (only now: the row
   // sums' gradient comes out of the product's pass)
-  at::Tensor d_pre = given(d_q);
-  if (oja) d_pre = plus(d_pre, product_grads[4]);
-  if (!d_pre.defined()) d_pre = at::zeros_like(pre);
-  presynaptic_backward(d_pre, r_pre, phi, eta_phi, psi, given(d_new_phi), d_rpre, d_phi, d_psi, d_eta_phi);
+  at::Tensor d_pre = d.q_next;
+  if (rule.oja) d_pre = plus(d_pre, pg.dq);
+  if (!d_pre.defined()) d_pre = at::zeros_like(res.pre);
+  presynaptic_backward(d_pre, d.phi, res, in, rule, d_rpre, g);
   if (need_rows && d_rpre.defined()) {
-    const int64_t L = surrogate.size(1);
-    grads[0] = grads[0] + (d_rpre / L).unsqueeze(1);
+    const int64_t L = res.surrogate.size(1);
+    g.x = g.x + (d_rpre / L).unsqueeze(1);
   }
-  if (p_first.has_value()) d_eta = product_grads[9];
-  grads.insert(grads.end(), {d_phi, d_eta_phi, d_psi, d_eta, d_wm});
-  grads.insert(grads.end(), {product_grads[6], product_grads[5], product_grads[8], product_grads[7]});
-  return grads;
+  if (in.p_first.defined()) g.eta = pg.deta;
+  if (in.p_first.defined()) {
+    g.p_first = pg.dp0;
+    g.q_first = pg.dq0;
+  }
+  if (in.p_second.defined()) {
+    g.p_second = pg.dp1;
+    g.q_second = pg.dq1;
+  }
+  return g;
+}
+
+// The op entries: the one place per op that reads the schema's arguments (TORCH_LIBRARY_FRAGMENT below) into the
+// structs above, and writes the structs out.
+using TensorList = c10::List<std::optional<at::Tensor>>;
+using ForwardResult = std::tuple<std::vector<at::Tensor>, std::vector<at::Tensor>>;
+
+ForwardResult forward_result(const std::pair<IntervalOutputs, IntervalResiduals>& result) {
+  return {sb3_spikeplastic_fast::to_list(result.first), sb3_spikeplastic_fast::to_list(result.second)};
+}
+
+ForwardResult srm_interval_forward(const TensorList& inputs, const at::Tensor& psp_rows, const at::Tensor& end_rows,
+                                   bool filter_first, double d, double kappa, double theta, double width,
+                                   double scale, double e_max, bool carry_state, bool oja, bool bcm,
+                                   int64_t modulation, bool need_surrogate) {
+  const IntervalConstants c{psp_rows, end_rows, filter_first, d, kappa, theta, width, scale, e_max, carry_state};
+  const RuleForm rule{oja, bcm, modulation};
+  return forward_result(
+      interval_with_update(sb3_spikeplastic_fast::from_list<IntervalInputs>(inputs), c, rule, need_surrogate));
+}
+
+std::vector<at::Tensor> srm_interval_backward(const TensorList& grad_outputs, const TensorList& residuals,
+                                              const TensorList& inputs, const at::Tensor& psp_rows,
+                                              const at::Tensor& end_rows, bool filter_first, double d, double kappa,
+                                              double theta, double width, double scale, double e_max,
+                                              bool carry_state, bool oja, bool bcm, int64_t modulation,
+                                              bool need_rows) {
+  const IntervalConstants c{psp_rows, end_rows, filter_first, d, kappa, theta, width, scale, e_max, carry_state};
+  const RuleForm rule{oja, bcm, modulation};
+  const IntervalInputs in = sb3_spikeplastic_fast::from_list<IntervalInputs>(inputs);
+  return sb3_spikeplastic_fast::to_list(interval_with_update_backward(
+      sb3_spikeplastic_fast::from_list<IntervalOutputs>(grad_outputs),
+      sb3_spikeplastic_fast::from_list<IntervalResiduals>(residuals), in, c, rule, need_rows));
+}
+
+ForwardResult srm_interval_deferred_forward(const TensorList& inputs, const at::Tensor& psp_rows,
+                                            const at::Tensor& end_rows, bool filter_first, double d, double kappa,
+                                            double theta, double width, double scale, double e_max, bool carry_state,
+                                            bool oja, bool bcm, int64_t modulation, bool need_surrogate,
+                                            bool write_trace) {
+  const IntervalConstants c{psp_rows, end_rows, filter_first, d, kappa, theta, width, scale, e_max, carry_state};
+  const RuleForm rule{oja, bcm, modulation};
+  return forward_result(deferred_interval(sb3_spikeplastic_fast::from_list<IntervalInputs>(inputs), c, rule,
+                                          need_surrogate, write_trace));
+}
+
+std::vector<at::Tensor> srm_interval_deferred_backward(const TensorList& grad_outputs, const TensorList& residuals,
+                                                       const TensorList& inputs, const at::Tensor& psp_rows,
+                                                       const at::Tensor& end_rows, bool filter_first, double d,
+                                                       double kappa, double theta, double width, double scale,
+                                                       double e_max, bool carry_state, bool oja, bool bcm,
+                                                       int64_t modulation, bool need_rows, bool write_trace) {
+  const IntervalConstants c{psp_rows, end_rows, filter_first, d, kappa, theta, width, scale, e_max, carry_state};
+  const RuleForm rule{oja, bcm, modulation};
+  const IntervalInputs in = sb3_spikeplastic_fast::from_list<IntervalInputs>(inputs);
+  return sb3_spikeplastic_fast::to_list(deferred_interval_backward(
+      sb3_spikeplastic_fast::from_list<IntervalOutputs>(grad_outputs),
+      sb3_spikeplastic_fast::from_list<IntervalResiduals>(residuals), in, c, rule, need_rows, write_trace));
+}
+
+// The field names of the struct called name, in the order its tensors travel (for the Python side's test).
+std::vector<std::string> srm_interval_fields(std::string name) {
+  using sb3_spikeplastic_fast::field_names;
+  if (name == IntervalInputs::kName) return field_names<IntervalInputs>();
+  if (name == IntervalGradients::kName) return field_names<IntervalGradients>();
+  if (name == IntervalOutputs::kName) return field_names<IntervalOutputs>();
+  TORCH_CHECK(name == IntervalResiduals::kName, "srm_interval_fields: no struct ", name);
+  return field_names<IntervalResiduals>();
 }
 
 }  // namespace
 
+// The schemas' scalars after the tensors: IntervalConstants, then RuleForm, in their fields' order.
+#define SRM_INTERVAL_CONSTANTS                                                                                  \
+  "Tensor psp_rows, Tensor end_rows, bool filter_first, float d, float kappa, float theta, float width, "     \
+  "float scale, float e_max, bool carry_state, bool oja, bool bcm, int modulation"
+
 TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
-  m.def(
-      "srm_interval_forward(Tensor x, Tensor h1, Tensor h2, Tensor ref_h1, Tensor ref_h2, Tensor W, Tensor? alpha, "
-      "Tensor? E, Tensor? phi, Tensor? eta, Tensor? eta_phi, Tensor? psi, Tensor? w_m, Tensor psp_rows, "
-      "Tensor end_rows, bool filter_first, float d, float kappa, float theta, float width, float scale, "
-      "float e_max, bool oja, int modulation, bool need_surrogate, bool carry_state) -> Tensor[]");
-  m.def(
-      "srm_interval_deferred_forward(Tensor x, Tensor h1, Tensor h2, Tensor ref_h1, Tensor ref_h2, Tensor W, "
-      "Tensor alpha, Tensor E, Tensor? p_first, Tensor? q_first, Tensor? p_second, Tensor? q_second, Tensor? phi, "
-      "Tensor eta, Tensor? eta_phi, Tensor? psi, Tensor? w_m, Tensor psp_rows, Tensor end_rows, "
-      "bool filter_first, float d, float kappa, float theta, float width, float scale, float e_max, bool oja, "
-      "int modulation, bool need_surrogate, bool write_trace, bool carry_state) -> Tensor[]");
-  m.def(
-      "srm_interval_deferred_backward(Tensor? d_spikes, Tensor? d_h1, Tensor? d_h2, Tensor? d_r_pre, "
-      "Tensor? d_r_post, Tensor? d_E_t, Tensor? d_new_phi, Tensor? d_p, Tensor? d_q, Tensor product_in, "
-      "Tensor carried, Tensor W, Tensor alpha, Tensor E, Tensor? p_first, Tensor? q_first, Tensor? p_second, "
-      "Tensor? q_second, Tensor surrogate, Tensor p, Tensor pre, Tensor? m, Tensor r_pre, Tensor r_post, "
-      "Tensor? phi, Tensor eta, "
-      "Tensor? eta_phi, Tensor? psi, Tensor? w_m, Tensor psp_rows, Tensor end_rows, bool filter_first, "
-      "bool need_rows, float e_max, bool oja, int modulation, bool write_trace) -> Tensor[]");
-  m.def(
-      "srm_interval_backward(Tensor? d_spikes, Tensor? d_h1, Tensor? d_h2, Tensor? d_r_pre, Tensor? d_r_post, "
-      "Tensor? d_new_E, Tensor? d_new_phi, Tensor product_in, Tensor carried, Tensor W, Tensor? alpha, Tensor? E, "
-      "Tensor surrogate, "
-      "Tensor p, Tensor pre, Tensor? m, Tensor r_pre, Tensor r_post, Tensor? phi, Tensor? eta, Tensor? eta_phi, "
-      "Tensor? psi, Tensor? w_m, Tensor psp_rows, Tensor end_rows, bool filter_first, bool need_rows, "
-      "float e_max, bool oja, int modulation) -> Tensor[]");
+  m.def("srm_interval_forward(Tensor?[] inputs, " SRM_INTERVAL_CONSTANTS
+        ", bool need_surrogate) -> (Tensor[] outputs, Tensor[] residuals)");
+  m.def("srm_interval_backward(Tensor?[] grad_outputs, Tensor?[] residuals, Tensor?[] inputs, " SRM_INTERVAL_CONSTANTS
+        ", bool need_rows) -> Tensor[] gradients");
+  m.def("srm_interval_deferred_forward(Tensor?[] inputs, " SRM_INTERVAL_CONSTANTS
+        ", bool need_surrogate, bool write_trace) -> (Tensor[] outputs, Tensor[] residuals)");
+  m.def("srm_interval_deferred_backward(Tensor?[] grad_outputs, Tensor?[] residuals, Tensor?[] inputs, "
+        SRM_INTERVAL_CONSTANTS ", bool need_rows, bool write_trace) -> Tensor[] gradients");
+  m.def("srm_interval_fields(str name) -> str[]", &srm_interval_fields);
 }
 
 TORCH_LIBRARY_IMPL(sb3_spikeplastic_fast, CPU, m) {

@@ -92,7 +92,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> srm_loop_cuda(const a
 TORCH_LIBRARY(sb3_spikeplastic_cuda, m) {
   m.def(
       "srm_loop(Tensor synaptic, Tensor h1, Tensor h2, float d, float kappa, float theta) "
-      "-> (Tensor, Tensor, Tensor, Tensor)");
+      "-> (Tensor spikes, Tensor membrane, Tensor h1, Tensor h2)");
 }
 
 TORCH_LIBRARY_IMPL(sb3_spikeplastic_cuda, CUDA, m) {

@@ -188,10 +188,13 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> trace_step_backward(
 }  // namespace sb3_spikeplastic_fast
 
 TORCH_LIBRARY_FRAGMENT(sb3_spikeplastic_fast, m) {
-  m.def("trace_step_forward(Tensor E, Tensor post, Tensor pre, float eta, float e_max, bool oja) -> (Tensor, Tensor)");
+  m.def(
+      "trace_step_forward(Tensor E, Tensor post, Tensor pre, float eta, float e_max, bool oja) "
+      "-> (Tensor trace, Tensor p)");
+  // the gradients of trace_step_forward's inputs, named as them
   m.def(
       "trace_step_backward(Tensor grad, Tensor E, Tensor p, Tensor pre, float eta, float e_max, bool oja) "
-      "-> (Tensor, Tensor, Tensor, Tensor)");
+      "-> (Tensor E, Tensor post, Tensor pre, Tensor eta)");
 }
 
 TORCH_LIBRARY_IMPL(sb3_spikeplastic_fast, CPU, m) {
