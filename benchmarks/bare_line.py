@@ -99,9 +99,13 @@ def run(policy: str, env_id: str, steps: int, seed: int, eval_every: int, episod
     episodes_seen = [e["r"] for e in model.ep_info_buffer]
     finite = [n for n in norms or [] if math.isfinite(n)]
     return dict(
-        policy=policy, seed=seed, steps=model.num_timesteps, train_seconds=round(train_seconds, 1),
+        policy=policy,
+        seed=seed,
+        steps=model.num_timesteps,
+        train_seconds=round(train_seconds, 1),
         env_steps_per_s=round(model.num_timesteps / train_seconds, 1),
-        final_return=round(final[0], 1), final_return_std=round(final[1], 1),
+        final_return=round(final[0], 1),
+        final_return_std=round(final[1], 1),
         evaluations=[[s, round(m, 1)] for s, m, _ in evaluations.results],
         rollout_return=round(float(np.mean(episodes_seen)), 1) if episodes_seen else None,
         std=round(float(torch.exp(model.policy.log_std).mean()), 4) if hasattr(model.policy, "log_std") else None,
@@ -111,10 +115,14 @@ def run(policy: str, env_id: str, steps: int, seed: int, eval_every: int, episod
     )
 
 
-CHECKS = [("HalfCheetah-v5", dict(rule=rule)) for rule in ("static", "dp-linear", "dp-oja", "dp-bcm", "ndp-oja",
-                                                              "ndp-bcm")] + [
+CHECKS = [
+    ("HalfCheetah-v5", dict(rule=rule)) for rule in ("static", "dp-linear", "dp-oja", "dp-bcm", "ndp-oja", "ndp-bcm")
+] + [
     ("HalfCheetah-v5", dict(rule="ndp-oja", rule_kwargs=dict(modulation="linear"))),
-    ("NoisyHalfCheetah-v5", {}), ("Pendulum-v1", {}), ("TMazeCue-v0", {})]
+    ("NoisyHalfCheetah-v5", {}),
+    ("Pendulum-v1", {}),
+    ("TMazeCue-v0", {}),
+]
 
 
 def tmaze_success(model, episodes: int = 100) -> float:
@@ -136,50 +144,80 @@ def check(env_id: str, policy_kwargs: dict, steps: int) -> dict:
     seconds = time.perf_counter() - start
     finite = [n for n in norms if math.isfinite(n)]
     episodes = [e["r"] for e in model.ep_info_buffer]
-    return dict(env=env_id, policy_kwargs=policy_kwargs, steps=model.num_timesteps,
-                env_steps_per_s=round(model.num_timesteps / seconds, 1), updates=model._n_updates // model.n_epochs,
-                grad_norm_max=round(max(finite), 2), grad_norm_median=round(float(np.median(finite)), 2),
-                nonfinite=len(norms) - len(finite), std_start=std_start and round(std_start, 4),
-                std_end=round(std(), 4) if std else None,
-                rollout_return=round(float(np.mean(episodes)), 1) if episodes else None,
-                success=tmaze_success(model) if env_id.startswith("TMazeCue") else None)
+    return dict(
+        env=env_id,
+        policy_kwargs=policy_kwargs,
+        steps=model.num_timesteps,
+        env_steps_per_s=round(model.num_timesteps / seconds, 1),
+        updates=model._n_updates // model.n_epochs,
+        grad_norm_max=round(max(finite), 2),
+        grad_norm_median=round(float(np.median(finite)), 2),
+        nonfinite=len(norms) - len(finite),
+        std_start=std_start and round(std_start, 4),
+        std_end=round(std(), 4) if std else None,
+        rollout_return=round(float(np.mean(episodes)), 1) if episodes else None,
+        success=tmaze_success(model) if env_id.startswith("TMazeCue") else None,
+    )
 
 
 def checks_markdown(report: dict) -> str:
-    lines = ["# Bare line, brief checks: `PPO(\"SpikePlasticPolicy\", env, policy_kwargs=...)`, seed 0", "",
-             f"Command: `{report['command']}`", "",
-             f"Machine: {report['machine']}; torch threads {report['torch_threads']}; commit {report['commit']}", "",
-             f"Load before: `{report['uptime_before']}`", "", f"Load after: `{report['uptime_after']}`", "",
-             "| env | policy_kwargs | steps (updates) | env-steps/s | grad norm max / median (non-finite) | std start "
-             "→ end | rollout return | deterministic success (100 ep.) |", "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        '# Bare line, brief checks: `PPO("SpikePlasticPolicy", env, policy_kwargs=...)`, seed 0',
+        "",
+        f"Command: `{report['command']}`",
+        "",
+        f"Machine: {report['machine']}; torch threads {report['torch_threads']}; commit {report['commit']}",
+        "",
+        f"Load before: `{report['uptime_before']}`",
+        "",
+        f"Load after: `{report['uptime_after']}`",
+        "",
+        "| env | policy_kwargs | steps (updates) | env-steps/s | grad norm max / median (non-finite) | std start "
+        "→ end | rollout return | deterministic success (100 ep.) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for r in report["checks"]:
         std = "-" if r["std_start"] is None else f"{r['std_start']} → {r['std_end']}"
-        lines.append(f"| {r['env']} | `{json.dumps(r['policy_kwargs'])}` | {r['steps']} ({r['updates']}) | "
-                     f"{r['env_steps_per_s']:g} | {r['grad_norm_max']:.3g} / {r['grad_norm_median']:.3g} "
-                     f"({r['nonfinite']}) | {std} | {r['rollout_return']} | "
-                     f"{'-' if r['success'] is None else r['success']} |")
+        lines.append(
+            f"| {r['env']} | `{json.dumps(r['policy_kwargs'])}` | {r['steps']} ({r['updates']}) | "
+            f"{r['env_steps_per_s']:g} | {r['grad_norm_max']:.3g} / {r['grad_norm_median']:.3g} "
+            f"({r['nonfinite']}) | {std} | {r['rollout_return']} | "
+            f"{'-' if r['success'] is None else r['success']} |"
+        )
     return "\n".join(lines) + "\n"
 
 
 def markdown(report: dict) -> str:
-    lines = [f"# Bare line: `PPO(policy, \"{report['env']}\")` with every default", "",
-             f"Command: `{report['command']}`", "",
-             f"Machine: {report['machine']}; torch threads {report['torch_threads']}; commit {report['commit']}", "",
-             f"Load before: `{report['uptime_before']}`", "", f"Load after: `{report['uptime_after']}`", "",
-             "| policy | seed | steps | env-steps/s | grad norm max / median | final std | deterministic return "
-             f"({report['eval_episodes']} ep.) | rollout return | return during training |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f'# Bare line: `PPO(policy, "{report["env"]}")` with every default',
+        "",
+        f"Command: `{report['command']}`",
+        "",
+        f"Machine: {report['machine']}; torch threads {report['torch_threads']}; commit {report['commit']}",
+        "",
+        f"Load before: `{report['uptime_before']}`",
+        "",
+        f"Load after: `{report['uptime_after']}`",
+        "",
+        "| policy | seed | steps | env-steps/s | grad norm max / median | final std | deterministic return "
+        f"({report['eval_episodes']} ep.) | rollout return | return during training |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in report["runs"]:
         norms = "-" if r["grad_norm_max"] is None else f"{r['grad_norm_max']:g} / {r['grad_norm_median']:g}"
         curve = ", ".join(f"{s // 1000}k: {m:g}" for s, m in r["evaluations"])
-        lines.append(f"| {r['policy']} | {r['seed']} | {r['steps']} | {r['env_steps_per_s']:g} | {norms} | "
-                     f"{r['std'] if r['std'] is not None else '-'} | {r['final_return']:g} ± {r['final_return_std']:g}"
-                     f" | {r['rollout_return']} | {curve} |")
+        lines.append(
+            f"| {r['policy']} | {r['seed']} | {r['steps']} | {r['env_steps_per_s']:g} | {norms} | "
+            f"{r['std'] if r['std'] is not None else '-'} | {r['final_return']:g} ± {r['final_return_std']:g}"
+            f" | {r['rollout_return']} | {curve} |"
+        )
     lines += ["", "| policy | mean final return over seeds | mean env-steps/s |", "|---|---|---|"]
     for policy in report["policies"]:
         runs = [r for r in report["runs"] if r["policy"] == policy]
-        lines.append(f"| {policy} | {np.mean([r['final_return'] for r in runs]):.1f} | "
-                     f"{np.mean([r['env_steps_per_s'] for r in runs]):.1f} |")
+        lines.append(
+            f"| {policy} | {np.mean([r['final_return'] for r in runs]):.1f} | "
+            f"{np.mean([r['env_steps_per_s'] for r in runs]):.1f} |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -200,10 +238,17 @@ def main(argv=None) -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-    report = dict(env=args.env, command=shlex.join([Path(sys.executable).name, *sys.argv]), commit=commit or None,
-                  machine=f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
-                  torch_threads=args.torch_threads, eval_episodes=args.eval_episodes, policies=args.policies,
-                  uptime_before=uptime(), runs=[])
+    report = dict(
+        env=args.env,
+        command=shlex.join([Path(sys.executable).name, *sys.argv]),
+        commit=commit or None,
+        machine=f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
+        torch_threads=args.torch_threads,
+        eval_episodes=args.eval_episodes,
+        policies=args.policies,
+        uptime_before=uptime(),
+        runs=[],
+    )
     if args.checks:
         report["checks"] = []
         for env_id, policy_kwargs in [c for c in CHECKS if not args.only or c[0] in args.only]:

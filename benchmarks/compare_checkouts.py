@@ -28,8 +28,21 @@ def run_rows(checkout: Path, rows: list[str], threads: int) -> list[dict]:
     with tempfile.TemporaryDirectory() as folder:
         output = Path(folder) / "rows.json"
         env = {**os.environ, "PYTHONPATH": str(checkout)}
-        subprocess.run([sys.executable, str(checkout / "benchmarks" / "learn_throughput.py"), "--only", *rows,
-                        "--threads", str(threads), "--output", str(output)], check=True, env=env, cwd=checkout)
+        subprocess.run(
+            [
+                sys.executable,
+                str(checkout / "benchmarks" / "learn_throughput.py"),
+                "--only",
+                *rows,
+                "--threads",
+                str(threads),
+                "--output",
+                str(output),
+            ],
+            check=True,
+            env=env,
+            cwd=checkout,
+        )
         return json.loads(output.read_text())["rows"]
 
 
@@ -47,10 +60,21 @@ def main() -> None:
         for checkout in checkouts if round_ % 2 == 0 else checkouts[::-1]:
             load = os.getloadavg()[0] / (os.cpu_count() or 1)
             for row in run_rows(checkout, args.rows, args.threads):
-                runs.append(dict(round=round_, checkout=str(checkout), row=row["name"], load_per_core=round(load, 2),
-                                 env_steps_per_s=row["env_steps_per_s"], peak_rss_mb=row["peak_rss_mb"]))
-                print(f"round {round_}  {checkout.name:>12}  {row['name'][:60]:60}  "
-                      f"{row['env_steps_per_s']:7.1f} env-steps/s  load/core {load:.2f}", flush=True)
+                runs.append(
+                    dict(
+                        round=round_,
+                        checkout=str(checkout),
+                        row=row["name"],
+                        load_per_core=round(load, 2),
+                        env_steps_per_s=row["env_steps_per_s"],
+                        peak_rss_mb=row["peak_rss_mb"],
+                    )
+                )
+                print(
+                    f"round {round_}  {checkout.name:>12}  {row['name'][:60]:60}  "
+                    f"{row['env_steps_per_s']:7.1f} env-steps/s  load/core {load:.2f}",
+                    flush=True,
+                )
     summary = {}
     for row in dict.fromkeys(r["row"] for r in runs):
         for checkout in checkouts:
@@ -60,8 +84,11 @@ def main() -> None:
         summary[row]["b_over_a"] = b / a
         print(f"{row[:60]:60}  A {a:7.1f}  B {b:7.1f}  B/A {b / a:.3f}")
     args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(dict(checkouts=[str(c) for c in checkouts], threads=args.threads,
-                                           runs=runs, summary=summary), indent=1))
+    args.output.write_text(
+        json.dumps(
+            dict(checkouts=[str(c) for c in checkouts], threads=args.threads, runs=runs, summary=summary), indent=1
+        )
+    )
     print(f"wrote {args.output}")
 
 

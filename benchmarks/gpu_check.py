@@ -120,8 +120,15 @@ def run(name: str, argv: list[str], logs: Path, timeout: float, cwd: Path, env: 
 def summarise(name: str, output: str, ok: bool) -> str:
     """The line of a check's output that says what it measured (or why it failed)."""
     lines = [line.strip() for line in output.splitlines() if line.strip()]
-    patterns = [r"\d+ (passed|failed)", r"max \|action", r"grad_norm", r"success", r"mean return|return",
-                r"env-steps/s|fps", r"Error|error"]
+    patterns = [
+        r"\d+ (passed|failed)",
+        r"max \|action",
+        r"grad_norm",
+        r"success",
+        r"mean return|return",
+        r"env-steps/s|fps",
+        r"Error|error",
+    ]
     for pattern in patterns:
         hits = [line for line in lines if re.search(pattern, line)]
         if hits:
@@ -135,16 +142,19 @@ def machine() -> str:
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no CUDA device"
     driver = ""
     if shutil.which("nvidia-smi"):
-        driver = subprocess.run(["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader"],
-                                capture_output=True, text=True).stdout.strip()
+        driver = subprocess.run(
+            ["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader"], capture_output=True, text=True
+        ).stdout.strip()
     versions = []
     for package in ("stable_baselines3", "sb3_contrib", "gymnasium", "mujoco"):
         try:
             versions.append(f"{package} {__import__(package).__version__}")
         except ImportError:
             versions.append(f"{package} missing")
-    return (f"{gpu} (driver {driver or '?'}), {os.cpu_count()} CPU cores, Python {platform.python_version()}, "
-            f"torch {torch.__version__} (CUDA {torch.version.cuda}), " + ", ".join(versions))
+    return (
+        f"{gpu} (driver {driver or '?'}), {os.cpu_count()} CPU cores, Python {platform.python_version()}, "
+        f"torch {torch.__version__} (CUDA {torch.version.cuda}), " + ", ".join(versions)
+    )
 
 
 def latest_run(folder: Path, env_id: str) -> Path:
@@ -156,11 +166,20 @@ def write_verdict(rows: list[dict], output: Path, argv) -> int:
     """Write the verdict table (Markdown) and its rows (JSON) beside it; returns the number of checks passed."""
     passed = sum(row["ok"] for row in rows)
     command = " ".join(["python", "benchmarks/gpu_check.py", *(argv if argv is not None else sys.argv[1:])])
-    lines = ["# GPU check", "", f"`{command}`, {time.strftime('%Y-%m-%d')}, on {machine()}.", "",
-             f"**{passed} of {len(rows)} checks passed.**", "",
-             "| check | verdict | seconds | measured |", "|---|---|---|---|"]
-    lines += [f"| {r['check']} | {'PASS' if r['ok'] else 'FAIL'} | {r['seconds']} | {r['note'].replace('|', '/')} |"
-              for r in rows]
+    lines = [
+        "# GPU check",
+        "",
+        f"`{command}`, {time.strftime('%Y-%m-%d')}, on {machine()}.",
+        "",
+        f"**{passed} of {len(rows)} checks passed.**",
+        "",
+        "| check | verdict | seconds | measured |",
+        "|---|---|---|---|",
+    ]
+    lines += [
+        f"| {r['check']} | {'PASS' if r['ok'] else 'FAIL'} | {r['seconds']} | {r['note'].replace('|', '/')} |"
+        for r in rows
+    ]
     output.parent.mkdir(parents=True, exist_ok=True)
     output.write_text("\n".join(lines) + "\n")
     output.with_suffix(".json").write_text(json.dumps({"machine": machine(), "rows": rows}, indent=1) + "\n")
@@ -171,13 +190,23 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--output", type=Path, default=ROOT / "benchmarks" / "results" / "gpu_check.md")
     parser.add_argument("--logs", type=Path, default=None, help="folder for every check's log (default: a temp dir)")
-    parser.add_argument("--pytest-args", default="-q -p no:cacheprovider -rfE",
-                        help="arguments of the suite's pytest (default: %(default)s)")
-    parser.add_argument("--only", nargs="+", choices=GROUPS,
-                        default=[g for g in GROUPS if g not in ("benchmark", "sweep")],
-                        help="groups of checks to run (default: all but benchmark and sweep)")
-    parser.add_argument("--benchmark-args", default="--only ndp-oja recurrent entry entry-recurrent paper-conf",
-                        help="arguments of learn_throughput.py --device cuda (default: %(default)s)")
+    parser.add_argument(
+        "--pytest-args",
+        default="-q -p no:cacheprovider -rfE",
+        help="arguments of the suite's pytest (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--only",
+        nargs="+",
+        choices=GROUPS,
+        default=[g for g in GROUPS if g not in ("benchmark", "sweep")],
+        help="groups of checks to run (default: all but benchmark and sweep)",
+    )
+    parser.add_argument(
+        "--benchmark-args",
+        default="--only ndp-oja recurrent entry entry-recurrent paper-conf",
+        help="arguments of learn_throughput.py --device cuda (default: %(default)s)",
+    )
     args = parser.parse_args(argv)
     import torch
 
@@ -199,60 +228,189 @@ def main(argv=None) -> int:
 
     if "suite" in args.only:
         # From tests/, so that the installed package is imported (an editable install or a wheel alike).
-        check("pytest (default suite on cuda)", [sys.executable, "-m", "pytest", "-c", "../pyproject.toml",
-                                                 "--rootdir", "..", *args.pytest_args.split()],
-              timeout=1800, cwd=ROOT / "tests")
+        check(
+            "pytest (default suite on cuda)",
+            [sys.executable, "-m", "pytest", "-c", "../pyproject.toml", "--rootdir", "..", *args.pytest_args.split()],
+            timeout=1800,
+            cwd=ROOT / "tests",
+        )
 
     runs = work / "logs"
     common = ["--device", "cuda", "--seed", "0", "-f", str(runs), "--no-progress", "-v", "0"]
     if "tmaze" in args.only:
-        check("train TMazeCue-v0 ndp-oja",
-              CLI + ["train", "--env", "TMazeCue-v0", "--rule", "ndp-oja", "-n", "8192", "--save-freq", "4096",
-                     "--figure-freq", "1", "--tensorboard-log", str(work / "tb"), *common])
+        check(
+            "train TMazeCue-v0 ndp-oja",
+            CLI
+            + [
+                "train",
+                "--env",
+                "TMazeCue-v0",
+                "--rule",
+                "ndp-oja",
+                "-n",
+                "8192",
+                "--save-freq",
+                "4096",
+                "--figure-freq",
+                "1",
+                "--tensorboard-log",
+                str(work / "tb"),
+                *common,
+            ],
+        )
         tmaze = latest_run(runs, "TMazeCue-v0")
         checkpoint = sorted(tmaze.glob("rl_model_*_steps.zip"))
-        check("train -i (resume T-maze)", CLI + ["train", "--env", "TMazeCue-v0", "-n", "12288", "-i",
-                                                  str(checkpoint[-1] if checkpoint else tmaze), *common])
-        check("evaluate T-maze (energy)", CLI + ["evaluate", "--run", str(tmaze), "--episodes", "20", "--device",
-                                                "cuda", "--no-progress"])
+        check(
+            "train -i (resume T-maze)",
+            CLI
+            + [
+                "train",
+                "--env",
+                "TMazeCue-v0",
+                "-n",
+                "12288",
+                "-i",
+                str(checkpoint[-1] if checkpoint else tmaze),
+                *common,
+            ],
+        )
+        check(
+            "evaluate T-maze (energy)",
+            CLI + ["evaluate", "--run", str(tmaze), "--episodes", "20", "--device", "cuda", "--no-progress"],
+        )
         check("inspect T-maze", CLI + ["inspect", "--run", str(tmaze), "--device", "cuda", "--no-progress"])
     if "cheetah" in args.only:
-        check("train HalfCheetah-v5 (entry)", CLI + ["train", "--env", "HalfCheetah-v5", "-n", "8192", "--save-freq",
-                                                     "4096", "--eval-freq", "4096", "--eval-episodes", "2", *common])
+        check(
+            "train HalfCheetah-v5 (entry)",
+            CLI
+            + [
+                "train",
+                "--env",
+                "HalfCheetah-v5",
+                "-n",
+                "8192",
+                "--save-freq",
+                "4096",
+                "--eval-freq",
+                "4096",
+                "--eval-episodes",
+                "2",
+                *common,
+            ],
+        )
         cheetah = latest_run(runs, "HalfCheetah-v5")
-        check("evaluate HalfCheetah (VecNormalize)", CLI + ["evaluate", "--run", str(cheetah), "--episodes", "2",
-                                                           "--device", "cuda", "--no-progress"])
-        check("robustness HalfCheetah", CLI + ["robustness", "--models", f"entry={cheetah}", "--noise", "action",
-                                               "--sigmas", "0", "0.2", "--episodes", "2", "--n-envs", "2",
-                                               "--device", "cuda", "-o", str(work / "robustness"), "--no-progress"])
-        check("enjoy --video HalfCheetah", CLI + ["enjoy", "--run", str(cheetah), "--n-episodes", "1", "--max-steps",
-                                                  "100", "--video", str(work / "cheetah.gif"), "--device", "cuda",
-                                                  "--no-progress"])
+        check(
+            "evaluate HalfCheetah (VecNormalize)",
+            CLI + ["evaluate", "--run", str(cheetah), "--episodes", "2", "--device", "cuda", "--no-progress"],
+        )
+        check(
+            "robustness HalfCheetah",
+            CLI
+            + [
+                "robustness",
+                "--models",
+                f"entry={cheetah}",
+                "--noise",
+                "action",
+                "--sigmas",
+                "0",
+                "0.2",
+                "--episodes",
+                "2",
+                "--n-envs",
+                "2",
+                "--device",
+                "cuda",
+                "-o",
+                str(work / "robustness"),
+                "--no-progress",
+            ],
+        )
+        check(
+            "enjoy --video HalfCheetah",
+            CLI
+            + [
+                "enjoy",
+                "--run",
+                str(cheetah),
+                "--n-episodes",
+                "1",
+                "--max-steps",
+                "100",
+                "--video",
+                str(work / "cheetah.gif"),
+                "--device",
+                "cuda",
+                "--no-progress",
+            ],
+        )
     if "rules" in args.only:
         check("every rule, Python API", [sys.executable, "-c", EVERY_RULE])
     if "devices" in args.only:
-        for env_id, source, target, what in (("TMazeCue-v0", "cuda", "cpu", "T-maze, masks"),
-                                             ("Pendulum-v1", "cpu", "cuda", "Pendulum, Box")):
+        for env_id, source, target, what in (
+            ("TMazeCue-v0", "cuda", "cpu", "T-maze, masks"),
+            ("Pendulum-v1", "cpu", "cuda", "Pendulum, Box"),
+        ):
             path = work / f"{env_id}_{source}.zip"
-            check(f"{source} -> {target} ({what})", [sys.executable, "-c", SAVE_SMALL + CROSS_DEVICE, str(path),
-                                                     env_id, source, target])
+            check(
+                f"{source} -> {target} ({what})",
+                [sys.executable, "-c", SAVE_SMALL + CROSS_DEVICE, str(path), env_id, source, target],
+            )
     if "paper" in args.only:
-        check("train --conf paper (20k steps)", CLI + ["train", "--env", "HalfCheetah-v5", "--conf", "paper", "-n",
-                                                       "20480", *common[:-2], "-v", "1"], timeout=600)
+        check(
+            "train --conf paper (20k steps)",
+            CLI + ["train", "--env", "HalfCheetah-v5", "--conf", "paper", "-n", "20480", *common[:-2], "-v", "1"],
+            timeout=600,
+        )
     if "benchmark" in args.only:
-        check("learn_throughput --device cuda", [sys.executable, "benchmarks/learn_throughput.py", "--device", "cuda",
-                                                 *args.benchmark_args.split()], timeout=1800, cwd=ROOT)
+        check(
+            "learn_throughput --device cuda",
+            [sys.executable, "benchmarks/learn_throughput.py", "--device", "cuda", *args.benchmark_args.split()],
+            timeout=1800,
+            cwd=ROOT,
+        )
     if "sweep" in args.only:  # throughput against the number of environments, the same rollout size
         for n_envs in SWEEP_ENVS:
-            check(f"learn_throughput, {n_envs} environments",
-                  [sys.executable, "benchmarks/learn_throughput.py", "--device", "cuda", "--only", "paper-conf",
-                   "recurrent", "--threads", "1", "--n-envs", str(n_envs), "--output",
-                   f"benchmarks/results/learn_throughput_cuda_{n_envs}envs.json"], timeout=900, cwd=ROOT)
+            check(
+                f"learn_throughput, {n_envs} environments",
+                [
+                    sys.executable,
+                    "benchmarks/learn_throughput.py",
+                    "--device",
+                    "cuda",
+                    "--only",
+                    "paper-conf",
+                    "recurrent",
+                    "--threads",
+                    "1",
+                    "--n-envs",
+                    str(n_envs),
+                    "--output",
+                    f"benchmarks/results/learn_throughput_cuda_{n_envs}envs.json",
+                ],
+                timeout=900,
+                cwd=ROOT,
+            )
         for concurrent in (2, 4):  # several trainings sharing the GPU, as a grid runs them
-            check(f"learn_throughput, {concurrent} trainings at once",
-                  [sys.executable, "benchmarks/learn_throughput.py", "--device", "cuda", "--only", "paper-conf",
-                   "--threads", "1", "--concurrent", str(concurrent), "--output",
-                   f"benchmarks/results/learn_throughput_cuda_x{concurrent}.json"], timeout=900, cwd=ROOT)
+            check(
+                f"learn_throughput, {concurrent} trainings at once",
+                [
+                    sys.executable,
+                    "benchmarks/learn_throughput.py",
+                    "--device",
+                    "cuda",
+                    "--only",
+                    "paper-conf",
+                    "--threads",
+                    "1",
+                    "--concurrent",
+                    str(concurrent),
+                    "--output",
+                    f"benchmarks/results/learn_throughput_cuda_x{concurrent}.json",
+                ],
+                timeout=900,
+                cwd=ROOT,
+            )
 
     passed = write_verdict(rows, args.output, argv)
     print(f"\n{passed} of {len(rows)} checks passed; logs in {logs}; verdict in {args.output}")

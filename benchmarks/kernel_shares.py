@@ -42,8 +42,7 @@ def run_one(network: str, switch: str, threads: int) -> dict:
     torch.set_num_threads(threads)
     from learn_throughput import episode_rollouts, make_model  # benchmarks/ is on sys.path
 
-    from sb3_spikeplastic.snn import _fast, layers
-    from sb3_spikeplastic.snn import cpu_settings
+    from sb3_spikeplastic.snn import _fast, cpu_settings, layers
 
     cpu_settings.keep_freed_memory()  # glibc's settings, as `train` applies them, in every variant
     if switch == "no-carried-rows":
@@ -59,8 +58,13 @@ def run_one(network: str, switch: str, threads: int) -> dict:
     start = time.perf_counter()
     model.learn(rollouts * per_rollout, reset_num_timesteps=False)
     seconds = time.perf_counter() - start
-    return dict(network=network, switch=switch, threads=threads, seconds=seconds,
-                env_steps_per_s=rollouts * per_rollout / seconds)
+    return dict(
+        network=network,
+        switch=switch,
+        threads=threads,
+        seconds=seconds,
+        env_steps_per_s=rollouts * per_rollout / seconds,
+    )
 
 
 def in_subprocess(network: str, switch: str, threads: int) -> dict:
@@ -69,8 +73,12 @@ def in_subprocess(network: str, switch: str, threads: int) -> dict:
     if switch == "no-compile":
         env["SB3_SPIKEPLASTIC_NO_COMPILE"] = "1"
     load = os.getloadavg()[0] / (os.cpu_count() or 1)
-    result = subprocess.run([sys.executable, __file__, "--one", network, switch, "--threads", str(threads)],
-                            capture_output=True, text=True, env=env)
+    result = subprocess.run(
+        [sys.executable, __file__, "--one", network, switch, "--threads", str(threads)],
+        capture_output=True,
+        text=True,
+        env=env,
+    )
     if result.returncode != 0:
         raise RuntimeError(f"{network} / {switch} failed:\n{result.stderr[-3000:]}")
     return dict(json.loads(result.stdout.strip().splitlines()[-1]), load_per_core=round(load, 2))
@@ -95,10 +103,15 @@ def main(argv=None) -> int:
             for switch in switches:
                 row = in_subprocess(network, switch, args.threads)
                 runs.setdefault((network, switch), []).append(row)
-                print(f"round {round_ + 1}: {network:8s} {switch:18s} {row['seconds']:8.1f} s "
-                      f"{row['env_steps_per_s']:8.1f} env-steps/s  load/core {row['load_per_core']:.2f}", flush=True)
-    lines = ["| network | switched off | median s | gain of the path (t off / t on - 1) | rounds (s) |",
-             "|---|---|---|---|---|"]
+                print(
+                    f"round {round_ + 1}: {network:8s} {switch:18s} {row['seconds']:8.1f} s "
+                    f"{row['env_steps_per_s']:8.1f} env-steps/s  load/core {row['load_per_core']:.2f}",
+                    flush=True,
+                )
+    lines = [
+        "| network | switched off | median s | gain of the path (t off / t on - 1) | rounds (s) |",
+        "|---|---|---|---|---|",
+    ]
     table = []
     for network in args.networks:
         reference = sorted(r["seconds"] for r in runs[(network, "all")])[(args.rounds - 1) // 2]
@@ -106,12 +119,24 @@ def main(argv=None) -> int:
             seconds = sorted(r["seconds"] for r in runs[(network, switch)])
             median = seconds[(args.rounds - 1) // 2]
             gain = median / reference - 1
-            table.append(dict(network=network, switch=switch, median_seconds=median, gain=gain,
-                              rounds=[r["seconds"] for r in runs[(network, switch)]]))
-            lines.append(f"| {network} | {switch} | {median:.1f} | {'' if switch == 'all' else f'{gain:+.1%}'} | "
-                         + ", ".join(f"{r['seconds']:.1f}" for r in runs[(network, switch)]) + " |")
+            table.append(
+                dict(
+                    network=network,
+                    switch=switch,
+                    median_seconds=median,
+                    gain=gain,
+                    rounds=[r["seconds"] for r in runs[(network, switch)]],
+                )
+            )
+            lines.append(
+                f"| {network} | {switch} | {median:.1f} | {'' if switch == 'all' else f'{gain:+.1%}'} | "
+                + ", ".join(f"{r['seconds']:.1f}" for r in runs[(network, switch)])
+                + " |"
+            )
     loads = [r["load_per_core"] for found in runs.values() for r in found]
-    note = f"\n\n{args.threads} torch threads; load per core when the runs started: {min(loads):.2f}-{max(loads):.2f}.\n"
+    note = (
+        f"\n\n{args.threads} torch threads; load per core when the runs started: {min(loads):.2f}-{max(loads):.2f}.\n"
+    )
     print("\n".join(lines) + note)
     from machine import describe_machine, write_result
 

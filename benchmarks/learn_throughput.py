@@ -27,7 +27,8 @@ warm-up rollout + update, the rollouts + updates that cover one whole episode of
 an update's cost can depend on whether its rollout holds an episode start: sb3-contrib's RecurrentPPO runs its
 LSTM one step at a time through every sequence of such an update (``_process_sequence``), ~20 times slower than
 in one call, and on HalfCheetah that is one update in 3.9 (the warm-up is always one of them). Timing whole
-episodes measures each algorithm at its long-run average. It reports env-steps/s, peak RSS, the machine's state when the row started (the CPU fraction other processes
+episodes measures each algorithm at its long-run average. It reports env-steps/s, peak RSS, the machine's state
+when the row started (the CPU fraction other processes
 used over 2 s: rows started above 0.3 are marked BUSY, and a warning says their ratios are not to be quoted; and
 the 1-minute load average per core, which still counts the previous rows' own work) and a roofline line:
 the dense multiply-adds of its networks per training env step (rollout forward + ``n_epochs`` x forward and
@@ -37,9 +38,9 @@ GFLOP/s achieved, against the machine's dense float32 matrix-product rate at the
 Usage (documented in benchmarks/README.md)::
 
     pip install -e ".[bench]"
-    python benchmarks/learn_throughput.py                      # prints a table, writes benchmarks/results/learn_throughput.json
+    python benchmarks/learn_throughput.py          # prints a table, writes benchmarks/results/learn_throughput.json
     python benchmarks/learn_throughput.py --only entry entry-recurrent --threads 1 2
-    python benchmarks/learn_throughput.py --check              # compare the spiking/RecurrentPPO ratios with the committed result
+    python benchmarks/learn_throughput.py --check  # the spiking/RecurrentPPO ratios against the committed result
     python benchmarks/learn_throughput.py --device cuda        # on the GPU (+ ndp-oja without CUDA graphs);
                                                                # writes benchmarks/results/learn_throughput_cuda.json
     python benchmarks/learn_throughput.py --device cuda --only paper-conf recurrent --n-envs 32 \
@@ -62,8 +63,16 @@ from typing import Optional
 RESULTS = Path(__file__).parent / "results" / "learn_throughput.json"
 RESULTS_CUDA = RESULTS.with_name("learn_throughput_cuda.json")  # --device cuda
 ENV_ID = "HalfCheetah-v5"
-COMMON = dict(n_steps=256, batch_size=2048, n_epochs=10, learning_rate=5e-4, gamma=0.99, gae_lambda=0.97,
-              max_grad_norm=1.0, seed=0)
+COMMON = dict(
+    n_steps=256,
+    batch_size=2048,
+    n_epochs=10,
+    learning_rate=5e-4,
+    gamma=0.99,
+    gae_lambda=0.97,
+    max_grad_norm=1.0,
+    seed=0,
+)
 LABELS = {
     "mlp": "SB3 PPO MlpPolicy",
     "recurrent": "sb3-contrib RecurrentPPO",
@@ -79,8 +88,11 @@ LABELS = {
     "paper-conf": "SpikePlastic train --conf paper (ndp-oja, tanh)",
 }
 #: (spiking row, baseline row) pairs whose throughput ratio is reported and checked
-RATIOS = {"ndp-oja / recurrent": ("ndp-oja", "recurrent"), "entry / entry-recurrent": ("entry", "entry-recurrent"),
-          "paper-conf / recurrent": ("paper-conf", "recurrent")}
+RATIOS = {
+    "ndp-oja / recurrent": ("ndp-oja", "recurrent"),
+    "entry / entry-recurrent": ("entry", "entry-recurrent"),
+    "paper-conf / recurrent": ("paper-conf", "recurrent"),
+}
 #: Rows whose number of environments ``--n-envs`` sets, keeping the transitions per update: the paper rows' 2048
 #: (``n_steps = 2048 / n_envs``, a multiple of their BPTT length 32) and ``paper.yml``'s 3000 (``n_steps`` the
 #: multiple of its BPTT length 20 nearest to ``3000 / n_envs``).
@@ -169,9 +181,15 @@ def make_model(key: str, device: str, n_envs: Optional[int] = None):
     for name in ("critic", "log_std_init"):  # the same value and critic heads as the baselines
         paper.pop(name, None)
     rule = "static" if key == "static" else "ndp-oja"
-    return PPO("SpikePlasticPolicy", env, bptt_steps=32, cuda_graphs=key != "ndp-oja-eager",
-               chunks_per_pass=32 if key == "ndp-oja-two-passes" else "auto", policy_kwargs=dict(paper, rule=rule),
-               **common)
+    return PPO(
+        "SpikePlasticPolicy",
+        env,
+        bptt_steps=32,
+        cuda_graphs=key != "ndp-oja-eager",
+        chunks_per_pass=32 if key == "ndp-oja-two-passes" else "auto",
+        policy_kwargs=dict(paper, rule=rule),
+        **common,
+    )
 
 
 def episode_rollouts(model) -> int:
@@ -200,10 +218,20 @@ def run_row(key: str, threads: int, device: str, rollouts: Optional[int], n_envs
     seconds = time.perf_counter() - start
     steps_per_s = rollouts * per_rollout / seconds
     flops = 2 * dense_macs_per_step(model) * (1 + 3 * model.n_epochs)
-    row = dict(key=key, name=LABELS[key], threads=threads, n_envs=model.n_envs, n_steps=model.n_steps,
-               timesteps=rollouts * per_rollout, seconds=seconds,
-               env_steps_per_s=steps_per_s, peak_rss_mb=peak_rss_mb(), train_flops_per_step=flops,
-               achieved_gflops=flops * steps_per_s / 1e9, matmul_gflops=matmul_gflops(device))
+    row = dict(
+        key=key,
+        name=LABELS[key],
+        threads=threads,
+        n_envs=model.n_envs,
+        n_steps=model.n_steps,
+        timesteps=rollouts * per_rollout,
+        seconds=seconds,
+        env_steps_per_s=steps_per_s,
+        peak_rss_mb=peak_rss_mb(),
+        train_flops_per_step=flops,
+        achieved_gflops=flops * steps_per_s / 1e9,
+        matmul_gflops=matmul_gflops(device),
+    )
     if getattr(model, "network_state", None) is not None:
         row["chunks_per_pass"] = model._pass_size() or model.batch_size // model.bptt_steps
         row["state_bytes_per_env"] = model.network_state.nbytes() / model.n_envs
@@ -253,8 +281,10 @@ def run_in_subprocess(key: str, threads: int, args) -> dict:
     if args.n_envs:
         command += ["--n-envs", str(args.n_envs)]
     load, others = load_per_core(), busy_fraction()
-    processes = [subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-                 for _ in range(args.concurrent)]
+    processes = [
+        subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        for _ in range(args.concurrent)
+    ]
     found = []
     for process in processes:
         stdout, stderr = process.communicate()
@@ -264,9 +294,14 @@ def run_in_subprocess(key: str, threads: int, args) -> dict:
     row = found[0]
     if args.concurrent > 1:
         each = [r["env_steps_per_s"] for r in found]
-        row = dict(row, name=f"{row['name']} x{args.concurrent}", env_steps_per_s=sum(each),
-                   env_steps_per_s_each=each, concurrent=args.concurrent,
-                   achieved_gflops=sum(r["achieved_gflops"] for r in found))
+        row = dict(
+            row,
+            name=f"{row['name']} x{args.concurrent}",
+            env_steps_per_s=sum(each),
+            env_steps_per_s_each=each,
+            concurrent=args.concurrent,
+            achieved_gflops=sum(r["achieved_gflops"] for r in found),
+        )
     return dict(row, load_per_core=round(load, 2), others_busy=round(others, 2), busy=others > BUSY_LOAD_PER_CORE)
 
 
@@ -277,15 +312,21 @@ def ratios(rows: list[dict]) -> dict:
     for row in rows:
         if row["key"] not in best or row["env_steps_per_s"] > best[row["key"]]["env_steps_per_s"]:
             best[row["key"]] = row
-    return {name: best[a]["env_steps_per_s"] / best[b]["env_steps_per_s"]
-            for name, (a, b) in RATIOS.items() if a in best and b in best}
+    return {
+        name: best[a]["env_steps_per_s"] / best[b]["env_steps_per_s"]
+        for name, (a, b) in RATIOS.items()
+        if a in best and b in best
+    }
 
 
 def print_row(row: dict) -> None:
     busy = "  BUSY" if row.get("busy") else ""
-    print(f"{row['name']:52s} {row['threads']:7d} {row['env_steps_per_s']:11.1f} {row['peak_rss_mb']:7.0f} MiB"
-          f"{row['achieved_gflops']:8.1f} {row['achieved_gflops'] / row['matmul_gflops']:8.1%} "
-          f"{row.get('others_busy', float('nan')):11.2f}{busy}", flush=True)
+    print(
+        f"{row['name']:52s} {row['threads']:7d} {row['env_steps_per_s']:11.1f} {row['peak_rss_mb']:7.0f} MiB"
+        f"{row['achieved_gflops']:8.1f} {row['achieved_gflops'] / row['matmul_gflops']:8.1%} "
+        f"{row.get('others_busy', float('nan')):11.2f}{busy}",
+        flush=True,
+    )
 
 
 def runs_flat(runs: dict) -> list[dict]:
@@ -302,21 +343,41 @@ def median_run(runs: list[dict]) -> dict:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--rollouts", type=int,
-                        help="timed rollouts+updates per row (default: one whole episode of every environment)")
-    parser.add_argument("--threads", type=int, nargs="+",
-                        help="torch thread counts to run every row at (default: 1 and the number of CPUs)")
+    parser.add_argument(
+        "--rollouts", type=int, help="timed rollouts+updates per row (default: one whole episode of every environment)"
+    )
+    parser.add_argument(
+        "--threads",
+        type=int,
+        nargs="+",
+        help="torch thread counts to run every row at (default: 1 and the number of CPUs)",
+    )
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--n-envs", type=int, help="environments of the paper rows and paper-conf (the same "
-                        "transitions per update; default: 8, paper.yml's 6)")
+    parser.add_argument(
+        "--n-envs",
+        type=int,
+        help="environments of the paper rows and paper-conf (the same "
+        "transitions per update; default: 8, paper.yml's 6)",
+    )
     parser.add_argument("--only", nargs="*", choices=list(LABELS), help="a subset of the rows")
     parser.add_argument("--output", type=Path, help=f"default: {RESULTS} ({RESULTS_CUDA.name} with --device cuda)")
-    parser.add_argument("--check", action="store_true",
-                        help="exit 1 if a spiking/RecurrentPPO ratio falls > 30%% below the committed result")
-    parser.add_argument("--repeats", type=int, default=1,
-                        help="rounds over all rows, interleaved; each row reports its median round (default 1)")
-    parser.add_argument("--concurrent", type=int, default=1,
-                        help="run each row's process this many times at once and report the sum (default 1)")
+    parser.add_argument(
+        "--check",
+        action="store_true",
+        help="exit 1 if a spiking/RecurrentPPO ratio falls > 30%% below the committed result",
+    )
+    parser.add_argument(
+        "--repeats",
+        type=int,
+        default=1,
+        help="rounds over all rows, interleaved; each row reports its median round (default 1)",
+    )
+    parser.add_argument(
+        "--concurrent",
+        type=int,
+        default=1,
+        help="run each row's process this many times at once and report the sum (default 1)",
+    )
     parser.add_argument("--row", help=argparse.SUPPRESS)  # internal: run one row in this process, print JSON
     args = parser.parse_args(argv)
     if args.repeats < 1:
@@ -338,8 +399,10 @@ def main(argv=None) -> int:
     except ImportError:
         print("sb3-contrib not installed (pip install -e '.[bench]'): RecurrentPPO rows skipped", file=sys.stderr)
         keys = [k for k in keys if "recurrent" not in k]
-    print(f"{'row':52s} {'threads':>7s} {'env-steps/s':>11s} {'peak RSS':>9s} {'GFLOP/s':>8s} {'of matmul':>9s} "
-          f"{'others busy':>11s}")
+    print(
+        f"{'row':52s} {'threads':>7s} {'env-steps/s':>11s} {'peak RSS':>9s} {'GFLOP/s':>8s} {'of matmul':>9s} "
+        f"{'others busy':>11s}"
+    )
     runs: dict[tuple[str, int], list[dict]] = {}
     for round_ in range(args.repeats):
         if args.repeats > 1:
@@ -359,20 +422,30 @@ def main(argv=None) -> int:
         print(f"{name} (each at its best thread count): {value:.3f}")
     busy = [row for row in runs_flat(runs) if row["busy"]]
     if busy:
-        print(f"WARNING: {len(busy)} of {len(runs_flat(runs))} rows started while other processes used more than "
-              f"{BUSY_LOAD_PER_CORE:.0%} of the CPU (marked BUSY): they slow the baselines more than the spiking "
-              "network; measure again on a quiet machine before quoting a ratio", file=sys.stderr)
-    result = dict(machine=describe_machine(max(threads)), settings=dict(vars(args), output=str(args.output),
-                                                                        threads=threads),
-                  rows=rows, ratios=found)
+        print(
+            f"WARNING: {len(busy)} of {len(runs_flat(runs))} rows started while other processes used more than "
+            f"{BUSY_LOAD_PER_CORE:.0%} of the CPU (marked BUSY): they slow the baselines more than the spiking "
+            "network; measure again on a quiet machine before quoting a ratio",
+            file=sys.stderr,
+        )
+    result = dict(
+        machine=describe_machine(max(threads)),
+        settings=dict(vars(args), output=str(args.output), threads=threads),
+        rows=rows,
+        ratios=found,
+    )
     if args.check:
         baseline = json.loads((RESULTS_CUDA if cuda else RESULTS).read_text()).get("ratios", {})
         failed = [name for name, value in found.items() if name in baseline and value < 0.7 * baseline[name]]
         for name in failed:
-            print(f"REGRESSION: {name} = {found[name]:.3f} vs committed {baseline[name]:.3f} "
-                  f"(allowed down to {0.7 * baseline[name]:.3f})")
+            print(
+                f"REGRESSION: {name} = {found[name]:.3f} vs committed {baseline[name]:.3f} "
+                f"(allowed down to {0.7 * baseline[name]:.3f})"
+            )
         if not failed:
-            print("ok: " + ", ".join(f"{n} {found[n]:.3f} vs committed {baseline[n]:.3f}" for n in found if n in baseline))
+            print(
+                "ok: " + ", ".join(f"{n} {found[n]:.3f} vs committed {baseline[n]:.3f}" for n in found if n in baseline)
+            )
         return 1 if failed else 0
     write_result(result, args.output)
     return 0

@@ -27,9 +27,9 @@ from pathlib import Path
 
 import torch
 from machine import describe_machine, write_result  # benchmarks/machine.py (the script's folder is on sys.path)
-from sb3_spikeplastic.snn.cpu_settings import keep_freed_memory
 
 from sb3_spikeplastic.snn.coding import ContinuousDecoder, PopulationEncoder
+from sb3_spikeplastic.snn.cpu_settings import keep_freed_memory
 from sb3_spikeplastic.snn.network import SpikingPlasticNetwork
 
 RESULTS = Path(__file__).parent / "results" / "network_forward.json"
@@ -38,9 +38,13 @@ OBS_DIMS, ACT_DIMS = 12, 6
 
 
 def paper_network(rule: str, steps: int) -> SpikingPlasticNetwork:
-    return SpikingPlasticNetwork(PopulationEncoder([-3.0] * OBS_DIMS, [3.0] * OBS_DIMS, pop_size=50),
-                                 ContinuousDecoder([-1.0] * ACT_DIMS, [1.0] * ACT_DIMS, pop_size=100),
-                                 (64, 64), steps=steps, rule=rule)
+    return SpikingPlasticNetwork(
+        PopulationEncoder([-3.0] * OBS_DIMS, [3.0] * OBS_DIMS, pop_size=50),
+        ContinuousDecoder([-1.0] * ACT_DIMS, [1.0] * ACT_DIMS, pop_size=100),
+        (64, 64),
+        steps=steps,
+        rule=rule,
+    )
 
 
 def median_time(fn, repeats: int, warmup: int) -> float:
@@ -87,8 +91,15 @@ def bench(rule: str, batch: int, steps: int, chunk: int, repeats: int, warmup: i
     forward, forward_backward, sync = workload(rule, batch, steps, chunk, device)
     fwd = median_time(lambda: (forward(), sync()), repeats, warmup)
     fb = median_time(lambda: (forward_backward(), sync()), max(3, repeats // 4), 1) / chunk
-    return dict(rule=rule, batch=batch, steps=steps, forward_ms=1e3 * fwd, forward_backward_ms=1e3 * fb,
-                forward_us_per_env=1e6 * fwd / batch, forward_backward_us_per_env=1e6 * fb / batch)
+    return dict(
+        rule=rule,
+        batch=batch,
+        steps=steps,
+        forward_ms=1e3 * fwd,
+        forward_backward_ms=1e3 * fb,
+        forward_us_per_env=1e6 * fwd / batch,
+        forward_backward_us_per_env=1e6 * fb / batch,
+    )
 
 
 def profile(args: argparse.Namespace) -> int:
@@ -119,9 +130,12 @@ def main(argv=None) -> int:
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--output", type=Path, help=f"default: {RESULTS} ({RESULTS_CUDA.name} with --device cuda)")
-    parser.add_argument("--profile", action="store_true",
-                        help="instead of timing, print torch.profiler's op table for forward+backward of the first "
-                             "rule at the largest batch and T")
+    parser.add_argument(
+        "--profile",
+        action="store_true",
+        help="instead of timing, print torch.profiler's op table for forward+backward of the first "
+        "rule at the largest batch and T",
+    )
     args = parser.parse_args(argv)
     if args.output is None:
         args.output = RESULTS_CUDA if args.device.startswith("cuda") else RESULTS
@@ -131,7 +145,10 @@ def main(argv=None) -> int:
         return profile(args)
 
     rows = []
-    header = f"{'rule':8s} {'B':>4s} {'T':>4s} | {'fwd ms/step':>11s} {'us/env':>8s} | {'fwd+bwd ms/step':>15s} {'us/env':>8s}"
+    header = (
+        f"{'rule':8s} {'B':>4s} {'T':>4s} | {'fwd ms/step':>11s} {'us/env':>8s} | "
+        f"{'fwd+bwd ms/step':>15s} {'us/env':>8s}"
+    )
     print(header)
     print("-" * len(header))
     for rule in args.rules:
@@ -139,10 +156,17 @@ def main(argv=None) -> int:
             for batch in args.batch:
                 row = bench(rule, batch, steps, args.chunk, args.repeats, args.warmup, args.device)
                 rows.append(row)
-                print(f"{rule:8s} {batch:4d} {steps:4d} | {row['forward_ms']:11.3f} {row['forward_us_per_env']:8.1f} | "
-                      f"{row['forward_backward_ms']:15.3f} {row['forward_backward_us_per_env']:8.1f}", flush=True)
-    result = dict(machine=describe_machine(args.threads), settings=dict(vars(args), output=str(args.output)),
-                  network=dict(inputs=OBS_DIMS * 50, hidden=[64, 64], outputs=ACT_DIMS * 100), rows=rows)
+                print(
+                    f"{rule:8s} {batch:4d} {steps:4d} | {row['forward_ms']:11.3f} {row['forward_us_per_env']:8.1f} | "
+                    f"{row['forward_backward_ms']:15.3f} {row['forward_backward_us_per_env']:8.1f}",
+                    flush=True,
+                )
+    result = dict(
+        machine=describe_machine(args.threads),
+        settings=dict(vars(args), output=str(args.output)),
+        network=dict(inputs=OBS_DIMS * 50, hidden=[64, 64], outputs=ACT_DIMS * 100),
+        rows=rows,
+    )
     write_result(result, args.output)
     return 0
 

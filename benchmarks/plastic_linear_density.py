@@ -51,8 +51,9 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--repeats", type=int, default=20)
-    parser.add_argument("--output", type=Path,
-                        default=Path(__file__).resolve().parent / "results" / "plastic_linear_density.json")
+    parser.add_argument(
+        "--output", type=Path, default=Path(__file__).resolve().parent / "results" / "plastic_linear_density.json"
+    )
     args = parser.parse_args(argv)
     if _fast.load_ops() is None:
         print(f"the compiled ops are unavailable: {_fast.build_error()}")
@@ -66,12 +67,15 @@ def main(argv=None) -> int:
         for density in DENSITIES:
             row = measure(density, repeats=args.repeats, **sizes)
             rows.append(row)
-            print(f"{density:8.2f} {row['spike_forward_ms']:18.2f} {row['dense_forward_ms']:7.2f} "
-                  f"{row['spike_forward_backward_ms']:18.2f} {row['dense_forward_backward_ms']:7.2f}")
+            print(
+                f"{density:8.2f} {row['spike_forward_ms']:18.2f} {row['dense_forward_ms']:7.2f} "
+                f"{row['spike_forward_backward_ms']:18.2f} {row['dense_forward_backward_ms']:7.2f}"
+            )
     finally:
         _fast.spike_density_limit(default)
-    write_result(dict(machine=describe_machine(args.threads), sizes=sizes, default_limit=default, rows=rows),
-                 args.output)
+    write_result(
+        dict(machine=describe_machine(args.threads), sizes=sizes, default_limit=default, rows=rows), args.output
+    )
     return 0
 
 

@@ -39,9 +39,9 @@ def run_row(key: str, n_envs: int, steps: int) -> dict:
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import VecNormalize
 
+    from sb3_spikeplastic.study.robustness import evaluate_robustness
     from sb3_spikeplastic.zoo.config import load_hyperparams
     from sb3_spikeplastic.zoo.validation import algorithm_class
-    from sb3_spikeplastic.study.robustness import evaluate_robustness
 
     torch.set_num_threads(1)
     h = load_hyperparams(ENV_ID, CONF[key])
@@ -51,8 +51,16 @@ def run_row(key: str, n_envs: int, steps: int) -> dict:
     model = algorithm_class(h.algo)(h.policy, env, seed=0, device="cpu", **h.model_kwargs)
 
     def evaluate(n_steps: int) -> None:
-        evaluate_robustness({key: model}, ENV_ID, "action", [0.2], n_episodes=n_envs, n_envs=n_envs,
-                            progress_bar=False, env_kwargs={"max_episode_steps": n_steps})
+        evaluate_robustness(
+            {key: model},
+            ENV_ID,
+            "action",
+            [0.2],
+            n_episodes=n_envs,
+            n_envs=n_envs,
+            progress_bar=False,
+            env_kwargs={"max_episode_steps": n_steps},
+        )
 
     evaluate(5)  # allocations, lazy compilation
     start = time.perf_counter()
@@ -60,7 +68,9 @@ def run_row(key: str, n_envs: int, steps: int) -> dict:
     seconds = time.perf_counter() - start
     # evaluate_robustness always adds sigma = 0: two cells of n_envs episodes of `steps` steps
     rate = 2 * n_envs * steps / seconds
-    return dict(model=key, n_envs=n_envs, env_steps_per_s=round(rate), protocol_minutes=round(PROTOCOL_STEPS / rate / 60, 1))
+    return dict(
+        model=key, n_envs=n_envs, env_steps_per_s=round(rate), protocol_minutes=round(PROTOCOL_STEPS / rate / 60, 1)
+    )
 
 
 def main(argv=None) -> int:
@@ -83,11 +93,18 @@ def main(argv=None) -> int:
             result = subprocess.run(command, capture_output=True, text=True)
             if result.returncode != 0:
                 raise RuntimeError(f"{key} with {n_envs} environments failed:\n{result.stderr[-3000:]}")
-            row = dict(json.loads(result.stdout.strip().splitlines()[-1]), load_per_core=round(load, 2),
-                       others_busy=round(others, 2), busy=others > BUSY_LOAD_PER_CORE)
+            row = dict(
+                json.loads(result.stdout.strip().splitlines()[-1]),
+                load_per_core=round(load, 2),
+                others_busy=round(others, 2),
+                busy=others > BUSY_LOAD_PER_CORE,
+            )
             rows.append(row)
-            print(f"{key:>9} {n_envs:>6} {row['env_steps_per_s']:>11} {row['protocol_minutes']:>9}  "
-                  f"{'BUSY ' if row['busy'] else ''}others {others:.2f}, load/core {load:.2f}", flush=True)
+            print(
+                f"{key:>9} {n_envs:>6} {row['env_steps_per_s']:>11} {row['protocol_minutes']:>9}  "
+                f"{'BUSY ' if row['busy'] else ''}others {others:.2f}, load/core {load:.2f}",
+                flush=True,
+            )
     command = " ".join(["python", "benchmarks/robustness_speed.py", *(argv if argv is not None else sys.argv[1:])])
     write_result(dict(command=command, machine=describe_machine(1), steps=args.steps, rows=rows), args.out)
     return 0

@@ -47,8 +47,10 @@ def one_row(threads: int, steps: int) -> tuple[int, float]:
 
 def run_row(threads: int, steps: int) -> float:
     """One row in a fresh process (torch's thread pool is set once per process)."""
-    code = (f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); from threads import one_row; "
-            f"n, t = one_row({threads}, {steps}); print(n / t)")
+    code = (
+        f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); from threads import one_row; "
+        f"n, t = one_row({threads}, {steps}); print(n / t)"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     return float(out.stdout.strip().splitlines()[-1])
 
@@ -65,7 +67,9 @@ def main(argv=None) -> int:
     machine = describe_machine(threads=cores)
     for _ in range(args.rounds):
         for (load, threads), rates in rows.items():
-            spinners = [subprocess.Popen([sys.executable, "-c", SPIN]) for _ in range(args.busy if load == "busy" else 0)]
+            spinners = [
+                subprocess.Popen([sys.executable, "-c", SPIN]) for _ in range(args.busy if load == "busy" else 0)
+            ]
             try:
                 rates.append(run_row(threads, args.steps))
             finally:
@@ -73,9 +77,21 @@ def main(argv=None) -> int:
                     spinner.kill()
                     spinner.wait()
             print(f"{load:5s} {threads} thread(s): {rates[-1]:.0f} env-steps/s", flush=True)
-    result = dict(machine=machine, steps=args.steps, rounds=args.rounds, busy_processes=args.busy,
-                  rows=[dict(machine_state=load, threads=threads, env_steps_per_s=round(statistics.median(r), 1),
-                             rounds=[round(x, 1) for x in r]) for (load, threads), r in rows.items()])
+    result = dict(
+        machine=machine,
+        steps=args.steps,
+        rounds=args.rounds,
+        busy_processes=args.busy,
+        rows=[
+            dict(
+                machine_state=load,
+                threads=threads,
+                env_steps_per_s=round(statistics.median(r), 1),
+                rounds=[round(x, 1) for x in r],
+            )
+            for (load, threads), r in rows.items()
+        ],
+    )
     for row in result["rows"]:
         print(f"{row['machine_state']:5s} {row['threads']} thread(s): median {row['env_steps_per_s']} env-steps/s")
     write_result(result, args.out)

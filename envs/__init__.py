@@ -75,8 +75,9 @@ def _register(env_id: str, **kwargs: Any) -> None:
 _register("TMazeCue-v0", entry_point="sb3_spikeplastic.envs.tmaze:TMazeCueEnv", kwargs={"noise": "low"})
 _register("TMazeCueNoisy-v0", entry_point="sb3_spikeplastic.envs.tmaze:TMazeCueEnv", kwargs={"noise": "high"})
 _register("TMazeReversal-v0", entry_point="sb3_spikeplastic.envs.reversal:TMazeReversalEnv", kwargs={"noise": "low"})
-_register("TMazeReversalNoisy-v0", entry_point="sb3_spikeplastic.envs.reversal:TMazeReversalEnv",
-          kwargs={"noise": "high"})
+_register(
+    "TMazeReversalNoisy-v0", entry_point="sb3_spikeplastic.envs.reversal:TMazeReversalEnv", kwargs={"noise": "high"}
+)
 _register(
     "NoisyHalfCheetah-v5",
     entry_point="sb3_spikeplastic.envs.noise:make_noisy_base_env",

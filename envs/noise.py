@@ -236,8 +236,9 @@ class FrictionNoise(_NoiseWrapper, RecordConstructorArgs):
         super().close()
 
 
-def noise_kwargs(noise_type: str, sigma: float, friction_target: str = "damping",
-                 obs_indices: Sequence[int] | None = None) -> dict[str, Any]:
+def noise_kwargs(
+    noise_type: str, sigma: float, friction_target: str = "damping", obs_indices: Sequence[int] | None = None
+) -> dict[str, Any]:
     """Arguments of :func:`make_noisy_env` that apply one noise type with standard deviation ``sigma``.
 
     :param noise_type: one of :data:`NOISE_TYPES`.

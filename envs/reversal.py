@@ -106,8 +106,9 @@ class TMazeReversalEnv(gymnasium.Env):
             raise ValueError(f"reversal_trials={reversal_trials!r} must be (first, last) trial indices")
         first, last = (_check_int("reversal_trials", t, 1) for t in window)
         if self.reversal and not first <= last < self.n_trials:
-            raise ValueError(f"reversal_trials={reversal_trials!r} must satisfy 1 <= first <= last < "
-                             f"n_trials={self.n_trials}")
+            raise ValueError(
+                f"reversal_trials={reversal_trials!r} must satisfy 1 <= first <= last < n_trials={self.n_trials}"
+            )
         self.reversal_trials = (first, last)
         self.outcome_ms = _check_int("outcome_ms", outcome_ms, 1)
         self.decision_ms = _check_int("decision_ms", decision_ms, 1)
@@ -117,7 +118,11 @@ class TMazeReversalEnv(gymnasium.Env):
         self.p_cue_event = _check_probability("p_cue_event", defaults[0] if p_cue_event is None else p_cue_event)
         self.p_cue_rest = _check_probability("p_cue_rest", defaults[1] if p_cue_rest is None else p_cue_rest)
         self.p_noise = _check_probability("p_noise", defaults[2] if p_noise is None else p_noise)
-        if isinstance(render_fps, bool) or not isinstance(render_fps, (int, float)) or not 0 < render_fps < float("inf"):
+        if (
+            isinstance(render_fps, bool)
+            or not isinstance(render_fps, (int, float))
+            or not 0 < render_fps < float("inf")
+        ):
             raise ValueError(f"render_fps={render_fps!r} must be a finite number > 0")
 
         self.frame_ms = self.outcome_ms + self.decision_ms
@@ -217,8 +222,13 @@ def _good(arm: int, r: int | None, trial: int) -> int:
     return arm ^ int(r is not None and trial >= r)
 
 
-def memoryless_rate(choose_left: Sequence[float], n_trials: int = 10, p_reward: float = 0.9, reversal: bool = True,
-                    reversal_trials: Sequence[int] = (4, 6)) -> float:
+def memoryless_rate(
+    choose_left: Sequence[float],
+    n_trials: int = 10,
+    p_reward: float = 0.9,
+    reversal: bool = True,
+    reversal_trials: Sequence[int] = (4, 6),
+) -> float:
     """Expected good-arm rate of a policy whose choice depends on the current trial's input only: it chooses left
     with probability ``choose_left[o]`` where ``o`` is the outcome shown (0: none, the first trial; 1: paid; 2: not
     paid). Exact: the distribution of the shown outcome is carried forward trial by trial."""
@@ -236,10 +246,12 @@ def memoryless_rate(choose_left: Sequence[float], n_trials: int = 10, p_reward: 
     return total / (len(hypotheses) * n_trials)
 
 
-def best_memoryless_policy(n_trials: int = 10, p_reward: float = 0.9, reversal: bool = True,
-                           reversal_trials: Sequence[int] = (4, 6)) -> tuple[tuple[float, ...], float]:
+def best_memoryless_policy(
+    n_trials: int = 10, p_reward: float = 0.9, reversal: bool = True, reversal_trials: Sequence[int] = (4, 6)
+) -> tuple[tuple[float, ...], float]:
     """The memoryless policy with the highest :func:`memoryless_rate`: ``(choose_left per shown outcome, rate)``.
     A grid of steps of 0.1, then a search along each coordinate with steps halving down to 1e-4."""
+
     def rate(policy) -> float:
         return memoryless_rate(policy, n_trials, p_reward, reversal, reversal_trials)
 
@@ -257,8 +269,14 @@ def best_memoryless_policy(n_trials: int = 10, p_reward: float = 0.9, reversal: 
     return tuple(float(v) for v in best), rate(best)
 
 
-def bayes_choice(choices: Sequence[int], outcomes: Sequence[bool], p_reward: float = 0.9, reversal: bool = True,
-                 reversal_trials: Sequence[int] = (4, 6), n_trials: int = 10) -> int:
+def bayes_choice(
+    choices: Sequence[int],
+    outcomes: Sequence[bool],
+    p_reward: float = 0.9,
+    reversal: bool = True,
+    reversal_trials: Sequence[int] = (4, 6),
+    n_trials: int = 10,
+) -> int:
     """The ideal Bayesian learner's next choice: the arm most probably good in the next trial given its earlier
     choices and their outcomes (ties: left). Greedy is optimal here: either arm's outcome tells as much about which
     arm is good, so no choice is worth making for its information."""
@@ -273,13 +291,15 @@ def bayes_choice(choices: Sequence[int], outcomes: Sequence[bool], p_reward: flo
     return LEFT if posterior[LEFT] >= posterior[RIGHT] else RIGHT
 
 
-def bayes_rate(n_trials: int = 10, p_reward: float = 0.9, reversal: bool = True,
-               reversal_trials: Sequence[int] = (4, 6)) -> float:
+def bayes_rate(
+    n_trials: int = 10, p_reward: float = 0.9, reversal: bool = True, reversal_trials: Sequence[int] = (4, 6)
+) -> float:
     """Expected good-arm rate of the ideal Bayesian learner (:func:`bayes_choice`), exact: every outcome sequence
     of every hypothesis, weighted by its probability."""
     hypotheses = _hypotheses(n_trials, reversal, reversal_trials)
     total = 0.0
     for arm, r in hypotheses:
+
         def walk(choices: list[int], outcomes: list[bool], weight: float) -> float:
             trial = len(choices)
             if trial == n_trials:
@@ -287,18 +307,26 @@ def bayes_rate(n_trials: int = 10, p_reward: float = 0.9, reversal: bool = True,
             choice = bayes_choice(choices, outcomes, p_reward, reversal, reversal_trials, n_trials)
             good = choice == _good(arm, r, trial)
             p = p_reward if good else 1.0 - p_reward
-            return (weight * good + walk([*choices, choice], [*outcomes, True], weight * p)
-                    + walk([*choices, choice], [*outcomes, False], weight * (1.0 - p)))
+            return (
+                weight * good
+                + walk([*choices, choice], [*outcomes, True], weight * p)
+                + walk([*choices, choice], [*outcomes, False], weight * (1.0 - p))
+            )
 
         total += walk([], [], 1.0)
     return total / (len(hypotheses) * n_trials)
 
 
-def reference_rates(n_trials: int = 10, p_reward: float = 0.9, reversal: bool = True,
-                    reversal_trials: Sequence[int] = (4, 6)) -> dict[str, float]:
+def reference_rates(
+    n_trials: int = 10, p_reward: float = 0.9, reversal: bool = True, reversal_trials: Sequence[int] = (4, 6)
+) -> dict[str, float]:
     """Good-arm rates (the fraction of trials whose choice is the paying arm) that bound a policy on
     :class:`TMazeReversalEnv`: random choice, an oracle that knows the arm, the best memoryless policy and the
     ideal Bayesian learner. A good-arm rate ``g`` is a reward rate of ``g p + (1 - g)(1 - p)``."""
     _, memoryless = best_memoryless_policy(n_trials, p_reward, reversal, reversal_trials)
-    return {"random": 0.5, "oracle": 1.0, "memoryless": memoryless,
-            "bayes": bayes_rate(n_trials, p_reward, reversal, reversal_trials)}
+    return {
+        "random": 0.5,
+        "oracle": 1.0,
+        "memoryless": memoryless,
+        "bayes": bayes_rate(n_trials, p_reward, reversal, reversal_trials),
+    }

@@ -130,7 +130,11 @@ class DynamicsSwitch(gymnasium.Wrapper, RecordConstructorArgs):
         max_episode_steps: int | None = None,
     ) -> None:
         RecordConstructorArgs.__init__(
-            self, kind=kind, window=window, factor_range=factor_range, target=target,
+            self,
+            kind=kind,
+            window=window,
+            factor_range=factor_range,
+            target=target,
             max_episode_steps=max_episode_steps,
         )
         super().__init__(env)
@@ -151,8 +155,10 @@ class DynamicsSwitch(gymnasium.Wrapper, RecordConstructorArgs):
         else:
             model = getattr(env.unwrapped, "model", None)
             if model is None or not hasattr(model, "dof_damping"):
-                raise ValueError(f"switch kind={kind!r} needs a MuJoCo environment (env.unwrapped.model), "
-                                 f"got {type(env.unwrapped).__name__}")
+                raise ValueError(
+                    f"switch kind={kind!r} needs a MuJoCo environment (env.unwrapped.model), "
+                    f"got {type(env.unwrapped).__name__}"
+                )
             self._model = model
             self._targets = {"actuator_gain": (0, model.nu - 1), "friction": None, "mass": (1, model.nbody - 1)}[kind]
             self._nominal = self._values().copy()
@@ -169,14 +175,21 @@ class DynamicsSwitch(gymnasium.Wrapper, RecordConstructorArgs):
         if target is None:
             return None
         if self._targets is None:
-            raise ValueError(f"switch target={target!r} does not apply to kind={self.kind!r}, which scales every "
-                             "joint's damping; accepted: None")
-        what = {"actuator_gain": "an actuator", "action_flip": "an action dimension",
-                "mass": "a body (0 is the world body)"}[self.kind]
+            raise ValueError(
+                f"switch target={target!r} does not apply to kind={self.kind!r}, which scales every "
+                "joint's damping; accepted: None"
+            )
+        what = {
+            "actuator_gain": "an actuator",
+            "action_flip": "an action dimension",
+            "mass": "a body (0 is the world body)",
+        }[self.kind]
         lo, hi = self._targets
         if not _is_int(target) or not lo <= target <= hi:
-            raise ValueError(f"switch target={target!r} is not {what} of kind={self.kind!r}; accepted: an integer "
-                             f"in [{lo}, {hi}] or None (drawn at each reset)")
+            raise ValueError(
+                f"switch target={target!r} is not {what} of kind={self.kind!r}; accepted: an integer "
+                f"in [{lo}, {hi}] or None (drawn at each reset)"
+            )
         return int(target)
 
     def _generator(self, seed: int | None) -> np.random.Generator:
@@ -186,8 +199,11 @@ class DynamicsSwitch(gymnasium.Wrapper, RecordConstructorArgs):
 
     def _values(self) -> np.ndarray:
         """The model array this kind changes (a view: writing to it changes the model)."""
-        return {"actuator_gain": self._model.actuator_gear, "friction": self._model.dof_damping,
-                "mass": self._model.body_mass}[self.kind]
+        return {
+            "actuator_gain": self._model.actuator_gear,
+            "friction": self._model.dof_damping,
+            "mass": self._model.body_mass,
+        }[self.kind]
 
     def _restore(self) -> None:
         if self._model is not None:
@@ -202,8 +218,14 @@ class DynamicsSwitch(gymnasium.Wrapper, RecordConstructorArgs):
         self.switched = True
 
     def _info(self, info: dict) -> dict:
-        info.update(switch_step=self.switch_step, switch_kind=self.kind, switch_target=self.switch_target,
-                    switch_factor=self.switch_factor, switched=self.switched, elapsed_steps=self.elapsed_steps)
+        info.update(
+            switch_step=self.switch_step,
+            switch_kind=self.kind,
+            switch_target=self.switch_target,
+            switch_factor=self.switch_factor,
+            switched=self.switched,
+            elapsed_steps=self.elapsed_steps,
+        )
         return info
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict]:
@@ -291,5 +313,11 @@ def make_switch_base_env(
     """
     spec = gymnasium.spec(base_id)
     env = load_env_creator(spec.entry_point)(**{**spec.kwargs, **env_kwargs})
-    return DynamicsSwitch(env, kind=kind, window=window, factor_range=factor_range, target=target,
-                          max_episode_steps=spec.max_episode_steps)
+    return DynamicsSwitch(
+        env,
+        kind=kind,
+        window=window,
+        factor_range=factor_range,
+        target=target,
+        max_episode_steps=spec.max_episode_steps,
+    )

@@ -172,7 +172,11 @@ class TMazeCueEnv(gymnasium.Env):
         self.action_space = spaces.Discrete(2)
         self.render_mode = render_mode
         # Real time: one frame of frame_ms per frame shown.
-        if isinstance(render_fps, bool) or not isinstance(render_fps, (int, float)) or not 0 < render_fps < float("inf"):
+        if (
+            isinstance(render_fps, bool)
+            or not isinstance(render_fps, (int, float))
+            or not 0 < render_fps < float("inf")
+        ):
             raise ValueError(f"render_fps={render_fps!r} must be a finite number > 0")
         self.metadata = {**type(self).metadata, "render_fps": float(render_fps)}
 
@@ -248,8 +252,11 @@ class TMazeCueEnv(gymnasium.Env):
         """
         if self.render_mode != "rgb_array":
             return None
-        frame = self._frames[min(self._frame, len(self._frames) - 1)] if len(self._frames) else np.zeros(
-            (self.frame_ms, self.n_inputs), dtype=np.float32)
+        frame = (
+            self._frames[min(self._frame, len(self._frames) - 1)]
+            if len(self._frames)
+            else np.zeros((self.frame_ms, self.n_inputs), dtype=np.float32)
+        )
         if self._success is None:
             colours = np.repeat(_POPULATION_COLOURS, self.neurons_per_population, axis=0)  # (n_inputs, 3)
         else:
@@ -261,8 +268,9 @@ class TMazeCueEnv(gymnasium.Env):
     @property
     def video_labels(self) -> list[tuple[float, str]]:
         """Captions of a video frame's columns, ``(centre as a fraction of the width, text)``: the populations."""
-        return [((i + 0.5) / _N_POPULATIONS, name) for i, name in enumerate(("left cue", "right cue", "decision",
-                                                                               "noise"))]
+        return [
+            ((i + 0.5) / _N_POPULATIONS, name) for i, name in enumerate(("left cue", "right cue", "decision", "noise"))
+        ]
 
     def action_masks(self) -> np.ndarray:
         """Which actions are open on the current frame, in sb3-contrib's ``MaskablePPO`` convention.
@@ -295,4 +303,3 @@ class TMazeCueEnv(gymnasium.Env):
         info = {"is_success": success, "correct_action": self.correct_action}
         terminal = np.zeros(self.observation_space.shape, dtype=np.float32)
         return terminal, 1.0 if success else -1.0, True, False, info
-

@@ -61,7 +61,9 @@ class _MovedModuleFinder(importlib.abc.MetaPathFinder, importlib.abc.Loader):
 
     def exec_module(self, module):
         # The import system returns whatever sys.modules holds under the name once this returns.
-        sys.modules[module.__name__] = importlib.import_module(f"{__name__}.{_MOVED[module.__name__.rpartition('.')[2]]}")
+        sys.modules[module.__name__] = importlib.import_module(
+            f"{__name__}.{_MOVED[module.__name__.rpartition('.')[2]]}"
+        )
 
 
 if not any(isinstance(finder, _MovedModuleFinder) for finder in sys.meta_path):

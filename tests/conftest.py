@@ -51,8 +51,12 @@ def compiled_cuda_ops(monkeypatch):
     return _built(monkeypatch, cuda=True)
 
 
-@pytest.fixture(params=["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(),
-                                                                          reason="needs a CUDA device"))])
+@pytest.fixture(
+    params=[
+        "cpu",
+        pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")),
+    ]
+)
 def device(request):
     """Every available device: ``cpu`` and, where present, ``cuda`` (a test per device)."""
     return request.param
@@ -60,8 +64,14 @@ def device(request):
 
 #: The T-maze entry shrunk to one 64-step rollout per update (2 environments x 32 steps) and 16 hidden neurons:
 #: ``--hyperparams`` of the commands that train spiking models in a second or two.
-TINY_TMAZE = ("n_envs=2", "n_steps=32", "batch_size=32", "bptt_steps=16", "n_epochs=1",
-              "policy_kwargs.hidden_sizes=[16]")
+TINY_TMAZE = (
+    "n_envs=2",
+    "n_steps=32",
+    "batch_size=32",
+    "bptt_steps=16",
+    "n_epochs=1",
+    "policy_kwargs.hidden_sizes=[16]",
+)
 
 
 @pytest.fixture(scope="session")

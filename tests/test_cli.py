@@ -16,12 +16,21 @@ import yaml
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from sb3_spikeplastic import PPO, cli
-from sb3_spikeplastic.zoo.zoo_yaml import load_hyperparams_file
 from sb3_spikeplastic.zoo.run_folder import load_model, locate_run
+from sb3_spikeplastic.zoo.zoo_yaml import load_hyperparams_file
 
-TINY_CHEETAH = ["n_envs=1", "n_steps=32", "batch_size=32", "bptt_steps=16", "n_epochs=1",
-                "policy_kwargs.hidden_sizes=[16]", "policy_kwargs.steps=10", "policy_kwargs.encoder_pop_size=8",
-                "policy_kwargs.action_pop_size=4", "env_kwargs.max_episode_steps=20"]
+TINY_CHEETAH = [
+    "n_envs=1",
+    "n_steps=32",
+    "batch_size=32",
+    "bptt_steps=16",
+    "n_epochs=1",
+    "policy_kwargs.hidden_sizes=[16]",
+    "policy_kwargs.steps=10",
+    "policy_kwargs.encoder_pop_size=8",
+    "policy_kwargs.action_pop_size=4",
+    "env_kwargs.max_episode_steps=20",
+]
 
 
 def event_accumulator(folder: Path) -> EventAccumulator:
@@ -37,26 +46,76 @@ def workdir(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def tmaze_run(workdir, tiny_tmaze):
-    argv = ["train", "--env", "TMazeCue-v0", "--rule", "ndp-oja", "-n", "128", "--seed", "3",
-            "-f", workdir / "logs", "--tensorboard-log", workdir / "tb", "--hyperparams", *tiny_tmaze,
-            "--eval-freq", "64", "--eval-episodes", "2", "--save-freq", "64", "--figure-freq", "1", "-v", "0",
-            "--no-progress"]
+    argv = [
+        "train",
+        "--env",
+        "TMazeCue-v0",
+        "--rule",
+        "ndp-oja",
+        "-n",
+        "128",
+        "--seed",
+        "3",
+        "-f",
+        workdir / "logs",
+        "--tensorboard-log",
+        workdir / "tb",
+        "--hyperparams",
+        *tiny_tmaze,
+        "--eval-freq",
+        "64",
+        "--eval-episodes",
+        "2",
+        "--save-freq",
+        "64",
+        "--figure-freq",
+        "1",
+        "-v",
+        "0",
+        "--no-progress",
+    ]
     assert cli.main([str(a) for a in argv]) == 0
     return workdir / "logs" / "ppo" / "TMazeCue-v0_1"
 
 
 @pytest.fixture(scope="module")
 def cheetah_run(workdir):
-    argv = ["train", "--env", "HalfCheetah-v5", "-n", "64", "--seed", "0", "-f", workdir / "logs",
-            "--hyperparams", *TINY_CHEETAH, "--figure-freq", "1", "-v", "0", "--no-progress"]
+    argv = [
+        "train",
+        "--env",
+        "HalfCheetah-v5",
+        "-n",
+        "64",
+        "--seed",
+        "0",
+        "-f",
+        workdir / "logs",
+        "--hyperparams",
+        *TINY_CHEETAH,
+        "--figure-freq",
+        "1",
+        "-v",
+        "0",
+        "--no-progress",
+    ]
     assert cli.main([str(a) for a in argv]) == 0
     return workdir / "logs" / "ppo" / "HalfCheetah-v5_1"
 
 
 def test_train_tmaze_run_folder(tmaze_run, workdir):
     names = {p.name for p in tmaze_run.iterdir()}
-    assert {"TMazeCue-v0.zip", "best_model.zip", "evaluations.npz", "command.txt", "progress.csv",
-            "rl_model_64_steps.zip", "rl_model_128_steps.zip", "0.monitor.csv", "1.monitor.csv", "TMazeCue-v0"} <= names
+    assert {
+        "TMazeCue-v0.zip",
+        "best_model.zip",
+        "evaluations.npz",
+        "command.txt",
+        "progress.csv",
+        "rl_model_64_steps.zip",
+        "rl_model_128_steps.zip",
+        "0.monitor.csv",
+        "1.monitor.csv",
+        "TMazeCue-v0",
+    } <= names
     assert not [n for n in names if ".tmp" in n]  # no temporary files left behind
     assert not (tmaze_run / "TMazeCue-v0" / "vecnormalize.pkl").exists()  # normalize: false
     command = (tmaze_run / "command.txt").read_text()
@@ -78,9 +137,16 @@ def test_train_tmaze_tensorboard(tmaze_run, workdir):
     assert [r.name for r in runs] == ["ppo_ndp-oja_1"]
     ea = event_accumulator(runs[0])
     scalars = ea.Tags()["scalars"]
-    for key in ("snn/layer0/spike_rate", "snn/layer1/silent_fraction", "plasticity/layer0/eta",
-                "plasticity/layer0/trace_abs_mean", "plasticity/layer0/modulation_mean", "rollout/success_rate",
-                "eval/mean_reward", "train/grad_norm"):
+    for key in (
+        "snn/layer0/spike_rate",
+        "snn/layer1/silent_fraction",
+        "plasticity/layer0/eta",
+        "plasticity/layer0/trace_abs_mean",
+        "plasticity/layer0/modulation_mean",
+        "rollout/success_rate",
+        "eval/mean_reward",
+        "train/grad_norm",
+    ):
         assert key in scalars, key
     images = ea.Images("snn/activity")
     assert [i.step for i in images] == [64, 128]  # --figure-freq 1: every rollout (2 envs x 32 steps)
@@ -93,10 +159,27 @@ def test_train_tmaze_tensorboard(tmaze_run, workdir):
 
 def test_train_env_kwargs_reach_the_environment_and_the_config(tmp_path, run_cli):
     # in subprocesses (--vec-env subproc): the env_kwargs travel with the factories
-    code, _, err = run_cli("train", "--env", "NoisyHalfCheetah-v5", "-n", "32", "--seed", "0", "-f", tmp_path,
-                           "--hyperparams", *[h for h in TINY_CHEETAH if not h.startswith("env_kwargs")],
-                           "--env-kwargs", "max_episode_steps=16", "action_noise=0.2", "-v", "0", "--no-progress",
-                           "--vec-env", "subproc")
+    code, _, err = run_cli(
+        "train",
+        "--env",
+        "NoisyHalfCheetah-v5",
+        "-n",
+        "32",
+        "--seed",
+        "0",
+        "-f",
+        tmp_path,
+        "--hyperparams",
+        *[h for h in TINY_CHEETAH if not h.startswith("env_kwargs")],
+        "--env-kwargs",
+        "max_episode_steps=16",
+        "action_noise=0.2",
+        "-v",
+        "0",
+        "--no-progress",
+        "--vec-env",
+        "subproc",
+    )
     assert code == 0, err
     run = tmp_path / "ppo" / "NoisyHalfCheetah-v5_1"
     config = load_hyperparams_file(run / "NoisyHalfCheetah-v5" / "config.yml")["NoisyHalfCheetah-v5"]
@@ -127,8 +210,9 @@ def test_evaluate(tmaze_run, cheetah_run, run_cli, tmp_path):
     energy = result["energy"]  # spikes and SynOps per environment step, input population first
     assert len(energy["spikes_per_step"]) == len(energy["synops_per_step"]) + 1 and energy["total_synops_per_step"] > 0
     assert f"{energy['total_synops_per_step']:,.0f} SynOps" in out
-    code, out, _ = run_cli("evaluate", "--model", tmaze_run / "best_model.zip", "--episodes", "2",
-                           "--stochastic", "--n-envs", "2")
+    code, out, _ = run_cli(
+        "evaluate", "--model", tmaze_run / "best_model.zip", "--episodes", "2", "--stochastic", "--n-envs", "2"
+    )
     assert code == 0 and "over 2 episodes (stochastic)" in out
     code, out, _ = run_cli("evaluate", "--run", cheetah_run, "--episodes", "2")
     assert code == 0 and "VecNormalize: " in out and "mean episode length 20.0" in out
@@ -137,9 +221,24 @@ def test_evaluate(tmaze_run, cheetah_run, run_cli, tmp_path):
 
 def test_robustness(cheetah_run, workdir, run_cli, assert_png):
     out_dir = workdir / "robustness"
-    code, out, _ = run_cli("robustness", "--models", f"a={cheetah_run}",
-                           f"b={cheetah_run / 'HalfCheetah-v5.zip'}", "--noise", "action", "--sigmas", "0.2", "0.5",
-                           "--episodes", "2", "--env-kwargs", "max_episode_steps=20", "-o", out_dir, "--no-progress")
+    code, out, _ = run_cli(
+        "robustness",
+        "--models",
+        f"a={cheetah_run}",
+        f"b={cheetah_run / 'HalfCheetah-v5.zip'}",
+        "--noise",
+        "action",
+        "--sigmas",
+        "0.2",
+        "0.5",
+        "--episodes",
+        "2",
+        "--env-kwargs",
+        "max_episode_steps=20",
+        "-o",
+        out_dir,
+        "--no-progress",
+    )
     assert code == 0
     assert "| model | noise | sigma |" in out and "| a | action | 0.5 |" in out and "| b | action | 0 |" in out
     stem = out_dir / "robustness_HalfCheetah-v5_action"
@@ -168,16 +267,24 @@ def test_inspect(tmaze_run, workdir, run_cli, assert_png):
 BAD_TRAIN = [
     (["--env", "TMazeCue-v9"], r"unknown environment id 'TMazeCue-v9'; did you mean TMazeCue-v0"),
     (["--env", "TMazeCue-v0", "--rule", "hebb"], r"unknown rule 'hebb'; accepted: static, dp-linear, dp-oja"),
-    (["--env", "TMazeCue-v0", "--hyperparams", "n_stepz=64"],
-     r"unknown hyperparameter 'n_stepz' \(did you mean 'n_steps'\?\); accepted: .*n_steps"),
-    (["--env", "TMazeCue-v0", "--hyperparams", "n_steps"],
-     r"malformed hyperparameter override 'n_steps'; expected key=value"),
+    (
+        ["--env", "TMazeCue-v0", "--hyperparams", "n_stepz=64"],
+        r"unknown hyperparameter 'n_stepz' \(did you mean 'n_steps'\?\); accepted: .*n_steps",
+    ),
+    (
+        ["--env", "TMazeCue-v0", "--hyperparams", "n_steps"],
+        r"malformed hyperparameter override 'n_steps'; expected key=value",
+    ),
     (["--env", "TMazeCue-v0", "--hyperparams", "n_steps=many"], r"n_steps='many' must be an integer"),
     (["--env", "TMazeCue-v0", "--hyperparams", "learning_rate=fast"], r"learning_rate='fast' must be a number"),
-    (["--env", "TMazeCue-v0", "--hyperparams", "policy_kwargs.hidden_sizes=[16]", "bptt_steps=32", "batch_size=48"],
-     r"invalid configuration for TMazeCue-v0: batch_size=48 \(transitions\) must be a multiple of bptt_steps=32"),
-    (["--env", "TMazeCue-v0", "--hyperparams", "env_kwargs.noise=extreme"],
-     r"invalid configuration for TMazeCue-v0: noise='extreme' is not one of \('low', 'high'\)"),
+    (
+        ["--env", "TMazeCue-v0", "--hyperparams", "policy_kwargs.hidden_sizes=[16]", "bptt_steps=32", "batch_size=48"],
+        r"invalid configuration for TMazeCue-v0: batch_size=48 \(transitions\) must be a multiple of bptt_steps=32",
+    ),
+    (
+        ["--env", "TMazeCue-v0", "--hyperparams", "env_kwargs.noise=extreme"],
+        r"invalid configuration for TMazeCue-v0: noise='extreme' is not one of \('low', 'high'\)",
+    ),
     (["--env", "TMazeCue-v0", "--conf", "missing.yml"], r"cannot read hyperparameter file 'missing.yml'"),
     (["--env", "TMazeCue-v0", "--eval-freq", "-1"], r"--eval-freq=-1 must be >= 0"),
 ]
@@ -197,22 +304,56 @@ def test_bad_train_input_exits_2_and_writes_nothing(args, message, tmp_path, run
 
 def test_bad_robustness_evaluate_and_plot_input(tmaze_run, tmp_path, run_cli):
     cases = [
-        (["robustness", "--models", f"a={tmaze_run}", "--noise", "wind", "-o", tmp_path / "r"],
-         "unknown noise type 'wind'; accepted: obs, action, friction"),
-        (["robustness", "--models", f"a={tmaze_run}", "--noise", "friction", "-o", tmp_path / "r"],
-         "friction noise cannot be applied to TMazeCue-v0"),
-        (["robustness", "--models", f"a={tmaze_run}", "--env", "HalfCheetah-v5", "--noise", "obs", "--obs-indices",
-          "3", "17", "-o", tmp_path / "r"], "obs index 17 in [3, 17] is not one of distinct integers in [0, 16]"),
-        (["robustness", "--models", f"a={tmp_path / 'nowhere'}", "--noise", "obs", "-o", tmp_path / "r"],
-         "no run folder or model file"),
-        (["robustness", "--models", f"a={tmaze_run}", "--env", "HalfCheetah-v5", "--noise", "obs", "-o",
-          tmp_path / "r"],
-         "(observations Box(0.0, 1.0, (25, 40), float32), actions Discrete(2)) does not fit HalfCheetah-v5 "
-         "(observations Box(-inf, inf, (17,), float64), actions Box(-1.0, 1.0, (6,), float32))"),
+        (
+            ["robustness", "--models", f"a={tmaze_run}", "--noise", "wind", "-o", tmp_path / "r"],
+            "unknown noise type 'wind'; accepted: obs, action, friction",
+        ),
+        (
+            ["robustness", "--models", f"a={tmaze_run}", "--noise", "friction", "-o", tmp_path / "r"],
+            "friction noise cannot be applied to TMazeCue-v0",
+        ),
+        (
+            [
+                "robustness",
+                "--models",
+                f"a={tmaze_run}",
+                "--env",
+                "HalfCheetah-v5",
+                "--noise",
+                "obs",
+                "--obs-indices",
+                "3",
+                "17",
+                "-o",
+                tmp_path / "r",
+            ],
+            "obs index 17 in [3, 17] is not one of distinct integers in [0, 16]",
+        ),
+        (
+            ["robustness", "--models", f"a={tmp_path / 'nowhere'}", "--noise", "obs", "-o", tmp_path / "r"],
+            "no run folder or model file",
+        ),
+        (
+            [
+                "robustness",
+                "--models",
+                f"a={tmaze_run}",
+                "--env",
+                "HalfCheetah-v5",
+                "--noise",
+                "obs",
+                "-o",
+                tmp_path / "r",
+            ],
+            "(observations Box(0.0, 1.0, (25, 40), float32), actions Discrete(2)) does not fit HalfCheetah-v5 "
+            "(observations Box(-inf, inf, (17,), float64), actions Box(-1.0, 1.0, (6,), float32))",
+        ),
         (["evaluate", "--run", tmaze_run, "--env", "HalfCheetah-v5"], "does not fit HalfCheetah-v5 (observations"),
         (["evaluate", "--run", tmp_path], "is not a run folder of `sb3-spikeplastic train`"),
-        (["evaluate", "--model", tmaze_run / "TMazeCue-v0.zip", "--env", "Nope-v0"],
-         "unknown environment id 'Nope-v0'"),
+        (
+            ["evaluate", "--model", tmaze_run / "TMazeCue-v0.zip", "--env", "Nope-v0"],
+            "unknown environment id 'Nope-v0'",
+        ),
         (["plot", tmp_path, "-o", tmp_path / "p.png"], "no Monitor files"),
         (["plot", tmaze_run, "--x", "hours", "-o", tmp_path / "p.png"], "unknown --x 'hours'; accepted: timesteps"),
     ]
@@ -226,26 +367,35 @@ def test_bad_robustness_evaluate_and_plot_input(tmaze_run, tmp_path, run_cli):
 
 BAD_PATHS = [
     (["train", "--env", "TMazeCue-v0", "-f", "afile/logs"], "-f/--log-folder 'afile/logs' lies under the file 'afile'"),
-    (["train", "--env", "TMazeCue-v0", "-f", "logs", "--tensorboard-log", "afile/tb"],
-     "--tensorboard-log 'afile/tb' lies under the file 'afile'"),
+    (
+        ["train", "--env", "TMazeCue-v0", "-f", "logs", "--tensorboard-log", "afile/tb"],
+        "--tensorboard-log 'afile/tb' lies under the file 'afile'",
+    ),
     (["train", "--env", "TMazeCue-v0", "-f", "afile"], "-f/--log-folder 'afile' is a file, not a folder"),
     (["evaluate", "--run", "RUN", "-o", "afile/x.json"], "-o/--output 'afile/x.json' lies under the file 'afile'"),
     (["evaluate", "--run", "RUN", "-o", "."], "-o/--output '.' is a folder, not a file"),
     (["plot", "RUN", "-o", "afile/x.png"], "-o/--output 'afile/x.png' lies under the file 'afile'"),
     (["robustness", "--models", "a=RUN", "--noise", "obs", "-o", "afile/r"], "-o/--output 'afile/r' lies under"),
     (["inspect", "--run", "RUN", "-o", "afile/figures"], "-o/--output 'afile/figures' lies under the file"),
-    (["train", "--env", "HalfCheetah-v5", "-f", "logs", "--hyperparams", "policy_kwargs.hidden_sizes=[-3]"],
-     "hidden_sizes=[-3] must be one or more positive integers"),
-    (["train", "--env", "HalfCheetah-v5", "-f", "logs", "--hyperparams", "policy_kwargs.hidden_sizes=[0]"],
-     "hidden_sizes=[0] must be one or more positive integers"),
-    (["train", "--env", "HalfCheetah-v5", "-f", "logs", "--hyperparams", "policy_kwargs.steps=0"],
-     "steps=0 must be a positive integer"),
+    (
+        ["train", "--env", "HalfCheetah-v5", "-f", "logs", "--hyperparams", "policy_kwargs.hidden_sizes=[-3]"],
+        "hidden_sizes=[-3] must be one or more positive integers",
+    ),
+    (
+        ["train", "--env", "HalfCheetah-v5", "-f", "logs", "--hyperparams", "policy_kwargs.hidden_sizes=[0]"],
+        "hidden_sizes=[0] must be one or more positive integers",
+    ),
+    (
+        ["train", "--env", "HalfCheetah-v5", "-f", "logs", "--hyperparams", "policy_kwargs.steps=0"],
+        "steps=0 must be a positive integer",
+    ),
 ]
 
 
 @pytest.mark.parametrize("argv, message", BAD_PATHS)
-def test_bad_paths_and_sizes_exit_2_before_any_work_and_write_nothing(argv, message, tmaze_run, tmp_path, run_cli,
-                                                                    monkeypatch):
+def test_bad_paths_and_sizes_exit_2_before_any_work_and_write_nothing(
+    argv, message, tmaze_run, tmp_path, run_cli, monkeypatch
+):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "afile").write_text("")
     argv = [str(tmaze_run) if a == "RUN" else a.replace("RUN", str(tmaze_run)) for a in argv]
@@ -266,8 +416,22 @@ def train_argv(tmp_path, tiny_tmaze):
     """``train_argv(n="128")``: the arguments of a quiet T-maze training of ``n`` steps into ``tmp_path / "logs"``."""
 
     def argv(n="128"):
-        return ["train", "--env", "TMazeCue-v0", "-n", n, "--seed", "0", "-f", str(tmp_path / "logs"), "-v", "0",
-                "--no-progress", "--hyperparams", *tiny_tmaze]
+        return [
+            "train",
+            "--env",
+            "TMazeCue-v0",
+            "-n",
+            n,
+            "--seed",
+            "0",
+            "-f",
+            str(tmp_path / "logs"),
+            "-v",
+            "0",
+            "--no-progress",
+            "--hyperparams",
+            *tiny_tmaze,
+        ]
 
     return argv
 
@@ -334,26 +498,55 @@ def test_console_script_smoke(tmp_path, tiny_tmaze):
     """One real run of the installed console script."""
     script = Path(sys.executable).parent / "sb3-spikeplastic"
     command = [str(script)] if script.exists() else [sys.executable, "-m", "sb3_spikeplastic.cli"]
-    command += ["train", "--env", "TMazeCue-v0", "-n", "64", "--seed", "0", "-f", "logs", "-v", "0", "--no-progress",
-                "--hyperparams", *tiny_tmaze]
-    result = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300,
-                            env={**os.environ, "MPLBACKEND": "Agg"})
+    command += [
+        "train",
+        "--env",
+        "TMazeCue-v0",
+        "-n",
+        "64",
+        "--seed",
+        "0",
+        "-f",
+        "logs",
+        "-v",
+        "0",
+        "--no-progress",
+        "--hyperparams",
+        *tiny_tmaze,
+    ]
+    result = subprocess.run(
+        command, cwd=tmp_path, capture_output=True, text=True, timeout=300, env={**os.environ, "MPLBACKEND": "Agg"}
+    )
     assert result.returncode == 0, result.stderr
     assert (tmp_path / "logs" / "ppo" / "TMazeCue-v0_1" / "TMazeCue-v0.zip").is_file()
     assert "Run folder:  logs/ppo/TMazeCue-v0_1" in result.stdout
     assert "sb3-spikeplastic evaluate --run logs/ppo/TMazeCue-v0_1" in result.stdout
 
 
-def test_train_continues_a_checkpoint_with_its_statistics_counter_and_run_options(tmaze_run, cheetah_run,
-                                                                                      workdir, run_cli):
+def test_train_continues_a_checkpoint_with_its_statistics_counter_and_run_options(
+    tmaze_run, cheetah_run, workdir, run_cli
+):
     import pickle
 
     from stable_baselines3.common.vec_env import VecNormalize
 
     # A --save-freq checkpoint of the T-maze run: its step counter and checkpoint names continue.
-    code, out, err = run_cli("train", "--env", "TMazeCue-v0", "--trained-agent",
-                             tmaze_run / "rl_model_64_steps.zip", "-n", "192", "-f",
-                             workdir / "continued", "--save-freq", "64", "-v", "0", "--no-progress")
+    code, out, err = run_cli(
+        "train",
+        "--env",
+        "TMazeCue-v0",
+        "--trained-agent",
+        tmaze_run / "rl_model_64_steps.zip",
+        "-n",
+        "192",
+        "-f",
+        workdir / "continued",
+        "--save-freq",
+        "64",
+        "-v",
+        "0",
+        "--no-progress",
+    )
     assert code == 0, err
     run = workdir / "continued" / "ppo" / "TMazeCue-v0_1"
     model = PPO.load(run / "TMazeCue-v0.zip")
@@ -370,8 +563,22 @@ def test_train_continues_a_checkpoint_with_its_statistics_counter_and_run_option
     assert (run / "evaluations.npz").is_file()
     assert out.splitlines()[0].startswith(f"Continuing {tmaze_run} from step 64 (rl_model_64_steps.zip)")
     # The final model of a normalised run: its VecNormalize statistics go on accumulating.
-    code, _, err = run_cli("train", "--env", "HalfCheetah-v5", "-i", cheetah_run, "-n", "96", "--seed", "1",
-                           "-f", workdir / "continued", "-v", "0", "--no-progress")
+    code, _, err = run_cli(
+        "train",
+        "--env",
+        "HalfCheetah-v5",
+        "-i",
+        cheetah_run,
+        "-n",
+        "96",
+        "--seed",
+        "1",
+        "-f",
+        workdir / "continued",
+        "-v",
+        "0",
+        "--no-progress",
+    )
     assert code == 0, err
     new = workdir / "continued" / "ppo" / "HalfCheetah-v5_1"
     assert PPO.load(new / "HalfCheetah-v5.zip").num_timesteps == 96
@@ -398,17 +605,21 @@ def test_default_output_is_a_summary_line_per_tenth_and_tables_at_v2(tmp_path, r
 
 
 def test_bad_hyperparameter_value_prints_nothing_before_its_error(tmp_path, run_cli):
-    code, out, err = run_cli("train", "--env", "TMazeCue-v0", "--hyperparams", "learning_rate=-0.001",
-                             "-f", tmp_path / "logs")
+    code, out, err = run_cli(
+        "train", "--env", "TMazeCue-v0", "--hyperparams", "learning_rate=-0.001", "-f", tmp_path / "logs"
+    )
     assert code == 2 and out == "" and err.count("\n") == 1 and "learning rate" in err.lower(), (out, err)
     assert not (tmp_path / "logs").exists()
 
 
-@pytest.mark.parametrize("extra, message", [
-    (["--hyperparams", "n_steps=64"], "--trained-agent continues a run with its own configuration"),
-    (["-n", "64"], "has trained 128 of n_timesteps=64 steps already; pass a larger -n"),
-    (["--env", "HalfCheetah-v5"], "was trained on TMazeCue-v0, not HalfCheetah-v5"),
-])
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--hyperparams", "n_steps=64"], "--trained-agent continues a run with its own configuration"),
+        (["-n", "64"], "has trained 128 of n_timesteps=64 steps already; pass a larger -n"),
+        (["--env", "HalfCheetah-v5"], "was trained on TMazeCue-v0, not HalfCheetah-v5"),
+    ],
+)
 def test_bad_trained_agent_exits_2_and_writes_nothing(tmaze_run, tmp_path, run_cli, extra, message):
     argv = ["train", "--env", "TMazeCue-v0", "-i", tmaze_run, "-f", tmp_path / "logs", *extra]
     if "--env" in extra:
@@ -418,12 +629,29 @@ def test_bad_trained_agent_exits_2_and_writes_nothing(tmaze_run, tmp_path, run_c
     assert not (tmp_path / "logs").exists()
 
 
-@pytest.mark.parametrize("conf, policy_class", [("mlp", "ActorCriticPolicy"),
-                                                ("ppo_lstm", "RecurrentActorCriticPolicy")])
+@pytest.mark.parametrize(
+    "conf, policy_class", [("mlp", "ActorCriticPolicy"), ("ppo_lstm", "RecurrentActorCriticPolicy")]
+)
 def test_baselines_train_and_evaluate_through_the_same_commands(conf, policy_class, tmp_path, run_cli):
     tiny = ["n_envs=1", "n_steps=32", "batch_size=32", "n_epochs=1", "env_kwargs.max_episode_steps=20"]
-    code, out, err = run_cli("train", "--env", "HalfCheetah-v5", "--conf", conf, "-n", "64", "--seed", "0",
-                             "-f", tmp_path / "logs", "--hyperparams", *tiny, "-v", "0", "--no-progress")
+    code, out, err = run_cli(
+        "train",
+        "--env",
+        "HalfCheetah-v5",
+        "--conf",
+        conf,
+        "-n",
+        "64",
+        "--seed",
+        "0",
+        "-f",
+        tmp_path / "logs",
+        "--hyperparams",
+        *tiny,
+        "-v",
+        "0",
+        "--no-progress",
+    )
     assert code == 0, err
     run = tmp_path / "logs" / "ppo" / "HalfCheetah-v5_1"
     config = load_hyperparams_file(run / "HalfCheetah-v5" / "config.yml")["HalfCheetah-v5"]
@@ -447,8 +675,27 @@ def start_training_until_a_checkpoint(logs: Path, hyperparams, **popen_kwargs):
     ``logs``, returned once its first checkpoint exists, with its run folder."""
     import time
 
-    argv = [sys.executable, "-m", "sb3_spikeplastic.cli", "train", "--env", "TMazeCue-v0", "-n", "1000000", "--seed",
-            "0", "-f", str(logs), "--save-freq", "64", "-v", "0", "--no-progress", "--hyperparams", *hyperparams]
+    argv = [
+        sys.executable,
+        "-m",
+        "sb3_spikeplastic.cli",
+        "train",
+        "--env",
+        "TMazeCue-v0",
+        "-n",
+        "1000000",
+        "--seed",
+        "0",
+        "-f",
+        str(logs),
+        "--save-freq",
+        "64",
+        "-v",
+        "0",
+        "--no-progress",
+        "--hyperparams",
+        *hyperparams,
+    ]
     process = subprocess.Popen(argv, **popen_kwargs)
     run = logs / "ppo" / "TMazeCue-v0_1"
     deadline = time.time() + 180
@@ -464,8 +711,9 @@ def test_a_killed_run_keeps_its_checkpoints_and_continues_from_them(tmp_path, ru
     import signal
 
     logs = tmp_path / "logs"
-    process, run = start_training_until_a_checkpoint(logs, tiny_tmaze, stdout=subprocess.DEVNULL,
-                                                     stderr=subprocess.DEVNULL)
+    process, run = start_training_until_a_checkpoint(
+        logs, tiny_tmaze, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
     process.send_signal(signal.SIGKILL)  # power loss: no handler runs
     process.wait()
     checkpoints = sorted(run.glob("rl_model_*_steps.zip"), key=lambda p: int(p.name.split("_")[2]))
@@ -476,8 +724,9 @@ def test_a_killed_run_keeps_its_checkpoints_and_continues_from_them(tmp_path, ru
     code, out, err = run_cli("evaluate", "--model", latest, "--episodes", "2")
     assert code == 0 and "mean return" in out, err
     steps = int(latest.name.split("_")[2])
-    code, out, err = run_cli("train", "--env", "TMazeCue-v0", "-i", run, "-n", str(steps + 64), "-f", logs,
-                             "-v", "0", "--no-progress")
+    code, out, err = run_cli(
+        "train", "--env", "TMazeCue-v0", "-i", run, "-n", str(steps + 64), "-f", logs, "-v", "0", "--no-progress"
+    )
     assert code == 0 and f"continuing from {latest.name}" in out, err
     assert PPO.load(logs / "ppo" / "TMazeCue-v0_2" / "TMazeCue-v0.zip").num_timesteps == steps + 64
 
@@ -486,8 +735,9 @@ def test_sigterm_stops_training_like_ctrl_c(tmp_path, tiny_tmaze):
     """A scheduler's time limit (SIGTERM) saves the model and writes INTERRUPTED.txt, as Ctrl-C does."""
     import signal
 
-    process, run = start_training_until_a_checkpoint(tmp_path / "logs", tiny_tmaze, stdout=subprocess.PIPE,
-                                                     stderr=subprocess.PIPE, text=True)
+    process, run = start_training_until_a_checkpoint(
+        tmp_path / "logs", tiny_tmaze, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
     try:
         process.send_signal(signal.SIGTERM)
         out, err = process.communicate(timeout=120)
@@ -538,8 +788,20 @@ def test_long_runs_checkpoint_by_default(tmp_path, run_cli, monkeypatch, tiny_tm
         return self
 
     monkeypatch.setattr(PPO, "learn", stop_at_once)
-    argv = ["train", "--env", "TMazeCue-v0", "-n", "200000", "-f", tmp_path / "logs", "-v", "0", "--no-progress",
-            "--hyperparams", *tiny_tmaze]
+    argv = [
+        "train",
+        "--env",
+        "TMazeCue-v0",
+        "-n",
+        "200000",
+        "-f",
+        tmp_path / "logs",
+        "-v",
+        "0",
+        "--no-progress",
+        "--hyperparams",
+        *tiny_tmaze,
+    ]
     assert run_cli(*argv)[0] == 0
     assert seen["callbacks"] == ["AtomicCheckpoint"] and seen["freq"] == [200000 // 10 // 2]  # 2 envs
     assert run_cli(*argv, "--save-freq", "0")[0] == 0 and seen["callbacks"] == []
@@ -566,8 +828,10 @@ def test_progress_bar_counts_the_steps_trained(tmp_path, run_cli, train_argv):
     assert code == 0 and "128/128" in err and "/100" not in err and "Done: 128 steps" in out
 
 
-@pytest.mark.parametrize("flags, terminal, shown", [([], True, True), ([], False, False), (["-P"], False, True),
-                                                    (["--no-progress"], True, False)])
+@pytest.mark.parametrize(
+    "flags, terminal, shown",
+    [([], True, True), ([], False, False), (["-P"], False, True), (["--no-progress"], True, False)],
+)
 def test_progress_bar_on_a_terminal_unless_asked(flags, terminal, shown, monkeypatch):
     seen = {}
     monkeypatch.setattr("sb3_spikeplastic.zoo.evaluation.evaluate_command", lambda **options: seen.update(options))

@@ -19,8 +19,9 @@ def test_envs_live_in_the_plugin_namespace(tmp_path):
     # outside the source tree: neither the working directory nor a PYTHONPATH entry is the checkout
     paths = [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p and Path(p).resolve() != ROOT]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(paths)}
-    out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, check=True,
-                         env=env)
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, check=True, env=env
+    )
     assert out.stdout.strip() == "None"
 
 
@@ -33,15 +34,19 @@ def _modules_after(code: str, tmp_path) -> set[str]:
 
 def test_envs_stand_alone(tmp_path):
     """The environments (and their registration) need neither torch nor Stable-Baselines3."""
-    loaded = _modules_after("import gymnasium, sb3_spikeplastic.envs; gymnasium.make('TMazeCue-v0').reset(seed=0)",
-                            tmp_path)
+    loaded = _modules_after(
+        "import gymnasium, sb3_spikeplastic.envs; gymnasium.make('TMazeCue-v0').reset(seed=0)", tmp_path
+    )
     assert "gymnasium" in loaded and "torch" not in loaded and "stable_baselines3" not in loaded
 
 
 def test_cli_help_does_not_load_torch(tmp_path):
-    loaded = _modules_after("import contextlib, io\nfrom sb3_spikeplastic.cli import main\n"
-                            "with contextlib.redirect_stdout(io.StringIO()):\n"
-                            "    assert main(['train', '--help']) == 0", tmp_path)
+    loaded = _modules_after(
+        "import contextlib, io\nfrom sb3_spikeplastic.cli import main\n"
+        "with contextlib.redirect_stdout(io.StringIO()):\n"
+        "    assert main(['train', '--help']) == 0",
+        tmp_path,
+    )
     assert "torch" not in loaded and "stable_baselines3" not in loaded
 
 
@@ -53,9 +58,16 @@ def test_public_names_load_on_first_use(tmp_path):
     from sb3_spikeplastic.snn.plasticity import PlasticityRule, available_rules, register_rule
     from sb3_spikeplastic.zoo.config import load_hyperparams
 
-    public = {"PPO": PPO, "SpikePlasticPolicy": SpikePlasticPolicy, "PlasticityRule": PlasticityRule,
-              "register_rule": register_rule, "available_rules": available_rules,
-              "load_hyperparams": load_hyperparams, "Ablation": Ablation, "ablated": ablated}
+    public = {
+        "PPO": PPO,
+        "SpikePlasticPolicy": SpikePlasticPolicy,
+        "PlasticityRule": PlasticityRule,
+        "register_rule": register_rule,
+        "available_rules": available_rules,
+        "load_hyperparams": load_hyperparams,
+        "Ablation": Ablation,
+        "ablated": ablated,
+    }
     assert sorted(sb3_spikeplastic.__all__) == sorted(public)
     for name, value in public.items():
         assert getattr(sb3_spikeplastic, name) is value, name

@@ -66,8 +66,12 @@ def test_every_module_is_in_a_layer(graph):
 def test_imports_go_down(graph):
     """The package root (its lazy public names reach every layer) counts as the top layer."""
     rank = {layer: i for i, layer in enumerate(LAYERS)} | {"root": len(LAYERS) - 1}
-    upward = [f"{a} -> {b}" for a, targets in graph.items() for b in targets
-              if layer_of(a) != "root" and rank[layer_of(b)] > rank[layer_of(a)]]
+    upward = [
+        f"{a} -> {b}"
+        for a, targets in graph.items()
+        for b in targets
+        if layer_of(a) != "root" and rank[layer_of(b)] > rank[layer_of(a)]
+    ]
     assert not upward, "imports from a lower layer into a higher one:\n" + "\n".join(sorted(upward))
 
 

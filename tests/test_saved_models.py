@@ -20,8 +20,13 @@ def test_a_spiking_tmaze_model_of_0_1_0_acts_as_before():
     obs, _ = env.reset(seed=3)
     state, start, actions = None, np.ones(1, bool), []
     for _ in range(40):
-        action, state = model.predict(obs[None], state=state, episode_start=start, deterministic=True,
-                                      action_masks=env.unwrapped.action_masks()[None])
+        action, state = model.predict(
+            obs[None],
+            state=state,
+            episode_start=start,
+            deterministic=True,
+            action_masks=env.unwrapped.action_masks()[None],
+        )
         start = np.zeros(1, bool)
         obs, _, terminated, truncated, _ = env.step(int(action[0]))
         actions.append(int(action[0]))

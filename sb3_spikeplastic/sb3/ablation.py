@@ -53,8 +53,9 @@ class Ablation:
             raise ValueError(f"unknown ablation mode {self.mode!r}; accepted: {', '.join(MODES)}")
         if self.mode == "reset-every":
             if isinstance(self.every, bool) or not isinstance(self.every, int) or self.every < 1:
-                raise ValueError(f"reset-every needs every=N, a whole number of environment steps >= 1, got "
-                                 f"{self.every!r}")
+                raise ValueError(
+                    f"reset-every needs every=N, a whole number of environment steps >= 1, got {self.every!r}"
+                )
         elif self.every is not None:
             raise ValueError(f"every={self.every!r} applies to mode 'reset-every' only, not {self.mode!r}")
 
@@ -74,8 +75,7 @@ class Ablation:
             except ValueError:
                 n = 0
             if not sep or n < 1:
-                raise ValueError(f"ablation {value!r} needs N, a whole number of environment steps >= 1: "
-                                 "reset-every:N")
+                raise ValueError(f"ablation {value!r} needs N, a whole number of environment steps >= 1: reset-every:N")
             return cls(mode, n)
         if sep or mode not in MODES:
             raise ValueError(f"unknown ablation {value!r}; accepted: {ACCEPTED}")
@@ -97,8 +97,10 @@ class Ablation:
     def check_envs(self, n_envs: int) -> None:
         """``ValueError`` where the mode cannot run on ``n_envs`` environments side by side (``shuffled``: < 2)."""
         if self.mode == "shuffled" and n_envs < 2:
-            raise ValueError(f"ablation 'shuffled' needs 2 or more environments side by side (each runs on "
-                             f"another's traces), got n_envs={n_envs}")
+            raise ValueError(
+                f"ablation 'shuffled' needs 2 or more environments side by side (each runs on "
+                f"another's traces), got n_envs={n_envs}"
+            )
 
 
 class AblatedState(NamedTuple):
@@ -139,8 +141,11 @@ def ablate(ablation: Ablation, state: NetworkState, steps: Tensor) -> NetworkSta
     if not bool(reset.any()):
         return state
     return _plastic_map(
-        lambda x: torch.where(reset.view(-1, *([1] * (x.dim() - 1))), torch.zeros((), dtype=x.dtype, device=x.device),
-                              x), state)
+        lambda x: torch.where(
+            reset.view(-1, *([1] * (x.dim() - 1))), torch.zeros((), dtype=x.dtype, device=x.device), x
+        ),
+        state,
+    )
 
 
 def check_ablation(model, ablation: Union[str, Ablation, None], n_envs: Optional[int] = None) -> Ablation:
@@ -152,8 +157,10 @@ def check_ablation(model, ablation: Union[str, Ablation, None], n_envs: Optional
     ablation = Ablation.parse(own if ablation is None else ablation)
     if ablation.active:
         if own is None:
-            raise ValueError(f"ablation {str(ablation)!r} needs a spiking plastic policy (SpikePlasticPolicy), not "
-                             f"{type(policy).__name__}")
+            raise ValueError(
+                f"ablation {str(ablation)!r} needs a spiking plastic policy (SpikePlasticPolicy), not "
+                f"{type(policy).__name__}"
+            )
         if n_envs is not None:
             ablation.check_envs(n_envs)
     return ablation

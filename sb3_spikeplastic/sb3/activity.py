@@ -11,9 +11,9 @@ from __future__ import annotations
 from typing import Optional
 
 import torch
-from torch import Tensor
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import Logger
+from torch import Tensor
 
 from ..snn.energy import synaptic_operations
 from ..snn.network import NetworkOutput, NetworkState, SpikingPlasticNetwork
@@ -117,7 +117,9 @@ class RolloutActivity:
             logger.record(f"plasticity/layer{i}/eta", rule.eta.item())
             logger.record(f"plasticity/layer{i}/alpha_abs_mean", layer.alpha.abs().mean().item())
             logger.record(f"plasticity/layer{i}/trace_abs_mean", trace.abs().mean().item())
-            logger.record(f"plasticity/layer{i}/trace_clip_fraction", (trace.abs() >= 0.99 * rule.e_max).float().mean().item())
+            logger.record(
+                f"plasticity/layer{i}/trace_clip_fraction", (trace.abs() >= 0.99 * rule.e_max).float().mean().item()
+            )
             if rule.modulated:
                 logger.record(f"plasticity/layer{i}/modulation_mean", modulation)
                 logger.record(f"plasticity/layer{i}/modulation_std", max(modulation_sq - modulation**2, 0.0) ** 0.5)

@@ -47,10 +47,25 @@ class ChunkSamples(NamedTuple):
         parts = []
         for start in range(0, self.n_chunks, chunks):
             part = slice(start, start + chunks)
-            sequences = [x[:, part] for x in (self.observations, self.actions, self.old_values, self.old_log_prob,
-                                              self.advantages, self.returns, self.episode_starts)]
-            parts.append(ChunkSamples(*sequences, self.states.select(part),
-                                      None if self.action_masks is None else self.action_masks[:, part]))
+            sequences = [
+                x[:, part]
+                for x in (
+                    self.observations,
+                    self.actions,
+                    self.old_values,
+                    self.old_log_prob,
+                    self.advantages,
+                    self.returns,
+                    self.episode_starts,
+                )
+            ]
+            parts.append(
+                ChunkSamples(
+                    *sequences,
+                    self.states.select(part),
+                    None if self.action_masks is None else self.action_masks[:, part],
+                )
+            )
         return parts
 
 
@@ -62,8 +77,17 @@ class ChunkRolloutBuffer(RolloutBuffer):
     Other parameters as :class:`~stable_baselines3.common.buffers.RolloutBuffer`.
     """
 
-    def __init__(self, buffer_size: int, observation_space, action_space, device="auto", gae_lambda=1.0, gamma=0.99,
-                 n_envs=1, chunk_len: int = 32):
+    def __init__(
+        self,
+        buffer_size: int,
+        observation_space,
+        action_space,
+        device="auto",
+        gae_lambda=1.0,
+        gamma=0.99,
+        n_envs=1,
+        chunk_len: int = 32,
+    ):
         check_chunking(chunk_len, buffer_size)
         self.chunk_len = chunk_len
         self.n_actions = int(action_space.n) if isinstance(action_space, spaces.Discrete) else 0
@@ -102,7 +126,7 @@ class ChunkRolloutBuffer(RolloutBuffer):
         offsets = np.arange(self.chunk_len)[:, None]
         order = np.random.permutation(total)
         for start in range(0, total, chunks_per_batch):
-            idx = order[start:start + chunks_per_batch]
+            idx = order[start : start + chunks_per_batch]
             times = (idx // self.n_envs)[None, :] * self.chunk_len + offsets  # (L, n)
             envs = np.broadcast_to(idx % self.n_envs, times.shape)
 
@@ -110,8 +134,13 @@ class ChunkRolloutBuffer(RolloutBuffer):
                 return self.to_torch(arr[times, envs])
 
             yield ChunkSamples(
-                take(self.observations), take(self.actions), take(self.values), take(self.log_probs),
-                take(self.advantages), take(self.returns), take(self.episode_starts),
+                take(self.observations),
+                take(self.actions),
+                take(self.values),
+                take(self.log_probs),
+                take(self.advantages),
+                take(self.returns),
+                take(self.episode_starts),
                 states.select(torch.as_tensor(idx, device=states.noise_key.device)),
                 take(self.action_masks).bool() if self.masked else None,
             )

@@ -89,8 +89,11 @@ def _generator_released_on_failure(device: torch.device) -> Iterator[None]:
 def _capture_failed(exc: Exception, what: str) -> str:
     """Warn once that a capture failed and ``what`` runs eagerly; returns the error's one-line description."""
     error = f"{type(exc).__name__}: {' '.join(str(exc).split())[:300]}"
-    warnings.warn(f"sb3_spikeplastic: CUDA-graph capture failed ({error}); {what} runs eagerly, with the same "
-                  "results, slower.", RuntimeWarning, stacklevel=3)
+    warnings.warn(
+        f"sb3_spikeplastic: CUDA-graph capture failed ({error}); {what} runs eagerly, with the same results, slower.",
+        RuntimeWarning,
+        stacklevel=3,
+    )
     return error
 
 
@@ -102,9 +105,11 @@ class _SequenceEvaluation(nn.Module):
         self.policy, self.rebuild, self.n_leaves, self.masked = policy, rebuild, n_leaves, masked
 
     def forward(self, obs: Tensor, actions: Tensor, starts: Tensor, *rest: Tensor):
-        state = self.rebuild(list(rest[:self.n_leaves]))
+        state = self.rebuild(list(rest[: self.n_leaves]))
         masks = rest[self.n_leaves] if self.masked else None
-        values, log_prob, entropy, _ = self.policy._evaluate_sequence(obs, actions, starts, state, masks, sync_free=True)
+        values, log_prob, entropy, _ = self.policy._evaluate_sequence(
+            obs, actions, starts, state, masks, sync_free=True
+        )
         return values, log_prob, entropy
 
 
@@ -124,8 +129,14 @@ class GraphedSequenceEvaluation:
         self._graphed: dict[tuple, Callable] = {}
         self.error: Optional[str] = None
 
-    def __call__(self, obs: Tensor, actions: Tensor, episode_starts: Tensor, state: NetworkState,
-                 action_masks: Optional[Tensor] = None):
+    def __call__(
+        self,
+        obs: Tensor,
+        actions: Tensor,
+        episode_starts: Tensor,
+        state: NetworkState,
+        action_masks: Optional[Tensor] = None,
+    ):
         if self.error is not None:
             return self.policy.evaluate_actions_sequence(obs, actions, episode_starts, state, action_masks)[:3]
         # The observation check waits for the device, so it runs here, before the graph.
@@ -146,8 +157,7 @@ class GraphedSequenceEvaluation:
     def _capture(self, args: tuple, rebuild, n_leaves: int, masked: bool) -> Callable:
         module = _SequenceEvaluation(self.policy, rebuild, n_leaves, masked)
         with _capturable(self.policy), _generator_released_on_failure(args[0].device):
-            return torch.cuda.make_graphed_callables(module, tuple(a.detach() for a in args),
-                                                     allow_unused_input=True)
+            return torch.cuda.make_graphed_callables(module, tuple(a.detach() for a in args), allow_unused_input=True)
 
 
 class GraphedRolloutStep:
@@ -165,14 +175,24 @@ class GraphedRolloutStep:
         self.error: Optional[str] = None
 
     @torch.no_grad()
-    def __call__(self, obs: Tensor, state: NetworkState, episode_start: Tensor, deterministic: bool = False,
-                 action_masks: Optional[Tensor] = None):
+    def __call__(
+        self,
+        obs: Tensor,
+        state: NetworkState,
+        episode_start: Tensor,
+        deterministic: bool = False,
+        action_masks: Optional[Tensor] = None,
+    ):
         if self.error is not None:
             return self.policy.step(obs, state, episode_start, deterministic, action_masks)
         obs = self.policy._preprocess(obs)  # waits for the device: outside the graph
         leaves, rebuild = flatten_state(state)
-        inputs = [obs, episode_start.to(obs.device, torch.float32), *leaves,
-                  *(() if action_masks is None else (action_masks,))]
+        inputs = [
+            obs,
+            episode_start.to(obs.device, torch.float32),
+            *leaves,
+            *(() if action_masks is None else (action_masks,)),
+        ]
         key = (tuple((t.shape, t.dtype) for t in inputs), bool(deterministic))
         entry = self._graphs.get(key)
         if entry is None:
@@ -192,7 +212,8 @@ class GraphedRolloutStep:
         obs, starts, *rest = static_inputs
         masks = rest[n_leaves] if masked else None
         actions, values, log_prob, new_state, out = self.policy._step(
-            obs, rebuild(rest[:n_leaves]), starts, deterministic, masks, sync_free=True)
+            obs, rebuild(rest[:n_leaves]), starts, deterministic, masks, sync_free=True
+        )
         # Only what rollouts use: the record is None outside monitoring.
         return actions, values, log_prob, new_state, NetworkOutput(out.action, out.rates, None, out.input_rate)
 

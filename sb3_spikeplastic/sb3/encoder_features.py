@@ -19,8 +19,11 @@ from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from ..snn.coding import PopulationEncoder, hash32
 from .policy import VECTOR_STEPS, SpikePlasticPolicy
 
-_ENCODER = {k: v.default for k, v in inspect.signature(SpikePlasticPolicy).parameters.items()
-            if k in ("encoder_pop_size", "encoder_beta", "encoder_p_min", "obs_bounds")}
+_ENCODER = {
+    k: v.default
+    for k, v in inspect.signature(SpikePlasticPolicy).parameters.items()
+    if k in ("encoder_pop_size", "encoder_beta", "encoder_p_min", "obs_bounds")
+}
 
 
 class PlaceCellFeatures(BaseFeaturesExtractor):
@@ -35,9 +38,14 @@ class PlaceCellFeatures(BaseFeaturesExtractor):
     :param obs_bounds: ``(low, high)`` of every dimension
     """
 
-    def __init__(self, observation_space: gymnasium.spaces.Box, pop_size: int = _ENCODER["encoder_pop_size"],
-                 beta: float = _ENCODER["encoder_beta"], p_min: float = _ENCODER["encoder_p_min"],
-                 obs_bounds: tuple = tuple(_ENCODER["obs_bounds"])):
+    def __init__(
+        self,
+        observation_space: gymnasium.spaces.Box,
+        pop_size: int = _ENCODER["encoder_pop_size"],
+        beta: float = _ENCODER["encoder_beta"],
+        p_min: float = _ENCODER["encoder_p_min"],
+        obs_bounds: tuple = tuple(_ENCODER["obs_bounds"]),
+    ):
         n = int(np.prod(observation_space.shape))
         super().__init__(observation_space, features_dim=n * pop_size)
         self.encoder = PopulationEncoder(np.full(n, obs_bounds[0]), np.full(n, obs_bounds[1]), pop_size, beta, p_min)
@@ -54,9 +62,15 @@ class SpikeCountFeatures(PlaceCellFeatures):
     :param steps: network steps (the spiking policy's T)
     """
 
-    def __init__(self, observation_space: gymnasium.spaces.Box, pop_size: int = _ENCODER["encoder_pop_size"],
-                 beta: float = _ENCODER["encoder_beta"], p_min: float = _ENCODER["encoder_p_min"],
-                 obs_bounds: tuple = tuple(_ENCODER["obs_bounds"]), steps: int = VECTOR_STEPS):
+    def __init__(
+        self,
+        observation_space: gymnasium.spaces.Box,
+        pop_size: int = _ENCODER["encoder_pop_size"],
+        beta: float = _ENCODER["encoder_beta"],
+        p_min: float = _ENCODER["encoder_p_min"],
+        obs_bounds: tuple = tuple(_ENCODER["obs_bounds"]),
+        steps: int = VECTOR_STEPS,
+    ):
         super().__init__(observation_space, pop_size, beta, p_min, obs_bounds)
         self.steps = int(steps)
 

@@ -21,11 +21,11 @@ from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.type_aliases import Schedule
 from torch import Tensor, nn
 
-from .ablation import AblatedState, Ablation, ablate
 from ..snn.coding import ContinuousDecoder, DiscreteDecoder, ObservationStandardizer, PopulationEncoder, RasterInput
 from ..snn.network import NetworkOutput, NetworkState, SpikingPlasticNetwork
 from ..snn.neurons import SRMParameters
 from ..snn.plasticity import get_rule_class
+from .ablation import AblatedState, Ablation, ablate
 
 MISUSE_MESSAGE = (
     "SpikePlasticPolicy is recurrent (its synapses and neurons carry state across environment steps) and needs "
@@ -35,8 +35,12 @@ MISUSE_MESSAGE = (
 
 def is_spike_raster_space(space: spaces.Space) -> bool:
     """A ``Box`` of shape ``(T, n)`` with bounds ``[0, 1]`` is taken as a spike raster (e.g. ``TMazeCue``)."""
-    return (isinstance(space, spaces.Box) and len(space.shape) == 2 and bool(np.all(space.low == 0))
-            and bool(np.all(space.high == 1)))
+    return (
+        isinstance(space, spaces.Box)
+        and len(space.shape) == 2
+        and bool(np.all(space.low == 0))
+        and bool(np.all(space.high == 1))
+    )
 
 
 #: Network steps T per environment step for vector observations when ``steps`` is not given (spike rasters: their
@@ -45,8 +49,7 @@ VECTOR_STEPS = 10
 
 #: Defaults of :class:`SpikePlasticPolicy` before the current ones. A model saved then records only the arguments
 #: its user gave, so :meth:`sb3_spikeplastic.PPO.load` rebuilds it with these (:func:`previous_defaults_filled`).
-PREVIOUS_DEFAULTS = dict(encoder_pop_size=50, encoder_beta=15.0, critic="snn", log_std_init=0.0,
-                         standardize_obs=False)
+PREVIOUS_DEFAULTS = dict(encoder_pop_size=50, encoder_beta=15.0, critic="snn", log_std_init=0.0, standardize_obs=False)
 
 
 def previous_defaults_filled(policy_kwargs: dict, observation_space: spaces.Space, action_space: spaces.Space) -> dict:
@@ -116,7 +119,8 @@ class SpikePlasticPolicy(ActorCriticPolicy):
     :param action_pop_size: output neurons per action dimension (continuous, even; paper: 100) or per action
         (discrete). ``None``: 20 for ``Box``, 1 for ``Discrete``.
     :param logit_scale_init: initial scale of the discrete decoder's logits.
-    :param w_init_gain: initial weight spread per layer (see :class:`~sb3_spikeplastic.snn.network.SpikingPlasticNetwork`).
+    :param w_init_gain: initial weight spread per layer
+        (see :class:`~sb3_spikeplastic.snn.network.SpikingPlasticNetwork`).
     :param w_init_mean: initial weight mean per layer.
     :param alpha_init_mean: initial plasticity-coefficient mean per layer (``None``: 0 for population-encoded
         observations, the rule's default for spike rasters).
@@ -183,8 +187,11 @@ class SpikePlasticPolicy(ActorCriticPolicy):
     ):
         if kwargs.pop("use_sde", False):
             raise ValueError("use_sde=True is not supported by SpikePlasticPolicy (its actions come from spike rates)")
-        if isinstance(alpha_lr_scale, bool) or not isinstance(alpha_lr_scale, (int, float)) or not (
-                0 < alpha_lr_scale < float("inf")):
+        if (
+            isinstance(alpha_lr_scale, bool)
+            or not isinstance(alpha_lr_scale, (int, float))
+            or not (0 < alpha_lr_scale < float("inf"))
+        ):
             raise ValueError(f"alpha_lr_scale={alpha_lr_scale!r} must be a positive finite number (1: no scaling)")
         if critic not in (None, "snn", "mlp"):
             raise ValueError(f"unknown critic {critic!r}; accepted: snn, mlp")
@@ -201,8 +208,10 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         if steps is not None and (isinstance(steps, bool) or int(steps) != steps or steps < 1):
             raise ValueError(f"steps={steps!r} must be a positive integer (network steps T per environment step)")
         if raster and obs_indices is not None:
-            raise ValueError("obs_indices selects dimensions of a population-encoded vector; spike-raster "
-                             "observations pass through whole")
+            raise ValueError(
+                "obs_indices selects dimensions of a population-encoded vector; spike-raster "
+                "observations pass through whole"
+            )
         if raster and steps is not None and steps != observation_space.shape[0]:
             raise ValueError(f"steps={steps} does not match the spike-raster length {observation_space.shape[0]}")
         steps = int(observation_space.shape[0] if raster else (steps or VECTOR_STEPS))
@@ -219,17 +228,30 @@ class SpikePlasticPolicy(ActorCriticPolicy):
                 alpha_init_std = 1.0 if alpha_init_std is None else alpha_init_std
         # Defaults are resolved here, so that a saved model records the values it was built with.
         self.snn_config = dict(
-            rule=rule, hidden_sizes=tuple(int(h) for h in hidden_sizes),
-            steps=steps, plastic_layers=plastic_layers,
-            neuron=neuron, e_max=e_max, plasticity_interval=plasticity_interval,
-            rule_kwargs=rule_kwargs, encoder_pop_size=encoder_pop_size, encoder_beta=encoder_beta,
-            encoder_p_min=encoder_p_min, obs_bounds=tuple(obs_bounds),
-            obs_indices=None if obs_indices is None else [int(i) for i in obs_indices], input_rms_rate=input_rms_rate,
+            rule=rule,
+            hidden_sizes=tuple(int(h) for h in hidden_sizes),
+            steps=steps,
+            plastic_layers=plastic_layers,
+            neuron=neuron,
+            e_max=e_max,
+            plasticity_interval=plasticity_interval,
+            rule_kwargs=rule_kwargs,
+            encoder_pop_size=encoder_pop_size,
+            encoder_beta=encoder_beta,
+            encoder_p_min=encoder_p_min,
+            obs_bounds=tuple(obs_bounds),
+            obs_indices=None if obs_indices is None else [int(i) for i in obs_indices],
+            input_rms_rate=input_rms_rate,
             action_pop_size=action_pop_size or (20 if isinstance(action_space, spaces.Box) else 1),
-            logit_scale_init=logit_scale_init, w_init_gain=w_init_gain,
-            w_init_mean=w_init_mean, alpha_init_mean=alpha_init_mean, alpha_init_std=alpha_init_std,
-            critic=critic or ("snn" if raster else "mlp"), critic_hidden=critic_hidden,
-            alpha_lr_scale=float(alpha_lr_scale), standardize_obs=bool(standardize_obs),
+            logit_scale_init=logit_scale_init,
+            w_init_gain=w_init_gain,
+            w_init_mean=w_init_mean,
+            alpha_init_mean=alpha_init_mean,
+            alpha_init_std=alpha_init_std,
+            critic=critic or ("snn" if raster else "mlp"),
+            critic_hidden=critic_hidden,
+            alpha_lr_scale=float(alpha_lr_scale),
+            standardize_obs=bool(standardize_obs),
         )
         super().__init__(observation_space, action_space, lr_schedule, log_std_init=log_std_init, **kwargs)
 
@@ -244,8 +266,9 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         high = np.broadcast_to(np.asarray(cfg["obs_bounds"][1], dtype=np.float64), space.shape)
         low = np.where(np.isfinite(space.low), space.low, low)
         high = np.where(np.isfinite(space.high), space.high, high)
-        return PopulationEncoder(low, high, cfg["encoder_pop_size"], cfg["encoder_beta"], cfg["encoder_p_min"],
-                                 cfg.get("obs_indices"))
+        return PopulationEncoder(
+            low, high, cfg["encoder_pop_size"], cfg["encoder_beta"], cfg["encoder_p_min"], cfg.get("obs_indices")
+        )
 
     def _make_decoder(self) -> nn.Module:
         cfg, space = self.snn_config, self.action_space
@@ -258,16 +281,30 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         try:
             neuron = SRMParameters(**cfg["neuron"])
         except TypeError:
-            raise ValueError(f"bad neuron constants {cfg['neuron']}; accepted keys: {', '.join(SRMParameters._fields)}") from None
+            raise ValueError(
+                f"bad neuron constants {cfg['neuron']}; accepted keys: {', '.join(SRMParameters._fields)}"
+            ) from None
         self.snn = SpikingPlasticNetwork(
-            self._make_encoder(), self._make_decoder(), cfg["hidden_sizes"], cfg["steps"], cfg["rule"],
-            cfg["plastic_layers"], neuron, cfg["e_max"], cfg["plasticity_interval"], cfg["rule_kwargs"],
-            cfg["w_init_gain"], cfg["w_init_mean"], cfg["alpha_init_mean"], cfg["alpha_init_std"],
+            self._make_encoder(),
+            self._make_decoder(),
+            cfg["hidden_sizes"],
+            cfg["steps"],
+            cfg["rule"],
+            cfg["plastic_layers"],
+            neuron,
+            cfg["e_max"],
+            cfg["plasticity_interval"],
+            cfg["rule_kwargs"],
+            cfg["w_init_gain"],
+            cfg["w_init_mean"],
+            cfg["alpha_init_mean"],
+            cfg["alpha_init_std"],
         )
         space = self.observation_space
         unbounded = ~(np.isfinite(space.low) & np.isfinite(space.high)).reshape(-1)
         self.obs_standardizer = ObservationStandardizer(
-            unbounded & bool(cfg.get("standardize_obs", True)) & (not is_spike_raster_space(space)))
+            unbounded & bool(cfg.get("standardize_obs", True)) & (not is_spike_raster_space(space))
+        )
         if isinstance(self.action_dist, DiagGaussianDistribution):
             self.log_std = nn.Parameter(torch.full((get_action_dim(self.action_space),), float(self.log_std_init)))
         elif not isinstance(self.action_dist, CategoricalDistribution):
@@ -278,8 +315,9 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         else:
             critic_in = int(np.prod(self.observation_space.shape))
         self.value_net = nn.Sequential(nn.Linear(critic_in, hidden), nn.Tanh(), nn.Linear(hidden, 1))
-        self.optimizer = self.optimizer_class(self._parameter_groups(lr_schedule(1)), lr=lr_schedule(1),
-                                              **self.optimizer_kwargs)
+        self.optimizer = self.optimizer_class(
+            self._parameter_groups(lr_schedule(1)), lr=lr_schedule(1), **self.optimizer_kwargs
+        )
 
     def _parameter_groups(self, lr: float) -> list[dict]:
         """The optimizer's parameter groups: the plasticity coefficients (at ``alpha_lr_scale`` times the rate,
@@ -290,8 +328,10 @@ class SpikePlasticPolicy(ActorCriticPolicy):
             # One group, as before the option existed: saved optimizers of earlier models still load.
             return [{"params": list(self.parameters())}]
         ids = {id(a) for a in alphas}
-        return [{"params": [p for p in self.parameters() if id(p) not in ids], "lr_scale": 1.0},
-                {"params": alphas, "lr": lr * scale, "lr_scale": scale}]
+        return [
+            {"params": [p for p in self.parameters() if id(p) not in ids], "lr_scale": 1.0},
+            {"params": alphas, "lr": lr * scale, "lr_scale": scale},
+        ]
 
     def resolved_arguments(self) -> dict[str, Any]:
         """The policy's own constructor arguments with the values its defaults resolved to: given back to the
@@ -300,8 +340,16 @@ class SpikePlasticPolicy(ActorCriticPolicy):
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
-        for unused in ("net_arch", "activation_fn", "ortho_init", "use_sde", "full_std", "use_expln",
-                       "squash_output", "sde_net_arch"):
+        for unused in (
+            "net_arch",
+            "activation_fn",
+            "ortho_init",
+            "use_sde",
+            "full_std",
+            "use_expln",
+            "squash_output",
+            "sde_net_arch",
+        ):
             data.pop(unused, None)
         data.update(self.snn_config)
         data["ablation"] = str(self._ablation)
@@ -343,14 +391,28 @@ class SpikePlasticPolicy(ActorCriticPolicy):
             logits = torch.where(action_masks.reshape(logits.shape).bool(), logits, torch.full_like(logits, -1e8))
         return self.action_dist.proba_distribution(action_logits=logits)
 
-    def step(self, obs: Tensor, state: NetworkState, episode_start: Tensor, deterministic: bool = False,
-             action_masks: Optional[Tensor] = None):
+    def step(
+        self,
+        obs: Tensor,
+        state: NetworkState,
+        episode_start: Tensor,
+        deterministic: bool = False,
+        action_masks: Optional[Tensor] = None,
+    ):
         """One rollout step: ``(actions, values, log_probs, new_state, network_output)`` after resetting the state
         where ``episode_start`` is 1; ``action_masks`` ``(batch, n_actions)`` (``Discrete`` only) closes actions."""
         return self._step(self._preprocess(obs), state, episode_start, deterministic, action_masks)
 
-    def _step(self, obs: Tensor, state: NetworkState, episode_start: Tensor, deterministic: bool = False,
-              action_masks: Optional[Tensor] = None, sync_free: bool = False, hold_plastic: bool = False):
+    def _step(
+        self,
+        obs: Tensor,
+        state: NetworkState,
+        episode_start: Tensor,
+        deterministic: bool = False,
+        action_masks: Optional[Tensor] = None,
+        sync_free: bool = False,
+        hold_plastic: bool = False,
+    ):
         """:meth:`step` of already preprocessed ``obs``; ``sync_free`` as in :meth:`_evaluate_sequence`,
         ``hold_plastic`` as in :meth:`~sb3_spikeplastic.snn.network.SpikingPlasticNetwork.forward`."""
         out, new_state = self.snn(obs, state.reset(episode_start, sync_free), hold_plastic=hold_plastic)
@@ -368,8 +430,14 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         out, _ = self.snn(obs, state)
         return self._value(obs, out)
 
-    def evaluate_actions_sequence(self, obs: Tensor, actions: Tensor, episode_starts: Tensor, state: NetworkState,
-                                  action_masks: Optional[Tensor] = None):
+    def evaluate_actions_sequence(
+        self,
+        obs: Tensor,
+        actions: Tensor,
+        episode_starts: Tensor,
+        state: NetworkState,
+        action_masks: Optional[Tensor] = None,
+    ):
         """Re-run sequences ``(L, batch, ...)`` from chunk-start ``state`` with truncated BPTT through the whole
         chunk (traces included), resetting where ``episode_starts`` is 1; ``action_masks`` ``(L, batch,
         n_actions)`` are the masks the rollout sampled with (``Discrete`` only).
@@ -380,13 +448,21 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         obs = self._preprocess(obs.flatten(0, 1)).view(obs.shape[0], obs.shape[1], *self.observation_space.shape)
         return self._evaluate_sequence(obs, actions, episode_starts, state, action_masks)
 
-    def _evaluate_sequence(self, obs: Tensor, actions: Tensor, episode_starts: Tensor, state: NetworkState,
-                           action_masks: Optional[Tensor], sync_free: bool = False):
+    def _evaluate_sequence(
+        self,
+        obs: Tensor,
+        actions: Tensor,
+        episode_starts: Tensor,
+        state: NetworkState,
+        action_masks: Optional[Tensor],
+        sync_free: bool = False,
+    ):
         """:meth:`evaluate_actions_sequence` of already preprocessed ``obs``; with ``sync_free`` no operation
         waits for the device (for CUDA-graph capture, :mod:`sb3_spikeplastic.sb3.cuda_graphs`)."""
         outputs, _ = self.snn.forward_sequence(obs, episode_starts, state, sync_free)
-        merged = NetworkOutput(torch.cat([o.action for o in outputs]),
-                               tuple(torch.cat(r) for r in zip(*[o.rates for o in outputs])), None)
+        merged = NetworkOutput(
+            torch.cat([o.action for o in outputs]), tuple(torch.cat(r) for r in zip(*[o.rates for o in outputs])), None
+        )
         distribution = self._distribution(merged, None if action_masks is None else action_masks.flatten(0, 1))
         flat_actions = actions.flatten(0, 1)
         if isinstance(self.action_space, spaces.Discrete):
@@ -397,7 +473,9 @@ class SpikePlasticPolicy(ActorCriticPolicy):
     def _preprocess(self, obs: Tensor) -> Tensor:
         obs = obs.float()
         if not torch.isfinite(obs).all():
-            raise ValueError("non-finite observation passed to SpikePlasticPolicy (NaN or inf); check the env or VecNormalize")
+            raise ValueError(
+                "non-finite observation passed to SpikePlasticPolicy (NaN or inf); check the env or VecNormalize"
+            )
         return self.obs_standardizer(obs) if self.obs_standardizer.active else obs
 
     def update_observation_statistics(self, observations: Union[np.ndarray, Tensor]) -> None:
@@ -414,9 +492,14 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         # stable_baselines3.PPO's rollout calls this without state: refuse instead of training silently wrong.
         raise RuntimeError(MISUSE_MESSAGE)
 
-    def predict(self, observation: np.ndarray, state: Optional[NetworkState] = None,
-                episode_start: Optional[np.ndarray] = None, deterministic: bool = False,
-                action_masks: Optional[np.ndarray] = None):
+    def predict(
+        self,
+        observation: np.ndarray,
+        state: Optional[NetworkState] = None,
+        episode_start: Optional[np.ndarray] = None,
+        deterministic: bool = False,
+        action_masks: Optional[np.ndarray] = None,
+    ):
         """Actions for ``observation`` and the next network state, as SB3's recurrent policies do.
 
         :param observation: one observation or a batch (vectorised env).
@@ -434,9 +517,17 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         n_envs = obs_tensor.shape[0]
         if state is None:
             state = self.initial_state(n_envs)
-        starts = torch.zeros(n_envs) if episode_start is None else torch.as_tensor(np.asarray(episode_start, dtype=np.float32).reshape(-1))
+        starts = (
+            torch.zeros(n_envs)
+            if episode_start is None
+            else torch.as_tensor(np.asarray(episode_start, dtype=np.float32).reshape(-1))
+        )
         with torch.no_grad():
-            masks = None if action_masks is None else torch.as_tensor(np.asarray(action_masks, dtype=bool), device=self.device)
+            masks = (
+                None
+                if action_masks is None
+                else torch.as_tensor(np.asarray(action_masks, dtype=bool), device=self.device)
+            )
             if self._ablation.active:
                 actions, state = self._ablated_step(obs_tensor, state, starts.to(self.device), deterministic, masks)
             else:
@@ -448,8 +539,14 @@ class SpikePlasticPolicy(ActorCriticPolicy):
             actions = actions.squeeze(axis=0)
         return actions, state
 
-    def _ablated_step(self, obs: Tensor, state: Union[NetworkState, AblatedState], episode_start: Tensor,
-                      deterministic: bool, action_masks: Optional[Tensor]) -> tuple[Tensor, AblatedState]:
+    def _ablated_step(
+        self,
+        obs: Tensor,
+        state: Union[NetworkState, AblatedState],
+        episode_start: Tensor,
+        deterministic: bool,
+        action_masks: Optional[Tensor],
+    ) -> tuple[Tensor, AblatedState]:
         """:meth:`predict`'s step under :attr:`ablation`: the state is reset where episodes start, then ablated
         (:func:`~sb3_spikeplastic.sb3.ablation.ablate`; ``frozen`` also drops the updates inside the step); a plain
         :class:`NetworkState` counts its steps from 0."""
@@ -459,8 +556,14 @@ class SpikePlasticPolicy(ActorCriticPolicy):
             network, steps = state, torch.zeros(obs.shape[0], dtype=torch.long, device=self.device)
         steps = torch.where(episode_start.to(steps.device) > 0, torch.zeros_like(steps), steps)
         network = ablate(self._ablation, network.reset(episode_start), steps)
-        actions, _, _, network, _ = self._step(self._preprocess(obs), network, torch.zeros_like(episode_start),
-                                               deterministic, action_masks, hold_plastic=self._ablation.holds_plastic)
+        actions, _, _, network, _ = self._step(
+            self._preprocess(obs),
+            network,
+            torch.zeros_like(episode_start),
+            deterministic,
+            action_masks,
+            hold_plastic=self._ablation.holds_plastic,
+        )
         return actions, AblatedState(network, steps + 1)
 
     def clip_actions(self, actions: np.ndarray) -> np.ndarray:

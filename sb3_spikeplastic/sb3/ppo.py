@@ -13,8 +13,8 @@ Any other policy (``MlpPolicy``...) goes through SB3's own code paths unchanged.
 
 from __future__ import annotations
 
-import math
 import contextlib
+import math
 import warnings
 from typing import Any, ClassVar, Optional, Union
 
@@ -33,12 +33,11 @@ from torch import Tensor
 from torch.nn import functional as F
 
 from ..snn.cpu_settings import spiking_cpu_settings
+from ..snn.network import NetworkState
 from .activity import RolloutActivityCallback
 from .buffers import ChunkRolloutBuffer, ChunkSamples, check_chunking
 from .cuda_graphs import GraphedRolloutStep, GraphedSequenceEvaluation
-from ..snn.network import NetworkState
 from .policy import SpikePlasticPolicy, previous_defaults_filled
-
 
 #: Accepted values of ``PPO(grad_clip=...)``.
 GRAD_CLIP_MODES = ("global", "per-parameter")
@@ -172,18 +171,39 @@ class PPO(SB3PPO):
             check_chunking(self.bptt_steps, n_steps, batch_size)
             n_chunks = batch_size // self.bptt_steps
             if chunks_per_pass not in (None, "auto") and (
-                    isinstance(chunks_per_pass, (str, bool)) or chunks_per_pass < 1 or n_chunks % chunks_per_pass):
-                raise ValueError(f"chunks_per_pass={chunks_per_pass!r} must divide the chunks per minibatch, "
-                                 f"batch_size // bptt_steps = {n_chunks}, or be None or 'auto'")
+                isinstance(chunks_per_pass, (str, bool)) or chunks_per_pass < 1 or n_chunks % chunks_per_pass
+            ):
+                raise ValueError(
+                    f"chunks_per_pass={chunks_per_pass!r} must divide the chunks per minibatch, "
+                    f"batch_size // bptt_steps = {n_chunks}, or be None or 'auto'"
+                )
         self.chunks_per_pass = chunks_per_pass if chunks_per_pass in (None, "auto") else int(chunks_per_pass)
         super().__init__(
-            policy, env, learning_rate=learning_rate, n_steps=n_steps, batch_size=batch_size, n_epochs=n_epochs,
-            gamma=gamma, gae_lambda=gae_lambda, clip_range=clip_range, clip_range_vf=clip_range_vf,
-            normalize_advantage=normalize_advantage, ent_coef=ent_coef, vf_coef=vf_coef,
-            max_grad_norm=max_grad_norm, use_sde=use_sde, sde_sample_freq=sde_sample_freq,
-            rollout_buffer_class=rollout_buffer_class, rollout_buffer_kwargs=rollout_buffer_kwargs,
-            target_kl=target_kl, stats_window_size=stats_window_size, tensorboard_log=tensorboard_log,
-            policy_kwargs=policy_kwargs, verbose=verbose, seed=seed, device=device,
+            policy,
+            env,
+            learning_rate=learning_rate,
+            n_steps=n_steps,
+            batch_size=batch_size,
+            n_epochs=n_epochs,
+            gamma=gamma,
+            gae_lambda=gae_lambda,
+            clip_range=clip_range,
+            clip_range_vf=clip_range_vf,
+            normalize_advantage=normalize_advantage,
+            ent_coef=ent_coef,
+            vf_coef=vf_coef,
+            max_grad_norm=max_grad_norm,
+            use_sde=use_sde,
+            sde_sample_freq=sde_sample_freq,
+            rollout_buffer_class=rollout_buffer_class,
+            rollout_buffer_kwargs=rollout_buffer_kwargs,
+            target_kl=target_kl,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            policy_kwargs=policy_kwargs,
+            verbose=verbose,
+            seed=seed,
+            device=device,
             _init_setup_model=False,
         )
         self.use_action_masks = bool(use_action_masks)
@@ -197,8 +217,9 @@ class PPO(SB3PPO):
             self._setup_model()
 
     @classmethod
-    def load(cls, path, env=None, device="auto", custom_objects=None, print_system_info=False, force_reset=True,
-             **kwargs):
+    def load(
+        cls, path, env=None, device="auto", custom_objects=None, print_system_info=False, force_reset=True, **kwargs
+    ):
         """SB3's ``load``; a spiking model saved before its ``policy_kwargs`` recorded every resolved argument
         is rebuilt with the defaults of its time (:func:`~sb3_spikeplastic.sb3.policy.previous_defaults_filled`)."""
         custom_objects = dict(custom_objects or {})
@@ -209,12 +230,23 @@ class PPO(SB3PPO):
                 path.seek(start)
             policy_class = (data or {}).get("policy_class")
             saved = (data or {}).get("policy_kwargs") or {}
-            if isinstance(policy_class, type) and issubclass(policy_class, SpikePlasticPolicy) and (
-                    "standardize_obs" not in saved):
-                custom_objects["policy_kwargs"] = previous_defaults_filled(saved, data["observation_space"],
-                                                                           data["action_space"])
-        return super().load(path, env=env, device=device, custom_objects=custom_objects,
-                            print_system_info=print_system_info, force_reset=force_reset, **kwargs)
+            if (
+                isinstance(policy_class, type)
+                and issubclass(policy_class, SpikePlasticPolicy)
+                and ("standardize_obs" not in saved)
+            ):
+                custom_objects["policy_kwargs"] = previous_defaults_filled(
+                    saved, data["observation_space"], data["action_space"]
+                )
+        return super().load(
+            path,
+            env=env,
+            device=device,
+            custom_objects=custom_objects,
+            print_system_info=print_system_info,
+            force_reset=force_reset,
+            **kwargs,
+        )
 
     @property
     def network_state(self) -> Optional[NetworkState]:
@@ -228,13 +260,17 @@ class PPO(SB3PPO):
 
     def _check_action_masks(self) -> None:
         if not self.recurrent:
-            raise ValueError("use_action_masks=True needs a recurrent SpikePlasticPolicy; for feed-forward policies "
-                             "use sb3-contrib's MaskablePPO")
+            raise ValueError(
+                "use_action_masks=True needs a recurrent SpikePlasticPolicy; for feed-forward policies "
+                "use sb3-contrib's MaskablePPO"
+            )
         if not isinstance(self.action_space, spaces.Discrete):
             raise ValueError(f"use_action_masks=True needs Discrete actions, got {self.action_space}")
         if self.env is not None and not self.env.has_attr("action_masks"):
-            raise ValueError("use_action_masks=True but the environment has no action_masks() method "
-                             "(sb3-contrib MaskablePPO's convention)")
+            raise ValueError(
+                "use_action_masks=True but the environment has no action_masks() method "
+                "(sb3-contrib MaskablePPO's convention)"
+            )
 
     def _setup_model(self) -> None:
         if self.recurrent:
@@ -257,7 +293,6 @@ class PPO(SB3PPO):
         if self.recurrent:
             from stable_baselines3.common.callbacks import ConvertCallback
 
-
             if callback is not None and not isinstance(callback, (list, BaseCallback)):
                 callback = ConvertCallback(callback)  # a plain function, as SB3 accepts
             given = [] if callback is None else callback if isinstance(callback, list) else [callback]
@@ -266,8 +301,14 @@ class PPO(SB3PPO):
 
     def _excluded_save_params(self) -> list[str]:
         # The rollout state belongs to the running environments, not to the model.
-        return [*super()._excluded_save_params(), "_last_network_state", "_graphed_evaluation",
-                "_graphed_step", "_skipped_steps", "_warned_nonfinite"]
+        return [
+            *super()._excluded_save_params(),
+            "_last_network_state",
+            "_graphed_evaluation",
+            "_graphed_step",
+            "_skipped_steps",
+            "_warned_nonfinite",
+        ]
 
     def _training_evaluation(self):
         """``(obs, actions, starts, states, masks) -> (values, log_prob, entropy)`` for the update: CUDA graphs
@@ -286,29 +327,52 @@ class PPO(SB3PPO):
             return self._graphed_step
         return self.policy.step
 
-    def predict(self, observation, state=None, episode_start=None, deterministic: bool = False,
-                action_masks: Optional[np.ndarray] = None):
+    def predict(
+        self,
+        observation,
+        state=None,
+        episode_start=None,
+        deterministic: bool = False,
+        action_masks: Optional[np.ndarray] = None,
+    ):
         """SB3's ``predict``, plus ``action_masks`` ``(n_envs, n_actions)`` as in sb3-contrib's ``MaskablePPO``
         (recurrent :class:`SpikePlasticPolicy` and ``Discrete`` actions only)."""
         if action_masks is None:
             return super().predict(observation, state, episode_start, deterministic)
         if not self.recurrent:
-            raise ValueError("action_masks needs a recurrent SpikePlasticPolicy; for feed-forward policies use "
-                             "sb3-contrib's MaskablePPO")
+            raise ValueError(
+                "action_masks needs a recurrent SpikePlasticPolicy; for feed-forward policies use "
+                "sb3-contrib's MaskablePPO"
+            )
         return self.policy.predict(observation, state, episode_start, deterministic, action_masks=action_masks)
 
-    def learn(self, total_timesteps: int, callback=None, log_interval: int = 1, tb_log_name: str = "PPO",
-              reset_num_timesteps: bool = True, progress_bar: bool = False):
+    def learn(
+        self,
+        total_timesteps: int,
+        callback=None,
+        log_interval: int = 1,
+        tb_log_name: str = "PPO",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ):
         """SB3's ``learn``. A policy's plasticity ablation (``policy.ablation``) applies to ``predict`` only (and so to
         ``EvalCallback``'s evaluations): rollouts and updates run the network unablated, and a line says so."""
         ablation = getattr(self.policy, "ablation", None)
         if ablation is not None and ablation.active:
-            warnings.warn(f"policy.ablation={str(ablation)!r} is ignored by learn(): rollouts and updates run the "
-                          "network unablated (predict() and EvalCallback apply it)", stacklevel=2)
+            warnings.warn(
+                f"policy.ablation={str(ablation)!r} is ignored by learn(): rollouts and updates run the "
+                "network unablated (predict() and EvalCallback apply it)",
+                stacklevel=2,
+            )
         with self.cpu_settings(training=True):
-            return super().learn(total_timesteps, callback=callback, log_interval=log_interval,
-                                 tb_log_name=tb_log_name, reset_num_timesteps=reset_num_timesteps,
-                                 progress_bar=progress_bar)
+            return super().learn(
+                total_timesteps,
+                callback=callback,
+                log_interval=log_interval,
+                tb_log_name=tb_log_name,
+                reset_num_timesteps=reset_num_timesteps,
+                progress_bar=progress_bar,
+            )
 
     def cpu_settings(self, training: bool = False):
         """The CPU settings this model runs under (a context manager; nothing for feed-forward policies):
@@ -318,7 +382,8 @@ class PPO(SB3PPO):
             return contextlib.nullcontext()
         return spiking_cpu_settings(
             flush_denormal=getattr(self, "flush_denormal", True),
-            cache_blocks=training and self.device.type == "cpu" and getattr(self, "keep_freed_memory", True))
+            cache_blocks=training and self.device.type == "cpu" and getattr(self, "keep_freed_memory", True),
+        )
 
     def save(self, path, exclude=None, include=None) -> None:
         """SB3's ``save``; a spiking policy's ``ablation`` (if any) goes into the saved ``policy_kwargs``, so that
@@ -332,8 +397,9 @@ class PPO(SB3PPO):
 
     # --------------------------------------------------------------------------------------------------------------
 
-    def collect_rollouts(self, env: VecEnv, callback: BaseCallback, rollout_buffer: RolloutBuffer,
-                         n_rollout_steps: int) -> bool:
+    def collect_rollouts(
+        self, env: VecEnv, callback: BaseCallback, rollout_buffer: RolloutBuffer, n_rollout_steps: int
+    ) -> bool:
         if not self.recurrent:
             return super().collect_rollouts(env, callback, rollout_buffer, n_rollout_steps)
         assert self._last_obs is not None, "No previous observation was provided"
@@ -355,7 +421,11 @@ class PPO(SB3PPO):
                 starts = torch.as_tensor(self._last_episode_starts, dtype=torch.float32, device=self.device)
                 masks = np.stack(env.env_method("action_masks")) if self.use_action_masks else None
                 actions, values, log_probs, state, out = step(
-                    obs_tensor, state, starts, action_masks=None if masks is None else torch.as_tensor(masks, device=self.device))
+                    obs_tensor,
+                    state,
+                    starts,
+                    action_masks=None if masks is None else torch.as_tensor(masks, device=self.device),
+                )
             actions = actions.cpu().numpy()
             new_obs, rewards, dones, infos = env.step(self.policy.clip_actions(actions))
             self.num_timesteps += env.num_envs
@@ -368,21 +438,28 @@ class PPO(SB3PPO):
             if isinstance(self.action_space, spaces.Discrete):
                 actions = actions.reshape(-1, 1)
             for idx, done in enumerate(dones):
-                if done and infos[idx].get("terminal_observation") is not None and infos[idx].get("TimeLimit.truncated", False):
+                if (
+                    done
+                    and infos[idx].get("terminal_observation") is not None
+                    and infos[idx].get("TimeLimit.truncated", False)
+                ):
                     terminal_obs = self.policy.obs_to_tensor(infos[idx]["terminal_observation"])[0]
                     with torch.no_grad():
                         # The post-step state of this env, before the reset the next step will apply.
                         terminal_value = self.policy.value_with_state(terminal_obs, state.select([idx]))[0]
                     rewards[idx] += self.gamma * terminal_value.item()
-            rollout_buffer.add(self._last_obs, actions, rewards, self._last_episode_starts, values, log_probs,
-                               action_masks=masks)
+            rollout_buffer.add(
+                self._last_obs, actions, rewards, self._last_episode_starts, values, log_probs, action_masks=masks
+            )
             self._last_obs = new_obs
             self._last_episode_starts = dones
         self._last_network_state = state
         with torch.no_grad():
             last_values = self.policy.value_with_state(
-                obs_as_tensor(new_obs, self.device), state,
-                torch.as_tensor(dones, dtype=torch.float32, device=self.device))
+                obs_as_tensor(new_obs, self.device),
+                state,
+                torch.as_tensor(dones, dtype=torch.float32, device=self.device),
+            )
         rollout_buffer.compute_returns_and_advantage(last_values=last_values, dones=dones)
         callback.update_locals(locals())  # `out` and `state` reach the callbacks (RolloutActivityCallback)
         callback.on_rollout_end()
@@ -405,12 +482,19 @@ class PPO(SB3PPO):
                 p.grad.mul_(torch.clamp(self.max_grad_norm / (norm + 1e-6), max=1.0))
         return total
 
-    def _minibatch_losses(self, batch: ChunkSamples, evaluate, clip_range: float, clip_range_vf: Optional[float],
-                          advantage_stats: Optional[tuple[Tensor, Tensor]] = None) -> tuple[Tensor, dict[str, float]]:
+    def _minibatch_losses(
+        self,
+        batch: ChunkSamples,
+        evaluate,
+        clip_range: float,
+        clip_range_vf: Optional[float],
+        advantage_stats: Optional[tuple[Tensor, Tensor]] = None,
+    ) -> tuple[Tensor, dict[str, float]]:
         """PPO's loss on one minibatch of chunks (or one part of it: ``advantage_stats`` are then the whole
         minibatch's advantage mean and standard deviation) and its statistics (as floats)."""
         values, log_prob, entropy = evaluate(
-            batch.observations, batch.actions, batch.episode_starts, batch.states, batch.action_masks)
+            batch.observations, batch.actions, batch.episode_starts, batch.states, batch.action_masks
+        )
         values = values.flatten()
         advantages = batch.advantages.flatten()
         old_log_prob = batch.old_log_prob.flatten()
@@ -418,8 +502,9 @@ class PPO(SB3PPO):
         if self.normalize_advantage and advantage_stats is not None:
             advantages = (advantages - advantage_stats[0]) / (advantage_stats[1] + 1e-8)
         ratio = torch.exp(log_prob - old_log_prob)
-        policy_loss = -torch.min(advantages * ratio,
-                                 advantages * torch.clamp(ratio, 1 - clip_range, 1 + clip_range)).mean()
+        policy_loss = -torch.min(
+            advantages * ratio, advantages * torch.clamp(ratio, 1 - clip_range, 1 + clip_range)
+        ).mean()
         if clip_range_vf is None:
             values_pred = values
         else:
@@ -430,9 +515,13 @@ class PPO(SB3PPO):
         with torch.no_grad():
             log_ratio = log_prob - old_log_prob
             approx_kl_div = torch.mean((torch.exp(log_ratio) - 1) - log_ratio)
-        stats = dict(policy_loss=policy_loss.item(), value_loss=value_loss.item(), entropy_loss=entropy_loss.item(),
-                     clip_fraction=torch.mean((torch.abs(ratio - 1) > clip_range).float()).item(),
-                     approx_kl=approx_kl_div.item())
+        stats = dict(
+            policy_loss=policy_loss.item(),
+            value_loss=value_loss.item(),
+            entropy_loss=entropy_loss.item(),
+            clip_fraction=torch.mean((torch.abs(ratio - 1) > clip_range).float()).item(),
+            approx_kl=approx_kl_div.item(),
+        )
         return loss, stats
 
     def _update_learning_rate(self, optimizers) -> None:
@@ -456,8 +545,9 @@ class PPO(SB3PPO):
         largest = max(fitting, default=1)
         return None if largest == n_chunks else largest
 
-    def _update_minibatch(self, batch: ChunkSamples, evaluate, clip_range: float,
-                          clip_range_vf: Optional[float]) -> tuple[dict[str, float], bool]:
+    def _update_minibatch(
+        self, batch: ChunkSamples, evaluate, clip_range: float, clip_range_vf: Optional[float]
+    ) -> tuple[dict[str, float], bool]:
         """One gradient step on one minibatch: its statistics, and ``False`` (no step taken) when the KL early
         stop triggers.
 
@@ -501,7 +591,9 @@ class PPO(SB3PPO):
                 warnings.warn(
                     "non-finite gradient norm: the update step was skipped (counted in train/skipped_steps). "
                     "With plastic layers this usually means the trace's Hebbian loop is self-exciting "
-                    "(alpha_init_mean too large for the layer) or bptt_steps is too long.", RuntimeWarning)
+                    "(alpha_init_mean too large for the layer) or bptt_steps is too long.",
+                    RuntimeWarning,
+                )
             return stats, True
         stats["grad_norm"] = grad_norm
         self.policy.optimizer.step()
@@ -514,8 +606,9 @@ class PPO(SB3PPO):
         self._update_learning_rate(self.policy.optimizer)
         clip_range = self.clip_range(self._current_progress_remaining)
         clip_range_vf = None if self.clip_range_vf is None else self.clip_range_vf(self._current_progress_remaining)
-        history: dict[str, list[float]] = {k: [] for k in ("policy_loss", "value_loss", "entropy_loss",
-                                                            "clip_fraction", "grad_norm", "loss")}
+        history: dict[str, list[float]] = {
+            k: [] for k in ("policy_loss", "value_loss", "entropy_loss", "clip_fraction", "grad_norm", "loss")
+        }
         approx_kl_divs: list[float] = []
         continue_training = True
         evaluate = self._training_evaluation()

@@ -89,8 +89,9 @@ class CounterBernoulli:
         """Spikes ``(batch, steps, n)`` with per-neuron probability ``p`` of shape ``(batch, n)``.
 
         On CPU the compiled sampler of :mod:`sb3_spikeplastic.snn._fast` (bit-identical, one pass), else eager."""
-        return _fast.dispatch(_fast.BERNOULLI_SPIKES, _bernoulli_eager, p, keys,
-                              self.index_hash(steps, p.shape[-1], keys.device))
+        return _fast.dispatch(
+            _fast.BERNOULLI_SPIKES, _bernoulli_eager, p, keys, self.index_hash(steps, p.shape[-1], keys.device)
+        )
 
 
 def _uniform(keys: Tensor, index_hash: Tensor) -> Tensor:
@@ -125,8 +126,15 @@ class PopulationEncoder(nn.Module):
     value beyond the bounds fires the edge cell instead of silencing its whole population.
     """
 
-    def __init__(self, low: Sequence[float], high: Sequence[float], pop_size: int = 50, beta: float = 15.0,
-                 p_min: float = 0.05, indices: Optional[Sequence[int]] = None):
+    def __init__(
+        self,
+        low: Sequence[float],
+        high: Sequence[float],
+        pop_size: int = 50,
+        beta: float = 15.0,
+        p_min: float = 0.05,
+        indices: Optional[Sequence[int]] = None,
+    ):
         super().__init__()
         low_t = torch.as_tensor(np.asarray(low, dtype=np.float64).reshape(-1))
         high_t = torch.as_tensor(np.asarray(high, dtype=np.float64).reshape(-1))
@@ -143,7 +151,9 @@ class PopulationEncoder(nn.Module):
         else:
             self.indices = None
         if not (torch.isfinite(low_t).all() and torch.isfinite(high_t).all() and (high_t > low_t).all()):
-            raise ValueError(f"encoder bounds must be finite with high > low, got low={low_t.tolist()} high={high_t.tolist()}")
+            raise ValueError(
+                f"encoder bounds must be finite with high > low, got low={low_t.tolist()} high={high_t.tolist()}"
+            )
         if pop_size < 2:
             raise ValueError(f"pop_size must be at least 2, got {pop_size}")
         self.n_dims, self.pop_size, self.beta, self.p_min = low_t.numel(), int(pop_size), float(beta), float(p_min)
@@ -237,13 +247,15 @@ class ObservationStandardizer(nn.Module):
         self.var.copy_(m2 / total)
         self.count.copy_(total)
 
-    def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
-                              error_msgs):
+    def _load_from_state_dict(
+        self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+    ):
         # Models saved before the standardiser existed have no statistics: they load with the identity ones.
         for name in ("mean", "var", "count"):
             state_dict.setdefault(prefix + name, getattr(self, name).clone())
-        super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
-                                      error_msgs)
+        super()._load_from_state_dict(
+            state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+        )
 
     def extra_repr(self) -> str:
         return f"dims={int(self.mask.sum())}/{self.mask.numel()}, clip={self.clip}, count={float(self.count):.0f}"
@@ -339,4 +351,3 @@ class DiscreteDecoder(nn.Module):
     def forward(self, rates: Tensor) -> Tensor:
         """Logits ``(batch, n_actions)`` from output rates ``(batch, n_actions * pop_size)``."""
         return self.logit_scale * rates.view(rates.shape[0], self.n_actions, self.pop_size).mean(-1)
-

@@ -128,8 +128,12 @@ class EnergyMeter:
         spikes = self._sums.double().cpu() / self.env_steps
         synops = synaptic_operations(spikes, self.network.sizes)
         plastic = plasticity_operations(self.network)
-        return {"spikes_per_step": spikes.tolist(), "synops_per_step": synops.tolist(),
-                "total_spikes_per_step": float(spikes[1:].sum()), "total_synops_per_step": float(synops.sum()),
-                "plasticity_macs_per_step": plastic,
-                "total_plasticity_macs_per_step": None if plastic is None else float(sum(plastic)),
-                "energy_nj": energy_estimate(synops.tolist(), plastic)}
+        return {
+            "spikes_per_step": spikes.tolist(),
+            "synops_per_step": synops.tolist(),
+            "total_spikes_per_step": float(spikes[1:].sum()),
+            "total_synops_per_step": float(synops.sum()),
+            "plasticity_macs_per_step": plastic,
+            "total_plasticity_macs_per_step": None if plastic is None else float(sum(plastic)),
+            "energy_nj": energy_estimate(synops.tolist(), plastic),
+        }

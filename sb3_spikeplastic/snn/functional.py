@@ -21,8 +21,17 @@ from ._fast.interval import IntervalConstants
 from .neurons import AlphaFilterState, SRMParameters, srm_spikes
 from .plasticity import PlasticityRule, PlasticState
 
-__all__ = ["CARRIED_PRODUCT", "IntervalParameters", "LayerOutput", "LayerState", "efficacy", "interval_result",
-           "interval_step", "project", "synaptic_input"]
+__all__ = [
+    "CARRIED_PRODUCT",
+    "IntervalParameters",
+    "LayerOutput",
+    "LayerState",
+    "efficacy",
+    "interval_result",
+    "interval_step",
+    "project",
+    "synaptic_input",
+]
 
 
 class LayerState(NamedTuple):
@@ -104,8 +113,9 @@ def _efficacy_left_product(x: Tensor, weight: Tensor, alpha: Tensor, trace: Tens
     return (efficacy(weight, alpha, trace) @ x.transpose(-1, -2)).transpose(-1, -2)
 
 
-def synaptic_input(spikes_in: Tensor, psp: AlphaFilterState, trace: Tensor,
-                   parameters: IntervalParameters) -> tuple[Tensor, AlphaFilterState]:
+def synaptic_input(
+    spikes_in: Tensor, psp: AlphaFilterState, trace: Tensor, parameters: IntervalParameters
+) -> tuple[Tensor, AlphaFilterState]:
     """The synaptic input of one interval ``(batch, L, n_out)`` and the PSP state carried out of it.
 
     The synaptic input ``K (S W_eff^T)`` (plus the decayed carried PSP) is associated so that the Toeplitz
@@ -119,8 +129,10 @@ def synaptic_input(spikes_in: Tensor, psp: AlphaFilterState, trace: Tensor,
         # The interval's spikes and the carried PSP state (h1, h2) as L + 2 rows: one product filters them all.
         rows = torch.cat([spikes_in, psp.h1.unsqueeze(1), psp.h2.unsqueeze(1)], 1)
         filtered = parameters.operator @ rows  # (B, L + 2, n_in): the PSP of each step, then the end state
-        return (project(filtered[:, :length], trace, parameters.weight, parameters.alpha),
-                AlphaFilterState(filtered[:, length], filtered[:, length + 1]))
+        return (
+            project(filtered[:, :length], trace, parameters.weight, parameters.alpha),
+            AlphaFilterState(filtered[:, length], filtered[:, length + 1]),
+        )
     # The carried state rides along in the product: projecting h1 and h2 on their own would cost two
     # trace-sized outer products (and their sum) in the backward pass.
     if constants.carry_state:  # beside the spikes, as the fused interval does (PlasticSRMLayer.carries_state)
@@ -128,8 +140,9 @@ def synaptic_input(spikes_in: Tensor, psp: AlphaFilterState, trace: Tensor,
     return _rows_synaptic_input(spikes_in, psp, trace, parameters)
 
 
-def _rows_synaptic_input(spikes_in: Tensor, psp: AlphaFilterState, trace: Tensor,
-                         parameters: IntervalParameters) -> tuple[Tensor, AlphaFilterState]:
+def _rows_synaptic_input(
+    spikes_in: Tensor, psp: AlphaFilterState, trace: Tensor, parameters: IntervalParameters
+) -> tuple[Tensor, AlphaFilterState]:
     """:func:`synaptic_input` of a layer that multiplies before it filters: the spikes and the carried PSP state as
     one block of ``L + 2`` rows."""
     constants = parameters.constants
@@ -140,13 +153,16 @@ def _rows_synaptic_input(spikes_in: Tensor, psp: AlphaFilterState, trace: Tensor
 
 
 def _carried_applies(spikes_in: Tensor, psp: AlphaFilterState, trace: Tensor, parameters: IntervalParameters) -> bool:
-    return (_fast.PLASTIC_LINEAR.applies(spikes_in, parameters.weight, parameters.alpha, trace)
-            and _fast.cpu_float_operands(spikes_in, psp.h1, psp.h2)
-            and psp.h1.shape == psp.h2.shape == (spikes_in.shape[0], spikes_in.shape[2]))
+    return (
+        _fast.PLASTIC_LINEAR.applies(spikes_in, parameters.weight, parameters.alpha, trace)
+        and _fast.cpu_float_operands(spikes_in, psp.h1, psp.h2)
+        and psp.h1.shape == psp.h2.shape == (spikes_in.shape[0], spikes_in.shape[2])
+    )
 
 
-def _carried_synaptic_input(ops: Any, spikes_in: Tensor, psp: AlphaFilterState, trace: Tensor,
-                            parameters: IntervalParameters) -> tuple[Tensor, AlphaFilterState]:
+def _carried_synaptic_input(
+    ops: Any, spikes_in: Tensor, psp: AlphaFilterState, trace: Tensor, parameters: IntervalParameters
+) -> tuple[Tensor, AlphaFilterState]:
     """:func:`_rows_synaptic_input` with the carried PSP state multiplied beside the spikes in the compiled product's
     pass over the trace, instead of copied with them into one block of rows."""
     length, constants = spikes_in.shape[1], parameters.constants
@@ -161,8 +177,13 @@ def _carried_synaptic_input(ops: Any, spikes_in: Tensor, psp: AlphaFilterState, 
 CARRIED_PRODUCT = _fast.Kernel("plastic_linear", _carried_applies, _carried_synaptic_input)
 
 
-def interval_step(spikes_in: Tensor, state: LayerState, parameters: IntervalParameters, monitor: bool = False,
-                  defer_update: bool = False) -> tuple[LayerOutput, LayerState]:
+def interval_step(
+    spikes_in: Tensor,
+    state: LayerState,
+    parameters: IntervalParameters,
+    monitor: bool = False,
+    defer_update: bool = False,
+) -> tuple[LayerOutput, LayerState]:
     r"""One plasticity interval of presynaptic spikes ``(batch, L, n_in)``: the layer's outputs and next state.
 
     .. math::
@@ -190,9 +211,17 @@ def interval_step(spikes_in: Tensor, state: LayerState, parameters: IntervalPara
     return interval_result(spikes, membrane, psp, refractory, r_pre, r_post, new_plastic, parameters, monitor)
 
 
-def interval_result(spikes: Tensor, membrane: Tensor, psp: AlphaFilterState, refractory: AlphaFilterState,
-                    r_pre: Tensor, r_post: Tensor, plastic: PlasticState, parameters: IntervalParameters,
-                    monitor: bool) -> tuple[LayerOutput, LayerState]:
+def interval_result(
+    spikes: Tensor,
+    membrane: Tensor,
+    psp: AlphaFilterState,
+    refractory: AlphaFilterState,
+    r_pre: Tensor,
+    r_post: Tensor,
+    plastic: PlasticState,
+    parameters: IntervalParameters,
+    monitor: bool,
+) -> tuple[LayerOutput, LayerState]:
     """An interval's :class:`LayerOutput` and :class:`LayerState` from its parts (the eager and the compiled step's
     alike); with ``monitor`` the output carries the rule's neuromodulatory signal of ``r_post``."""
     modulation = parameters.rule.modulation(r_post) if monitor and parameters.alpha is not None else None

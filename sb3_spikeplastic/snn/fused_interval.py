@@ -16,7 +16,7 @@ from torch import Tensor
 
 from . import _fast
 from ._fast import interval
-from ._fast.interval import IntervalConstants, IntervalInputs, IntervalOutputs, IntervalResiduals, NO_RULE, RuleForm
+from ._fast.interval import NO_RULE, IntervalConstants, IntervalInputs, IntervalOutputs, IntervalResiduals, RuleForm
 from .functional import IntervalParameters, LayerOutput, LayerState, interval_result
 from .neurons import AlphaFilterState
 from .plasticity import PlasticState, compiled_form
@@ -41,20 +41,33 @@ class IntervalCall(NamedTuple):
     write_trace: Optional[bool]
 
 
-def interval_inputs(spikes_in: Tensor, state: LayerState, parameters: IntervalParameters,
-                    form: Optional[RuleForm]) -> IntervalInputs:
+def interval_inputs(
+    spikes_in: Tensor, state: LayerState, parameters: IntervalParameters, form: Optional[RuleForm]
+) -> IntervalInputs:
     """The op's tensors for one interval of a layer: those of the rule only where ``form`` (a built-in rule's update
     in the op) takes them, the pending updates those of ``state``."""
     rule, plastic = parameters.rule, parameters.alpha is not None
     bcm = form is not None and form.bcm
     (p_first, q_first), (p_second, q_second) = (*(state.plastic.pending or ()), (None, None), (None, None))[:2]
     return IntervalInputs(
-        x=spikes_in, h1=state.psp.h1, h2=state.psp.h2, ref_h1=state.refractory.h1, ref_h2=state.refractory.h2,
-        trace=state.plastic.trace if plastic else None, phi=state.plastic.extra[0] if bcm else None,
-        p_first=p_first, q_first=q_first, p_second=p_second, q_second=q_second,
-        weight=parameters.weight, alpha=parameters.alpha, eta=rule.eta if form is not None else None,
-        eta_phi=rule.eta_phi if bcm else None, psi=rule.psi if bcm else None,
-        w_m=rule.w_m if form is not None and form.modulation else None)
+        x=spikes_in,
+        h1=state.psp.h1,
+        h2=state.psp.h2,
+        ref_h1=state.refractory.h1,
+        ref_h2=state.refractory.h2,
+        trace=state.plastic.trace if plastic else None,
+        phi=state.plastic.extra[0] if bcm else None,
+        p_first=p_first,
+        q_first=q_first,
+        p_second=p_second,
+        q_second=q_second,
+        weight=parameters.weight,
+        alpha=parameters.alpha,
+        eta=rule.eta if form is not None else None,
+        eta_phi=rule.eta_phi if bcm else None,
+        psi=rule.psi if bcm else None,
+        w_m=rule.w_m if form is not None and form.modulation else None,
+    )
 
 
 class _FusedInterval(torch.autograd.Function):
@@ -88,8 +101,9 @@ class _FusedInterval(torch.autograd.Function):
     @staticmethod
     def forward(ctx, call: IntervalCall, *tensors: Optional[Tensor]):
         inputs = IntervalInputs._make(tensors)
-        outputs, residuals = interval.forward(call.ops, inputs, call.constants, call.form, need_surrogate=True,
-                                              write_trace=call.write_trace)
+        outputs, residuals = interval.forward(
+            call.ops, inputs, call.constants, call.form, need_surrogate=True, write_trace=call.write_trace
+        )
         outputs = _passed_on(outputs, inputs, call)
         # The backward op reads the parameters, the trace, the threshold and the pending updates of the inputs.
         saved = inputs._replace(x=None, h1=None, h2=None, ref_h1=None, ref_h2=None)
@@ -105,12 +119,19 @@ class _FusedInterval(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, *grad_outputs: Optional[Tensor]):
         saved, call = ctx.saved_tensors, ctx.call
-        inputs = IntervalInputs._make(saved[:len(IntervalInputs._fields)])
-        residuals = IntervalResiduals._make(saved[len(IntervalInputs._fields):])
+        inputs = IntervalInputs._make(saved[: len(IntervalInputs._fields)])
+        residuals = IntervalResiduals._make(saved[len(IntervalInputs._fields) :])
         needs = IntervalInputs._make(ctx.needs_input_grad[1:])
-        gradients = interval.backward(call.ops, IntervalOutputs._make(grad_outputs), residuals, inputs,
-                                      call.constants, call.form, need_rows=needs.x or needs.h1 or needs.h2,
-                                      write_trace=call.write_trace)
+        gradients = interval.backward(
+            call.ops,
+            IntervalOutputs._make(grad_outputs),
+            residuals,
+            inputs,
+            call.constants,
+            call.form,
+            need_rows=needs.x or needs.h1 or needs.h2,
+            write_trace=call.write_trace,
+        )
         # autograd takes a gradient only for the inputs that need one (None for those not given)
         return (None, *(g if need else None for g, need in zip(gradients, needs)))
 
@@ -152,13 +173,20 @@ def run_interval(function: type[_FusedInterval], call: IntervalCall, inputs: Int
     no surrogate)."""
     if torch.is_grad_enabled():
         return IntervalOutputs._make(function.apply(call, *inputs))
-    outputs, _ = interval.forward(call.ops, inputs, call.constants, call.form, need_surrogate=False,
-                                  write_trace=call.write_trace)
+    outputs, _ = interval.forward(
+        call.ops, inputs, call.constants, call.form, need_surrogate=False, write_trace=call.write_trace
+    )
     return _passed_on(outputs, inputs, call)
 
 
-def fused_interval_step(ops: Any, spikes_in: Tensor, state: LayerState, parameters: IntervalParameters,
-                        monitor: bool = False, defer_update: bool = False) -> tuple[LayerOutput, LayerState]:
+def fused_interval_step(
+    ops: Any,
+    spikes_in: Tensor,
+    state: LayerState,
+    parameters: IntervalParameters,
+    monitor: bool = False,
+    defer_update: bool = False,
+) -> tuple[LayerOutput, LayerState]:
     """:func:`~sb3_spikeplastic.snn.functional.interval_step` by the compiled op (``ops``: its namespace).
 
     Other rules than the built-in ones run their :meth:`~sb3_spikeplastic.snn.plasticity.PlasticityRule.step` after
@@ -190,13 +218,20 @@ def fused_interval_step(ops: Any, spikes_in: Tensor, state: LayerState, paramete
             new_plastic = PlasticState(out.trace, (out.phi,) if form.bcm else ())
         else:
             new_plastic = rule.step(out.r_pre, out.r_post, state.plastic) if plastic else state.plastic
-    return interval_result(out.spikes, out.membrane, AlphaFilterState(out.h1, out.h2),
-                           AlphaFilterState(out.ref_h1, out.ref_h2), out.r_pre, out.r_post, new_plastic, parameters,
-                           monitor)
+    return interval_result(
+        out.spikes,
+        out.membrane,
+        AlphaFilterState(out.h1, out.h2),
+        AlphaFilterState(out.ref_h1, out.ref_h2),
+        out.r_pre,
+        out.r_post,
+        new_plastic,
+        parameters,
+        monitor,
+    )
 
 
 #: the compiled interval for :func:`~sb3_spikeplastic.snn._fast.dispatch`, with the operands of
 #: :func:`~sb3_spikeplastic.snn.functional.interval_step`; whether it applies is looked up on :class:`_FusedInterval`
 #: at each call
-FUSED_INTERVAL = _fast.Kernel("srm_interval", lambda *operands: _FusedInterval.applies(*operands),
-                              fused_interval_step)
+FUSED_INTERVAL = _fast.Kernel("srm_interval", lambda *operands: _FusedInterval.applies(*operands), fused_interval_step)

@@ -46,16 +46,25 @@ class PlasticSRMLayer(nn.Module):
     :param alpha_init_std: standard deviation of the initial ``alpha``.
     """
 
-    def __init__(self, n_in: int, n_out: int, rule: PlasticityRule, neuron: SRMParameters = SRMParameters(),
-                 w_init_mean: float = 0.0, w_init_std: float = 1.0, alpha_init_mean: float = 0.0,
-                 alpha_init_std: float = 1.0):
+    def __init__(
+        self,
+        n_in: int,
+        n_out: int,
+        rule: PlasticityRule,
+        neuron: SRMParameters = SRMParameters(),
+        w_init_mean: float = 0.0,
+        w_init_std: float = 1.0,
+        alpha_init_mean: float = 0.0,
+        alpha_init_std: float = 1.0,
+    ):
         super().__init__()
         if (rule.n_in, rule.n_out) != (n_in, n_out):
             raise ValueError(f"rule sized ({rule.n_in}, {rule.n_out}) does not fit layer ({n_in}, {n_out})")
         self.n_in, self.n_out, self.neuron, self.rule = n_in, n_out, neuron, rule
         self.weight = nn.Parameter(w_init_mean + w_init_std * torch.randn(n_out, n_in))
-        self.alpha = (nn.Parameter(alpha_init_mean + alpha_init_std * torch.randn(n_out, n_in)) if rule.has_trace
-                      else None)
+        self.alpha = (
+            nn.Parameter(alpha_init_mean + alpha_init_std * torch.randn(n_out, n_in)) if rule.has_trace else None
+        )
         self._intervals: dict[tuple, tuple[Tensor, IntervalConstants]] = {}
 
     @property
@@ -76,8 +85,9 @@ class PlasticSRMLayer(nn.Module):
         """:math:`W + \\alpha \\odot E`, per environment ``(batch, n_out, n_in)``; just ``W`` for a static layer."""
         return efficacy(self.weight, self.alpha, trace)
 
-    def forward(self, spikes_in: Tensor, state: LayerState, monitor: bool = False,
-                defer_update: bool = False) -> tuple[LayerOutput, LayerState]:
+    def forward(
+        self, spikes_in: Tensor, state: LayerState, monitor: bool = False, defer_update: bool = False
+    ) -> tuple[LayerOutput, LayerState]:
         """Run one plasticity interval of presynaptic spikes ``(batch, L, n_in)``
         (:func:`~sb3_spikeplastic.snn.functional.interval_step`).
 
@@ -104,8 +114,14 @@ class PlasticSRMLayer(nn.Module):
         key = (length, dtype, device)
         if key not in self._intervals:
             op = alpha_filter_operator(length, self.neuron.tau_s, self.neuron.dt, dtype, device)
-            constants = IntervalConstants(op[:length].contiguous(), op[length:].contiguous(), self.filter_first,
-                                          *spike_constants(self.neuron), self.rule.e_max, self.carries_state(length))
+            constants = IntervalConstants(
+                op[:length].contiguous(),
+                op[length:].contiguous(),
+                self.filter_first,
+                *spike_constants(self.neuron),
+                self.rule.e_max,
+                self.carries_state(length),
+            )
             self._intervals[key] = (op, constants)
         return self._intervals[key]
 
@@ -128,6 +144,7 @@ class PlasticSRMLayer(nn.Module):
 def fan_in_std(n_in: int, rms_rate: float, neuron: SRMParameters, gain: float) -> float:
     """Initial weight std that puts the membrane's spread at ``gain * theta`` for inputs firing at ``rms_rate``.
 
-    With zero-mean weights, :math:`\\mathrm{std}(u) \\approx \\sigma_W \\sqrt{n_{in}}\\, r_{rms} \\sum_k\\varepsilon(k)`.
+    With zero-mean weights,
+    :math:`\\mathrm{std}(u) \\approx \\sigma_W \\sqrt{n_{in}}\\, r_{rms} \\sum_k\\varepsilon(k)`.
     """
     return gain * neuron.theta / (alpha_kernel_sum(neuron.tau_s, neuron.dt) * rms_rate * math.sqrt(n_in))

@@ -185,22 +185,41 @@ class SpikingPlasticNetwork(nn.Module):
         after the first.
     """
 
-    def __init__(self, encoder: nn.Module, decoder: nn.Module, hidden_sizes: Sequence[int] = (64, 64),
-                 steps: int = 50, rule: str = "dp-oja", plastic_layers: Union[str, Sequence[int]] = "all",
-                 neuron: SRMParameters = SRMParameters(), e_max: float = 1.0,
-                 plasticity_interval: Optional[int] = None, rule_kwargs: Optional[dict] = None,
-                 w_init_gain: IntOrSeq = 3.0, w_init_mean: IntOrSeq = 0.0, alpha_init_mean: Optional[IntOrSeq] = None,
-                 alpha_init_std: Optional[IntOrSeq] = None, hidden_rms_rate: float = 0.2):
+    def __init__(
+        self,
+        encoder: nn.Module,
+        decoder: nn.Module,
+        hidden_sizes: Sequence[int] = (64, 64),
+        steps: int = 50,
+        rule: str = "dp-oja",
+        plastic_layers: Union[str, Sequence[int]] = "all",
+        neuron: SRMParameters = SRMParameters(),
+        e_max: float = 1.0,
+        plasticity_interval: Optional[int] = None,
+        rule_kwargs: Optional[dict] = None,
+        w_init_gain: IntOrSeq = 3.0,
+        w_init_mean: IntOrSeq = 0.0,
+        alpha_init_mean: Optional[IntOrSeq] = None,
+        alpha_init_std: Optional[IntOrSeq] = None,
+        hidden_rms_rate: float = 0.2,
+    ):
         super().__init__()
         if not hidden_sizes or any(isinstance(h, bool) or int(h) != h or h < 1 for h in hidden_sizes):
-            raise ValueError(f"hidden_sizes={list(hidden_sizes)} must be one or more positive integers (neurons per "
-                             "hidden layer)")
+            raise ValueError(
+                f"hidden_sizes={list(hidden_sizes)} must be one or more positive integers (neurons per hidden layer)"
+            )
         if steps < 1:
             raise ValueError(f"steps={steps} must be a positive number of network steps T per environment step")
         interval = steps if plasticity_interval is None else int(plasticity_interval)
         if steps < 1 or interval < 1 or steps % interval:
             raise ValueError(f"plasticity_interval={interval} must be a positive divisor of steps T={steps}")
-        self.encoder, self.decoder, self.steps, self.interval, self.neuron = encoder, decoder, int(steps), interval, neuron
+        self.encoder, self.decoder, self.steps, self.interval, self.neuron = (
+            encoder,
+            decoder,
+            int(steps),
+            interval,
+            neuron,
+        )
         sizes = [encoder.n_neurons, *[int(h) for h in hidden_sizes], decoder.n_neurons]
         n_layers = len(sizes) - 1
         if plastic_layers == "all":
@@ -218,8 +237,11 @@ class SpikingPlasticNetwork(nn.Module):
             a_means = [rule_cls.alpha_init_mean * ALPHA_REFERENCE_FAN_IN / n for n in sizes[:-1]]
         else:
             a_means = _per_layer(alpha_init_mean, n_layers, "alpha_init_mean")
-        a_stds = [0.1 * abs(m) for m in a_means] if alpha_init_std is None else _per_layer(alpha_init_std, n_layers,
-                                                                                             "alpha_init_std")
+        a_stds = (
+            [0.1 * abs(m) for m in a_means]
+            if alpha_init_std is None
+            else _per_layer(alpha_init_std, n_layers, "alpha_init_std")
+        )
         layers = []
         for i, (n_in, n_out) in enumerate(zip(sizes[:-1], sizes[1:])):
             cls = rule_cls if i in plastic else static_cls
@@ -228,8 +250,18 @@ class SpikingPlasticNetwork(nn.Module):
             except TypeError as exc:
                 raise ValueError(f"bad rule_kwargs {rule_kwargs!r} for rule {cls.name!r}: {exc}") from None
             rms = encoder.rms_rate() if i == 0 else hidden_rms_rate
-            layers.append(PlasticSRMLayer(n_in, n_out, layer_rule, neuron, w_means[i],
-                                          fan_in_std(n_in, rms, neuron, gains[i]), a_means[i], a_stds[i]))
+            layers.append(
+                PlasticSRMLayer(
+                    n_in,
+                    n_out,
+                    layer_rule,
+                    neuron,
+                    w_means[i],
+                    fan_in_std(n_in, rms, neuron, gains[i]),
+                    a_means[i],
+                    a_stds[i],
+                )
+            )
         self.layers = nn.ModuleList(layers)
         self.rule_name = rule
 
@@ -256,11 +288,18 @@ class SpikingPlasticNetwork(nn.Module):
     def initial_state(self, batch: int, seed: int = 0, device=None, dtype: torch.dtype = torch.float32) -> NetworkState:
         """Initial state of ``batch`` environments; ``seed`` picks the input-noise streams."""
         device = device if device is not None else self.layers[0].weight.device
-        return NetworkState(tuple(layer.initial_state(batch, dtype, device) for layer in self.layers),
-                            initial_keys(batch, seed, device))
+        return NetworkState(
+            tuple(layer.initial_state(batch, dtype, device) for layer in self.layers), initial_keys(batch, seed, device)
+        )
 
-    def forward(self, obs: Tensor, state: NetworkState, record: bool = False,
-                defer_updates: bool = False, hold_plastic: bool = False) -> tuple[NetworkOutput, NetworkState]:
+    def forward(
+        self,
+        obs: Tensor,
+        state: NetworkState,
+        record: bool = False,
+        defer_updates: bool = False,
+        hold_plastic: bool = False,
+    ) -> tuple[NetworkOutput, NetworkState]:
         """One environment step for a batch of observations; returns ``(output, new_state)``.
 
         With ``defer_updates`` the built-in rules' last trace updates stay pending in the returned state (the next
@@ -274,7 +313,7 @@ class SpikingPlasticNetwork(nn.Module):
         outputs: list[list[LayerOutput]] = [[] for _ in self.layers]
         traces: list[list[Tensor]] = [[] for _ in self.layers]
         for j in range(n_intervals):
-            x = spikes_in if n_intervals == 1 else spikes_in[:, j * self.interval:(j + 1) * self.interval]
+            x = spikes_in if n_intervals == 1 else spikes_in[:, j * self.interval : (j + 1) * self.interval]
             for i, layer in enumerate(self.layers):
                 out, layer_states[i] = layer(x, layer_states[i], monitor=record, defer_update=defer_updates)
                 if hold_plastic and layer.plastic:
@@ -294,16 +333,20 @@ class SpikingPlasticNetwork(nn.Module):
         rec = None
         if record:
             rec = NetworkRecord(
-                spikes_in, tuple(spikes),
+                spikes_in,
+                tuple(spikes),
                 tuple(torch.cat([o.membrane for o in outs], 1) for outs in outputs),
-                tuple(torch.stack([o.modulation for o in outs], 1) if outs[0].modulation is not None else None
-                      for outs in outputs),
+                tuple(
+                    torch.stack([o.modulation for o in outs], 1) if outs[0].modulation is not None else None
+                    for outs in outputs
+                ),
                 tuple(torch.stack(t, 1) if t else None for t in traces),
             )
         return NetworkOutput(self.decoder(rates[-1]), rates, rec, input_rate), new_state
 
-    def forward_sequence(self, obs: Tensor, episode_start: Tensor, state: NetworkState,
-                         sync_free: bool = False) -> tuple[list[NetworkOutput], NetworkState]:
+    def forward_sequence(
+        self, obs: Tensor, episode_start: Tensor, state: NetworkState, sync_free: bool = False
+    ) -> tuple[list[NetworkOutput], NetworkState]:
         """Run a sequence ``obs`` of shape ``(L, batch, ...)`` from ``state``, resetting where ``episode_start``
         ``(L, batch)`` is 1 (truncated BPTT through the whole sequence, traces included); ``sync_free`` as in
         :meth:`NetworkState.reset`. The steps defer the trace updates to the next step (``defer_updates``): one
@@ -316,6 +359,8 @@ class SpikingPlasticNetwork(nn.Module):
 
     def settle(self, state: NetworkState) -> NetworkState:
         """``state`` with every layer's pending trace update applied (see :meth:`forward`)."""
-        layers = tuple(s._replace(plastic=layer.rule.apply_pending(s.plastic)) if s.plastic.pending is not None else s
-                       for layer, s in zip(self.layers, state.layers))
+        layers = tuple(
+            s._replace(plastic=layer.rule.apply_pending(s.plastic)) if s.plastic.pending is not None else s
+            for layer, s in zip(self.layers, state.layers)
+        )
         return NetworkState(layers, state.noise_key)

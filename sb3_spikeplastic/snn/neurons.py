@@ -67,7 +67,8 @@ class AlphaFilterState(NamedTuple):
 
 
 def alpha_kernel_sum(tau: float, dt: float = 1.0) -> float:
-    """:math:`\\sum_{k\\ge0} \\varepsilon(k)`, the PSP area of one spike (about ``e * tau / dt``); scales initial weights."""
+    """:math:`\\sum_{k\\ge0} \\varepsilon(k)`, the PSP area of one spike (about ``e * tau / dt``); scales initial
+    weights."""
     d, c = _decay_and_gain(tau, dt)
     return c * d / (1 - d) ** 2
 
@@ -76,7 +77,9 @@ def _decay_and_gain(tau: float, dt: float) -> tuple[float, float]:
     return math.exp(-dt / tau), math.e * dt / tau
 
 
-def alpha_filter_step(s: Tensor, state: AlphaFilterState, tau: float, dt: float = 1.0) -> tuple[Tensor, AlphaFilterState]:
+def alpha_filter_step(
+    s: Tensor, state: AlphaFilterState, tau: float, dt: float = 1.0
+) -> tuple[Tensor, AlphaFilterState]:
     """Advance the alpha filter by one step with input spikes ``s``; returns ``(psp, new_state)``.
 
     ``psp`` at step ``t`` depends on spikes up to ``t - 1`` only (the kernel is 0 at lag 0).
@@ -203,8 +206,9 @@ def _srm_spike_loop_reference(
     return out.spikes, out.membrane, AlphaFilterState(out.h1, out.h2)
 
 
-def _srm_loop_eager(synaptic: Tensor, h1: Tensor, h2: Tensor, d: float, kappa: float,
-                    theta: float) -> _fast.SpikeLoopOutputs:
+def _srm_loop_eager(
+    synaptic: Tensor, h1: Tensor, h2: Tensor, d: float, kappa: float, theta: float
+) -> _fast.SpikeLoopOutputs:
     """The recursion in eager PyTorch, with the compiled op's arguments and outputs (:data:`~._fast.SRM_LOOP`).
 
     Per step, in the tensors' dtype: ``h2 = (h2 + h1) * d``, ``u = syn - h2 * kappa``, ``s = (u >= theta)``,

@@ -84,8 +84,9 @@ def hebbian_trace_step(E: Tensor, eta: Tensor, terms: HebbianTerms, e_max: float
     one backward instead of ~20 eager ones); elsewhere, or when it is unavailable, the eager ops, which give the
     same values to float rounding.
     """
-    return _fast.dispatch(_fast.TRACE_STEP, _trace_step_eager, E, terms.post, terms.pre, eta, e_max,
-                          terms.subtract_prediction)
+    return _fast.dispatch(
+        _fast.TRACE_STEP, _trace_step_eager, E, terms.post, terms.pre, eta, e_max, terms.subtract_prediction
+    )
 
 
 def _trace_step_eager(E: Tensor, post: Tensor, pre: Tensor, eta: Tensor, e_max: float, oja: bool) -> Tensor:
@@ -122,7 +123,8 @@ def bcm_presynaptic_term(r_pre: Tensor, phi: Tensor, psi: Tensor) -> Tensor:
 
 
 def bcm_threshold_update(phi: Tensor, r_pre: Tensor, eta_phi: Tensor) -> Tensor:
-    """Sliding threshold EMA (paper eq. 10, :math:`\\omega` = identity): :math:`\\phi' = (1-\\eta_\\phi)\\phi + \\eta_\\phi r_{pre}`."""
+    """Sliding threshold EMA (paper eq. 10, :math:`\\omega` = identity):
+    :math:`\\phi' = (1-\\eta_\\phi)\\phi + \\eta_\\phi r_{pre}`."""
     return (1 - eta_phi) * phi + eta_phi * r_pre
 
 
@@ -243,7 +245,9 @@ class PlasticityRule(nn.Module):
     def initial_state(self, batch: int, dtype: torch.dtype = torch.float32, device=None) -> PlasticState:
         """Zero trace and initial rule state for ``batch`` environments."""
         shape = (batch, self.n_out, self.n_in) if self.has_trace else (batch, 0)
-        return PlasticState(torch.zeros(shape, dtype=dtype, device=device), self.initial_extra_state(batch, dtype, device))
+        return PlasticState(
+            torch.zeros(shape, dtype=dtype, device=device), self.initial_extra_state(batch, dtype, device)
+        )
 
     def hebbian_terms(self, r_pre: Tensor, r_post: Tensor, state: PlasticState) -> HebbianTerms:
         """The factors of the update for rules of the shared Hebbian form (see the class docstring)."""
@@ -386,8 +390,17 @@ class NDPBCMRule(_ModulatedMixin, _BCMRule):
     Parameters as :class:`_BCMRule` and :class:`NDPOjaRule`.
     """
 
-    def __init__(self, n_in, n_out, e_max=1.0, eta_init=0.05, eta_phi_init=0.05, wm_init_gain=1.0, wm_init_std=0.1,
-                 modulation="tanh"):
+    def __init__(
+        self,
+        n_in,
+        n_out,
+        e_max=1.0,
+        eta_init=0.05,
+        eta_phi_init=0.05,
+        wm_init_gain=1.0,
+        wm_init_std=0.1,
+        modulation="tanh",
+    ):
         super().__init__(n_in, n_out, e_max, eta_init, eta_phi_init)
         self._init_modulation(n_out, wm_init_gain, wm_init_std, modulation)
 
@@ -396,8 +409,13 @@ class NDPBCMRule(_ModulatedMixin, _BCMRule):
         return HebbianTerms(self.modulation(r_post) * r_post, r_beta, False, (phi,))
 
 
-_COMPILED_FORMS = {DPLinearRule: (False, False), DPOjaRule: (True, False), DPBCMRule: (False, True),
-                   NDPOjaRule: (True, False), NDPBCMRule: (False, True)}
+_COMPILED_FORMS = {
+    DPLinearRule: (False, False),
+    DPOjaRule: (True, False),
+    DPBCMRule: (False, True),
+    NDPOjaRule: (True, False),
+    NDPBCMRule: (False, True),
+}
 
 
 def compiled_form(rule: PlasticityRule) -> Optional[RuleForm]:

@@ -75,15 +75,33 @@ def train_cell(job, env: str, variant: str, seed: int, trial=None) -> None:
             source = continued_run(str(folder), train_env)
             break
     config = job.configs[(env, variant)]
-    experiment = Experiment(train_env, config, seed, layout.run_root(env, variant, seed), verbose=0, device=job.device,
-                            eval_freq=study.eval_freq, eval_episodes=study.eval_episodes, progress=False,
-                            trained_agent=source)
+    experiment = Experiment(
+        train_env,
+        config,
+        seed,
+        layout.run_root(env, variant, seed),
+        verbose=0,
+        device=job.device,
+        eval_freq=study.eval_freq,
+        eval_episodes=study.eval_episodes,
+        progress=False,
+        trained_agent=source,
+    )
     experiment.setup()
     v = study.variants[variant]
-    command = train_command(train_env, study.conf_of(variant), v.rule, study.overrides(variant), seed, max(budgets),
-                            study.eval_freq, study.eval_episodes)
-    run_dir = experiment.create_run_folder(command, dict(study=job.name, variant=variant,
-                                                         trial=None if trial is None else trial.number))
+    command = train_command(
+        train_env,
+        study.conf_of(variant),
+        v.rule,
+        study.overrides(variant),
+        seed,
+        max(budgets),
+        study.eval_freq,
+        study.eval_episodes,
+    )
+    run_dir = experiment.create_run_folder(
+        command, dict(study=job.name, variant=variant, trial=None if trial is None else trial.number)
+    )
     if trial is not None:
         trial.set_user_attr("run_dir", str(run_dir))
     experiment.extra_callbacks = [_budget_checkpoints(budgets, run_dir)]
@@ -135,8 +153,17 @@ def clipped_statistics(source: Path, target: Path, env: str, clip: float) -> Pat
     return target
 
 
-def evaluate_model_file(job, env: str, name: str, evaluation: Evaluation, model_path: Path,
-                        folder: Path, files: list[str], eval_name: str, same_env: bool = True) -> int:
+def evaluate_model_file(
+    job,
+    env: str,
+    name: str,
+    evaluation: Evaluation,
+    model_path: Path,
+    folder: Path,
+    files: list[str],
+    eval_name: str,
+    same_env: bool = True,
+) -> int:
     """Run one evaluation of one model on ``env``, writing each of its missing raw ``files`` whole; returns how
     many. ``same_env``: the model was trained on ``env`` (its ``env_kwargs`` apply), else on another environment
     (evaluated on ``env`` as registered)."""
@@ -150,11 +177,21 @@ def evaluate_model_file(job, env: str, name: str, evaluation: Evaluation, model_
         return _evaluate(job, env, name, evaluation, model_path, folder, missing, eval_name, same_env, Path(tmp))
 
 
-def _evaluate(job, env: str, name: str, evaluation: Evaluation, model_path: Path, folder: Path,
-              missing: list[str], eval_name: str, same_env: bool, tmp: Path) -> int:
+def _evaluate(
+    job,
+    env: str,
+    name: str,
+    evaluation: Evaluation,
+    model_path: Path,
+    folder: Path,
+    missing: list[str],
+    eval_name: str,
+    same_env: bool,
+    tmp: Path,
+) -> int:
     from ..zoo.evaluation import evaluate_model
-    from .robustness import evaluate_robustness, write_episodes_csv
     from ..zoo.run_folder import atomic_write, cpu_settings_of, load_model, locate_run, make_eval_env
+    from .robustness import evaluate_robustness, write_episodes_csv
 
     info = locate_run(model_path)
     model = load_model(info, job.device)
@@ -185,8 +222,9 @@ def _evaluate(job, env: str, name: str, evaluation: Evaluation, model_path: Path
     if evaluation.kind == "final":
         venv = make_eval_env(env, p.n_envs, p.seed, env_kwargs, statistics)
         try:
-            result = evaluate_model(model, venv, p.episodes, deterministic=True, seed=p.seed,
-                                    ablation=_ablation_for(model, evaluation))
+            result = evaluate_model(
+                model, venv, p.episodes, deterministic=True, seed=p.seed, ablation=_ablation_for(model, evaluation)
+            )
         finally:
             venv.close()
         successes = result.successes if len(result.successes) == len(result.returns) else [""] * len(result.returns)
@@ -194,18 +232,29 @@ def _evaluate(job, env: str, name: str, evaluation: Evaluation, model_path: Path
         def write(f):
             writer = csv.writer(f)
             writer.writerow(["episode", "return", "length", "success"])
-            writer.writerows(zip(range(len(result.returns)), result.returns.tolist(),
-                                 result.lengths.astype(int).tolist(), successes))
+            writer.writerows(
+                zip(range(len(result.returns)), result.returns.tolist(), result.lengths.astype(int).tolist(), successes)
+            )
 
         atomic_write(folder / missing[0], write, binary=False)
         return 1
     for file in missing:
-        noise = file[len(eval_name) + 1:-len(".csv")]
-        rows = evaluate_robustness({name: model}, env, noise, p.sigmas, n_episodes=p.episodes, seed=p.seed,
-                                   vec_normalize_stats={name: statistics}, progress_bar=False,
-                                   env_kwargs=env_kwargs, n_envs=p.n_envs, friction_target=p.friction_target,
-                                   ablation=_ablation_for(model, evaluation),
-                                   obs_indices=p.obs_indices)
+        noise = file[len(eval_name) + 1 : -len(".csv")]
+        rows = evaluate_robustness(
+            {name: model},
+            env,
+            noise,
+            p.sigmas,
+            n_episodes=p.episodes,
+            seed=p.seed,
+            vec_normalize_stats={name: statistics},
+            progress_bar=False,
+            env_kwargs=env_kwargs,
+            n_envs=p.n_envs,
+            friction_target=p.friction_target,
+            ablation=_ablation_for(model, evaluation),
+            obs_indices=p.obs_indices,
+        )
         tmp = folder / f".{file}.tmp"
         write_episodes_csv(rows, tmp)
         tmp.replace(folder / file)
@@ -230,9 +279,18 @@ def run_cell(job, env: str, variant: str, seed: int, trial=None) -> int:
             else:
                 model = layout.model_at(env, variant, seed, budget)
                 if model is None:
-                    raise ValueError(f"{env} {name}: no checkpoint at {budget} steps under "
-                                     f"{layout.run_root(env, variant, seed)}")
-            written += evaluate_model_file(job, env, name, evaluation, model,
-                                           layout.episodes_dir(env, variant, budget, seed), files, eval_name,
-                                           same_env)
+                    raise ValueError(
+                        f"{env} {name}: no checkpoint at {budget} steps under {layout.run_root(env, variant, seed)}"
+                    )
+            written += evaluate_model_file(
+                job,
+                env,
+                name,
+                evaluation,
+                model,
+                layout.episodes_dir(env, variant, budget, seed),
+                files,
+                eval_name,
+                same_env,
+            )
     return written

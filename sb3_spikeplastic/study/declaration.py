@@ -42,15 +42,38 @@ from ..zoo.config import check_env_id, resolve_hyperparams
 from ..zoo.zoo_yaml import PACKAGED_HYPERPARAMS, load_hyperparams_file, parse_override, yaml_load
 from .protocol import FIG4, NOISES, Protocol
 
-STUDY_KEYS = ("description", "envs", "seeds", "budgets", "conf", "hyperparams", "eval_freq", "eval_episodes",
-              "variants", "evaluations", "report")
+STUDY_KEYS = (
+    "description",
+    "envs",
+    "seeds",
+    "budgets",
+    "conf",
+    "hyperparams",
+    "eval_freq",
+    "eval_episodes",
+    "variants",
+    "evaluations",
+    "report",
+)
 VARIANT_KEYS = ("rule", "conf", "hyperparams", "seeds", "budgets", "train_env", "noises")
 EVALUATION_KINDS = ("final", "robustness", "sensitivity")
 FINAL_KEYS = ("kind", "episodes", "seed", "n_envs", "model", "ablation", "variants", "seeds", "budgets")
 FILTER_KEYS = ("variants", "seeds", "budgets")
 SENSITIVITY_KEYS = ("kind", "shift", "seed", "groups", "model", *FILTER_KEYS)
-ROBUSTNESS_KEYS = ("kind", "noises", "sigmas", "episodes", "seed", "n_envs", "friction_target", "obs_indices",
-                   "clip_obs", "model", "ablation", *FILTER_KEYS)
+ROBUSTNESS_KEYS = (
+    "kind",
+    "noises",
+    "sigmas",
+    "episodes",
+    "seed",
+    "n_envs",
+    "friction_target",
+    "obs_indices",
+    "clip_obs",
+    "model",
+    "ablation",
+    *FILTER_KEYS,
+)
 REPORT_KEYS = ("learned_threshold", "resamples", "compare")
 COMPARE_KEYS = ("variants", "against", "pooled")
 GROUPS = ("plastic", "static", "spiking", "baselines")
@@ -104,8 +127,10 @@ class Evaluation:
     groups: Optional[tuple[tuple[str, tuple[int, ...]], ...]] = None
 
     def applies(self, variant: str, seed: int, budget: int) -> bool:
-        return all(chosen is None or value in chosen for chosen, value in
-                   ((self.variants, variant), (self.seeds, seed), (self.budgets, budget)))
+        return all(
+            chosen is None or value in chosen
+            for chosen, value in ((self.variants, variant), (self.seeds, seed), (self.budgets, budget))
+        )
 
     def files(self, name: str, noises: Optional[Sequence[str]] = None) -> list[str]:
         """The raw files of this evaluation in a model's episode folder (``noises``: the variant's narrowing)."""
@@ -161,15 +186,24 @@ class Study:
     def evaluations_of(self, variant: str, seed: int, budget: int) -> list[tuple[str, Evaluation, list[str]]]:
         """``(name, evaluation, raw files)`` of every evaluation of one model."""
         last = budget == self.budgets_of(variant)[-1]
-        return [(name, e, e.files(name, self.variants[variant].noises)) for name, e in self.evaluations.items()
-                if e.applies(variant, seed, budget) and (e.model == "budget" or last)
-                and e.files(name, self.variants[variant].noises)]
+        return [
+            (name, e, e.files(name, self.variants[variant].noises))
+            for name, e in self.evaluations.items()
+            if e.applies(variant, seed, budget)
+            and (e.model == "budget" or last)
+            and e.files(name, self.variants[variant].noises)
+        ]
 
     def cells(self) -> list[tuple[str, str, int]]:
         """Every ``(env, variant, seed)``: one training run each, seed first."""
         seeds = sorted({s for v in self.variants for s in self.seeds_of(v)})
-        return [(env, variant, seed) for seed in seeds for env in self.envs for variant in self.variants
-                if seed in self.seeds_of(variant)]
+        return [
+            (env, variant, seed)
+            for seed in seeds
+            for env in self.envs
+            for variant in self.variants
+            if seed in self.seeds_of(variant)
+        ]
 
     def config(self, env_id: str, variant: str) -> dict:
         """The resolved entry of ``variant`` on ``env_id``, trained to its largest budget (``ValueError`` naming
@@ -178,8 +212,13 @@ class Study:
         train_env = self.train_env(env_id, variant)
         try:
             check_env_id(train_env, list(load_hyperparams_file(self.conf_of(variant))))
-            return resolve_hyperparams(train_env, self.conf_of(variant), self.overrides(variant), rule=v.rule,
-                                       n_timesteps=max(self.budgets_of(variant)))
+            return resolve_hyperparams(
+                train_env,
+                self.conf_of(variant),
+                self.overrides(variant),
+                rule=v.rule,
+                n_timesteps=max(self.budgets_of(variant)),
+            )
         except ValueError as exc:
             raise ValueError(f"variant {variant!r} on {env_id}: {exc}") from None
 
@@ -190,8 +229,10 @@ class Study:
             raise ValueError(f"unknown variant {unknown[0]!r}; accepted: {', '.join(self.variants)}")
         chosen = {name: self.variants[name] for name in (variants or self.variants)}
         if seeds is not None:
-            chosen = {name: replace(v, seeds=tuple(s for s in self.seeds_of(name) if s in seeds))
-                      for name, v in chosen.items()}
+            chosen = {
+                name: replace(v, seeds=tuple(s for s in self.seeds_of(name) if s in seeds))
+                for name, v in chosen.items()
+            }
             chosen = {name: v for name, v in chosen.items() if v.seeds}
         return replace(self, variants=chosen)
 
@@ -214,6 +255,7 @@ def model_name(variant: str, budget: int, seed: int) -> str:
 # ----------------------------------------------------------------------------------------------------------------
 # Reading and checking
 
+
 def _unknown(what: str, key, accepted: Sequence[str], where: str) -> ValueError:
     close = difflib.get_close_matches(str(key), accepted, n=1)
     hint = f" (did you mean {close[0]!r}?)" if close else ""
@@ -227,8 +269,13 @@ def _check_keys(what: str, data: dict, accepted: Sequence[str], where: str) -> N
 
 
 def _int(value, what: str, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or \
-            not float(value).is_integer() or value < minimum:
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, (int, float))
+        or not math.isfinite(value)
+        or not float(value).is_integer()
+        or value < minimum
+    ):
         raise ValueError(f"{what}={value!r} must be an integer >= {minimum}")
     return int(value)
 
@@ -291,12 +338,17 @@ def _variant(name, spec, where: str, base: Path) -> Variant:
         for noise in noises:
             if noise not in NOISES:
                 raise _unknown(f"noise of variant {name!r}", noise, NOISES, where)
-    return Variant(rule, _conf(spec.get("conf"), f"conf of variant {name!r}", base),
-                   _overrides(spec.get("hyperparams"), f"hyperparams of variant {name!r}"),
-                   None if spec.get("seeds") is None else _ints(spec["seeds"], f"seeds of variant {name!r}", 0),
-                   None if spec.get("budgets") is None else
-                   tuple(sorted(_ints(spec["budgets"], f"budgets of variant {name!r}", 1))),
-                   train_env, None if noises is None else tuple(noises))
+    return Variant(
+        rule,
+        _conf(spec.get("conf"), f"conf of variant {name!r}", base),
+        _overrides(spec.get("hyperparams"), f"hyperparams of variant {name!r}"),
+        None if spec.get("seeds") is None else _ints(spec["seeds"], f"seeds of variant {name!r}", 0),
+        None
+        if spec.get("budgets") is None
+        else tuple(sorted(_ints(spec["budgets"], f"budgets of variant {name!r}", 1))),
+        train_env,
+        None if noises is None else tuple(noises),
+    )
 
 
 def _filters(spec: dict, what: str, variants: dict) -> dict:
@@ -329,9 +381,12 @@ def _evaluation(name, spec, where: str, variants: dict) -> Evaluation:
     model = spec.get("model", "budget")
     if model not in MODELS:
         raise _unknown(f"model of {what}", model, MODELS, where)
-    protocol = replace(FIG4, episodes=_int(spec.get("episodes", FIG4.episodes), f"{what} episodes", 1),
-                       seed=_int(spec.get("seed", FIG4.seed), f"{what} seed", 0),
-                       n_envs=_int(spec.get("n_envs", FIG4.n_envs if kind == "robustness" else 1), f"{what} n_envs", 1))
+    protocol = replace(
+        FIG4,
+        episodes=_int(spec.get("episodes", FIG4.episodes), f"{what} episodes", 1),
+        seed=_int(spec.get("seed", FIG4.seed), f"{what} seed", 0),
+        n_envs=_int(spec.get("n_envs", FIG4.n_envs if kind == "robustness" else 1), f"{what} n_envs", 1),
+    )
     filters = _filters(spec, what, variants)
     ablation = spec.get("ablation")
     if ablation is not None:
@@ -353,8 +408,14 @@ def _evaluation(name, spec, where: str, variants: dict) -> Evaluation:
             if not isinstance(groups, dict) or not groups:
                 raise ValueError(f"groups of {what} in {where} must map names to lists of observation indices")
             groups = tuple((str(g), _ints(idx, f"group {g!r} of {what}", 0)) for g, idx in groups.items())
-        return Evaluation(kind, replace(protocol, episodes=1, n_envs=1, noises=(), sigmas=(0.0,)), model,
-                          shift=float(shift), groups=groups, **filters)
+        return Evaluation(
+            kind,
+            replace(protocol, episodes=1, n_envs=1, noises=(), sigmas=(0.0,)),
+            model,
+            shift=float(shift),
+            groups=groups,
+            **filters,
+        )
     noises = spec.get("noises", list(FIG4.noises))
     if not isinstance(noises, list) or not noises:
         raise ValueError(f"noises of {what} in {where} must be a list of {', '.join(NOISES)}")
@@ -362,11 +423,14 @@ def _evaluation(name, spec, where: str, variants: dict) -> Evaluation:
         if noise not in NOISES:
             raise _unknown(f"noise of {what}", noise, NOISES, where)
     sigmas = spec.get("sigmas", list(FIG4.sigmas))
-    if not isinstance(sigmas, list) or len(sigmas) < 2 or any(
-            isinstance(s, bool) or not isinstance(s, (int, float)) or not math.isfinite(s) or s < 0 for s in sigmas) \
-            or sigmas[0] != 0 or sorted(set(sigmas)) != sigmas:
-        raise ValueError(f"sigmas={sigmas!r} of {what} in {where} must be increasing numbers >= 0 starting with 0 "
-                         "(R0)")
+    if (
+        not isinstance(sigmas, list)
+        or len(sigmas) < 2
+        or any(isinstance(s, bool) or not isinstance(s, (int, float)) or not math.isfinite(s) or s < 0 for s in sigmas)
+        or sigmas[0] != 0
+        or sorted(set(sigmas)) != sigmas
+    ):
+        raise ValueError(f"sigmas={sigmas!r} of {what} in {where} must be increasing numbers >= 0 starting with 0 (R0)")
     from ..envs.noise import FRICTION_TARGETS
 
     target = spec.get("friction_target", FIG4.friction_target)
@@ -375,12 +439,23 @@ def _evaluation(name, spec, where: str, variants: dict) -> Evaluation:
     indices = spec.get("obs_indices")
     indices = None if indices is None else _ints(indices, f"{what} obs_indices", 0)
     clip = spec.get("clip_obs")
-    if clip is not None and (isinstance(clip, bool) or not isinstance(clip, (int, float)) or not math.isfinite(clip)
-                             or clip <= 0):
+    if clip is not None and (
+        isinstance(clip, bool) or not isinstance(clip, (int, float)) or not math.isfinite(clip) or clip <= 0
+    ):
         raise ValueError(f"clip_obs={clip!r} of {what} in {where} must be a number > 0")
-    return Evaluation(kind, replace(protocol, noises=tuple(noises), sigmas=tuple(float(s) for s in sigmas),
-                                    friction_target=target, obs_indices=indices), model,
-                      clip_obs=None if clip is None else float(clip), **filters)
+    return Evaluation(
+        kind,
+        replace(
+            protocol,
+            noises=tuple(noises),
+            sigmas=tuple(float(s) for s in sigmas),
+            friction_target=target,
+            obs_indices=indices,
+        ),
+        model,
+        clip_obs=None if clip is None else float(clip),
+        **filters,
+    )
 
 
 def _comparisons(data, variants: dict[str, Variant], where: str) -> tuple[Comparison, ...]:
@@ -441,12 +516,20 @@ def study_from_dict(data, where: str = "the study", base: Path = Path(".")) -> S
     if not isinstance(description, str):
         raise ValueError(f"description in {where} must be text")
     study = Study(
-        tuple(envs), _ints(data.get("seeds", [0]), "seeds", 0), tuple(sorted(_ints(data["budgets"], "budgets", 1))),
-        variants, {name: _evaluation(name, spec, where, variants) for name, spec in evaluations.items()},
-        _conf(data.get("conf"), "conf", base), _overrides(data.get("hyperparams"), "hyperparams"),
-        _int(data.get("eval_freq", 0), "eval_freq", 0), _int(data.get("eval_episodes", 5), "eval_episodes", 1),
-        _comparisons(report.get("compare", []), variants, where), float(threshold),
-        _int(report.get("resamples", 2000), "report.resamples", 1), description.strip())
+        tuple(envs),
+        _ints(data.get("seeds", [0]), "seeds", 0),
+        tuple(sorted(_ints(data["budgets"], "budgets", 1))),
+        variants,
+        {name: _evaluation(name, spec, where, variants) for name, spec in evaluations.items()},
+        _conf(data.get("conf"), "conf", base),
+        _overrides(data.get("hyperparams"), "hyperparams"),
+        _int(data.get("eval_freq", 0), "eval_freq", 0),
+        _int(data.get("eval_episodes", 5), "eval_episodes", 1),
+        _comparisons(report.get("compare", []), variants, where),
+        float(threshold),
+        _int(report.get("resamples", 2000), "report.resamples", 1),
+        description.strip(),
+    )
     return study
 
 
@@ -467,8 +550,9 @@ def study_path(name_or_path: os.PathLike | str) -> Path:
     shipped = packaged_studies()
     if str(name_or_path) in shipped:
         return shipped[str(name_or_path)]
-    raise ValueError(f"no study file {str(name_or_path)!r}; give a path or a packaged study: "
-                     f"{', '.join(sorted(shipped))}")
+    raise ValueError(
+        f"no study file {str(name_or_path)!r}; give a path or a packaged study: {', '.join(sorted(shipped))}"
+    )
 
 
 def load_study_file(name_or_path: os.PathLike | str) -> tuple[Study, Path]:

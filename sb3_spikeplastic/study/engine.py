@@ -26,8 +26,18 @@ from typing import Callable, Optional
 from .cell import run_cell
 from .declaration import Study
 from .layout import StudyFolder
-from .storage import (HEARTBEAT_INTERVAL, _plain, check_model, describe_storage, one_line, open_storage,
-                      quiet_optuna, retry_callback, storage_exists, worker_name)
+from .storage import (
+    HEARTBEAT_INTERVAL,
+    _plain,
+    check_model,
+    describe_storage,
+    one_line,
+    open_storage,
+    quiet_optuna,
+    retry_callback,
+    storage_exists,
+    worker_name,
+)
 
 #: The user attribute of an Optuna study that holds its declaration.
 DECLARATION_KEY = "study"
@@ -76,14 +86,29 @@ class StudyJob:
         """What results depend on: each ``(env, variant)``'s entry (its length aside: budgets may grow), the
         evaluations during training, and each evaluation's protocol."""
         s = self.study
-        return _plain({
-            "training": {"eval_freq": s.eval_freq, "eval_episodes": s.eval_episodes},
-            "variants": {f"{env} {variant}": {"train_env": s.train_env(env, variant),
-                                              **{k: v for k, v in config.items() if k != "n_timesteps"}}
-                         for (env, variant), config in self.configs.items()},
-            "evaluations": {name: {"kind": e.kind, "model": e.model, "clip_obs": e.clip_obs, "shift": e.shift,
-                                   "ablation": e.ablation, **e.protocol.as_dict()}
-                            for name, e in s.evaluations.items()}})
+        return _plain(
+            {
+                "training": {"eval_freq": s.eval_freq, "eval_episodes": s.eval_episodes},
+                "variants": {
+                    f"{env} {variant}": {
+                        "train_env": s.train_env(env, variant),
+                        **{k: v for k, v in config.items() if k != "n_timesteps"},
+                    }
+                    for (env, variant), config in self.configs.items()
+                },
+                "evaluations": {
+                    name: {
+                        "kind": e.kind,
+                        "model": e.model,
+                        "clip_obs": e.clip_obs,
+                        "shift": e.shift,
+                        "ablation": e.ablation,
+                        **e.protocol.as_dict(),
+                    }
+                    for name, e in s.evaluations.items()
+                },
+            }
+        )
 
     def work(self, variant: str) -> dict:
         """What a cell of ``variant`` is queued to do: train to its largest budget, run these evaluations."""
@@ -94,10 +119,19 @@ class StudyJob:
         import optuna
 
         storage = open_storage(self.storage, self.folder, self.heartbeat_interval, self.grace_period, retry=True)
-        study = optuna.create_study(storage=storage, study_name=self.name, direction="maximize",
-                                    sampler=optuna.samplers.RandomSampler(seed=0), load_if_exists=True)
-        merged = merge_declarations(study.user_attrs.get(DECLARATION_KEY), self.declaration, self.name,
-                                    describe_storage(self.storage, self.folder))
+        study = optuna.create_study(
+            storage=storage,
+            study_name=self.name,
+            direction="maximize",
+            sampler=optuna.samplers.RandomSampler(seed=0),
+            load_if_exists=True,
+        )
+        merged = merge_declarations(
+            study.user_attrs.get(DECLARATION_KEY),
+            self.declaration,
+            self.name,
+            describe_storage(self.storage, self.folder),
+        )
         if merged != study.user_attrs.get(DECLARATION_KEY):
             study.set_user_attr(DECLARATION_KEY, merged)
         return study
@@ -109,23 +143,30 @@ def merge_declarations(stored: Optional[dict], new: dict, name: str, where: str)
     if stored is None:
         return new
     if stored["training"] != new["training"]:
-        raise ValueError(f"study {name!r} in {where} was declared with other evaluations during training "
-                         f"({stored['training']}); results of two declarations never mix: give the study another "
-                         "name (--name) or storage")
+        raise ValueError(
+            f"study {name!r} in {where} was declared with other evaluations during training "
+            f"({stored['training']}); results of two declarations never mix: give the study another "
+            "name (--name) or storage"
+        )
     for section, what in (("variants", "variant"), ("evaluations", "evaluation")):
         for key in stored[section].keys() & new[section].keys():
             old, now = stored[section][key], new[section][key]
             if old != now:
                 differ = sorted(k for k in old.keys() | now.keys() if old.get(k) != now.get(k))
-                raise ValueError(f"study {name!r} in {where} declares {what} {key!r} otherwise (it differs in "
-                                 f"{', '.join(differ)}); results of two declarations never mix: give the study "
-                                 "another name (--name) or storage, or the variant another name")
-    return {"training": new["training"], **{section: {**stored[section], **new[section]}
-                                            for section in ("variants", "evaluations")}}
+                raise ValueError(
+                    f"study {name!r} in {where} declares {what} {key!r} otherwise (it differs in "
+                    f"{', '.join(differ)}); results of two declarations never mix: give the study "
+                    "another name (--name) or storage, or the variant another name"
+                )
+    return {
+        "training": new["training"],
+        **{section: {**stored[section], **new[section]} for section in ("variants", "evaluations")},
+    }
 
 
-def prepare(study: Study, folder: Path, name: str, storage: Optional[str] = None, build_models: bool = True,
-            **options) -> StudyJob:
+def prepare(
+    study: Study, folder: Path, name: str, storage: Optional[str] = None, build_models: bool = True, **options
+) -> StudyJob:
     """Check a study before anything is written: every ``(env, variant)`` entry resolves, every budget can be
     checkpointed, each model is built once (``build_models``), and an existing study of that name was declared
     alike.
@@ -137,8 +178,10 @@ def prepare(study: Study, folder: Path, name: str, storage: Optional[str] = None
     for (env, variant), config in configs.items():
         bad = [b for b in study.budgets_of(variant) if b % config["n_envs"]]
         if bad:
-            raise ValueError(f"budget {bad[0]} of variant {variant!r} on {env} is not a multiple of its n_envs="
-                             f"{config['n_envs']}: no model would be saved exactly there")
+            raise ValueError(
+                f"budget {bad[0]} of variant {variant!r} on {env} is not a multiple of its n_envs="
+                f"{config['n_envs']}: no model would be saved exactly there"
+            )
     check_noises(study)
     job = StudyJob(study, Path(folder), name, storage, configs, **options)
     if build_models:
@@ -175,6 +218,7 @@ def check_noises(study: Study) -> None:
 # ----------------------------------------------------------------------------------------------------------------
 # The queue
 
+
 def _by_cell(study) -> dict[str, list]:
     cells: dict[str, list] = {}
     for trial in study.get_trials(deepcopy=False):
@@ -196,7 +240,8 @@ def queue_cells(job: StudyJob, study) -> int:
         key, work = cell_key(env, variant, seed), job.work(variant)
         mine = trials.get(key, [])
         if any(t.state.name in ("WAITING", "RUNNING") for t in mine) or any(
-                t.state.name == "COMPLETE" and covers(t.user_attrs["work"], work) for t in mine):
+            t.state.name == "COMPLETE" and covers(t.user_attrs["work"], work) for t in mine
+        ):
             continue
         study.enqueue_trial({}, user_attrs={"cell": key, "work": work})
         queued += 1
@@ -212,7 +257,8 @@ def owner_of(study, trial) -> Optional[int]:
             continue
         state = other.state.name
         if (state in ("WAITING", "RUNNING") and other.number < trial.number) or (
-                state == "COMPLETE" and covers(other.user_attrs["work"], work)):
+            state == "COMPLETE" and covers(other.user_attrs["work"], work)
+        ):
             return other.number
     return None
 
@@ -322,6 +368,7 @@ def run_workers(job: StudyJob, workers: int = 1, log: Callable[[str], None] = pr
 # ----------------------------------------------------------------------------------------------------------------
 # Status
 
+
 def status_rows(job: StudyJob) -> list[dict]:
     """One row per cell: its state (``done``, ``running``, ``waiting``, ``failed``, ``not run``), worker, minutes
     and error."""
@@ -333,15 +380,35 @@ def status_rows(job: StudyJob) -> list[dict]:
         work = job.work(variant)
         done = [t for t in mine if t.state.name == "COMPLETE" and covers(t.user_attrs["work"], work)]
         states = {t.state.name for t in mine}
-        state = ("done" if done else "running" if "RUNNING" in states else "waiting" if "WAITING" in states
-                 else "failed" if "FAIL" in states else "not run")
+        state = (
+            "done"
+            if done
+            else "running"
+            if "RUNNING" in states
+            else "waiting"
+            if "WAITING" in states
+            else "failed"
+            if "FAIL" in states
+            else "not run"
+        )
         trial = done[-1] if done else (mine[-1] if mine else None)
-        minutes = ((trial.datetime_complete - trial.datetime_start).total_seconds() / 60
-                   if trial and trial.datetime_complete and trial.datetime_start else None)
-        rows.append(dict(env=env, variant=variant, seed=seed, state=state, trial=trial.number if trial else None,
-                         minutes=None if minutes is None else round(minutes, 1),
-                         worker=trial.user_attrs.get("worker") if trial else None,
-                         error=trial.user_attrs.get("error") if trial and not done else None))
+        minutes = (
+            (trial.datetime_complete - trial.datetime_start).total_seconds() / 60
+            if trial and trial.datetime_complete and trial.datetime_start
+            else None
+        )
+        rows.append(
+            dict(
+                env=env,
+                variant=variant,
+                seed=seed,
+                state=state,
+                trial=trial.number if trial else None,
+                minutes=None if minutes is None else round(minutes, 1),
+                worker=trial.user_attrs.get("worker") if trial else None,
+                error=trial.user_attrs.get("error") if trial and not done else None,
+            )
+        )
     return rows
 
 
@@ -350,8 +417,10 @@ def run(job: StudyJob, workers: int = 1, log: Callable[[str], None] = print) -> 
     from .report import write_report
 
     cells = len(job.study.cells())
-    log(f"Study {job.name!r} ({cells} cell{'s' if cells > 1 else ''}) in {describe_storage(job.storage, job.folder)}; "
-        f"{workers} worker(s) here; raw data under {job.folder}")
+    log(
+        f"Study {job.name!r} ({cells} cell{'s' if cells > 1 else ''}) in {describe_storage(job.storage, job.folder)}; "
+        f"{workers} worker(s) here; raw data under {job.folder}"
+    )
     status = run_workers(job, workers, log)
     rows = status_rows(job)
     counts = reduce(lambda acc, r: {**acc, r["state"]: acc.get(r["state"], 0) + 1}, rows, {})
@@ -364,10 +433,20 @@ def run(job: StudyJob, workers: int = 1, log: Callable[[str], None] = print) -> 
     return status
 
 
-def study_command(study_file: list[str], workers: int = 1, heartbeat_interval: int = 60,
-                  grace_period: Optional[int] = None, storage: Optional[str] = None, study_name: Optional[str] = None,
-                  log_folder: str = "logs", folder: Optional[str] = None, variants=None, seeds=None,
-                  device: str = "cpu", torch_threads: int = 1) -> Callable[[], int]:
+def study_command(
+    study_file: list[str],
+    workers: int = 1,
+    heartbeat_interval: int = 60,
+    grace_period: Optional[int] = None,
+    storage: Optional[str] = None,
+    study_name: Optional[str] = None,
+    log_folder: str = "logs",
+    folder: Optional[str] = None,
+    variants=None,
+    seeds=None,
+    device: str = "cpu",
+    torch_threads: int = 1,
+) -> Callable[[], int]:
     """``sb3-spikeplastic study [report] FILE`` with these options (its long names): the study file and the study
     are checked by :func:`prepare` (``ValueError``, nothing written); returns the work (:func:`run`, or the report
     alone)."""
@@ -380,9 +459,12 @@ def study_command(study_file: list[str], workers: int = 1, heartbeat_interval: i
         return report_command(study_file[1], folder, log_folder, study_name)
     if len(study_file) != 1:
         raise ValueError(f"expected `study FILE` or `study report FILE`, got {' '.join(study_file)!r}")
-    for option, value, minimum in (("--workers", workers, 1), ("--heartbeat-interval", heartbeat_interval, 1),
-                                   ("--grace-period", grace_period, heartbeat_interval + 1),
-                                   ("--torch-threads", torch_threads, 1)):
+    for option, value, minimum in (
+        ("--workers", workers, 1),
+        ("--heartbeat-interval", heartbeat_interval, 1),
+        ("--grace-period", grace_period, heartbeat_interval + 1),
+        ("--torch-threads", torch_threads, 1),
+    ):
         check_int(option, value, minimum)
     check_device(device)
     check_output_path(folder or log_folder, "--folder" if folder else "-f/--log-folder", directory=True)
@@ -390,7 +472,15 @@ def study_command(study_file: list[str], workers: int = 1, heartbeat_interval: i
     declared, path = load_study_file(study_file[0])
     study = declared.select(variants, seeds) if variants or seeds else declared
     name = study_name or path.stem
-    job = prepare(study, Path(folder) if folder else Path(log_folder) / "study" / name, name, storage,
-                  heartbeat_interval=heartbeat_interval, grace_period=grace_period, device=device,
-                  torch_threads=torch_threads, declared=declared)
+    job = prepare(
+        study,
+        Path(folder) if folder else Path(log_folder) / "study" / name,
+        name,
+        storage,
+        heartbeat_interval=heartbeat_interval,
+        grace_period=grace_period,
+        device=device,
+        torch_threads=torch_threads,
+        declared=declared,
+    )
     return lambda: run(job, workers)

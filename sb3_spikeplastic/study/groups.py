@@ -69,8 +69,9 @@ def members(names: tuple[str, ...], kind: dict[str, str]) -> list[str]:
     return out
 
 
-def comparisons(study: Study, kind: dict[str, str], groups: list[str],
-                has_data: Callable[[str], bool]) -> list[tuple[str, str, list[str]]]:
+def comparisons(
+    study: Study, kind: dict[str, str], groups: list[str], has_data: Callable[[str], bool]
+) -> list[tuple[str, str, list[str]]]:
     """``(label, reference group, groups compared)`` of every declared comparison, budget by budget: each variant
     against each reference of the same budget, then the variants pooled (when declared and more than one)."""
     rows = []
@@ -85,6 +86,11 @@ def comparisons(study: Study, kind: dict[str, str], groups: list[str],
                 mine = [v for v in chosen if v != ref_variant]
                 rows += [(at_budget[v], reference, [at_budget[v]]) for v in mine]
                 if comparison.pooled and len(mine) > 1:
-                    rows.append((f"{' + '.join(comparison.variants)}@{budget} (pooled: {', '.join(mine)})", reference,
-                                 [at_budget[v] for v in mine]))
+                    rows.append(
+                        (
+                            f"{' + '.join(comparison.variants)}@{budget} (pooled: {', '.join(mine)})",
+                            reference,
+                            [at_budget[v] for v in mine],
+                        )
+                    )
     return rows

@@ -78,8 +78,9 @@ def _percentiles(replicates: np.ndarray, level: float) -> tuple[float, float]:
     return float(low), float(high)
 
 
-def bootstrap_interval(groups: Sequence[np.ndarray], statistic: Statistic, n_resamples: int = 2000,
-                       level: float = 0.95, seed: int = 0) -> Interval:
+def bootstrap_interval(
+    groups: Sequence[np.ndarray], statistic: Statistic, n_resamples: int = 2000, level: float = 0.95, seed: int = 0
+) -> Interval:
     """Two-stage (seeds, then episodes) percentile bootstrap interval of ``statistic``.
 
     :param groups: one array per seed, episodes on the last axis.
@@ -96,8 +97,14 @@ def bootstrap_interval(groups: Sequence[np.ndarray], statistic: Statistic, n_res
     return Interval(float(statistic(arrays)), *_percentiles(replicates, level))
 
 
-def bootstrap_difference(groups_a: Sequence[np.ndarray], groups_b: Sequence[np.ndarray], statistic: Statistic,
-                         n_resamples: int = 2000, level: float = 0.95, seed: int = 0) -> Interval:
+def bootstrap_difference(
+    groups_a: Sequence[np.ndarray],
+    groups_b: Sequence[np.ndarray],
+    statistic: Statistic,
+    n_resamples: int = 2000,
+    level: float = 0.95,
+    seed: int = 0,
+) -> Interval:
     """Interval of ``statistic(a) - statistic(b)`` for two independent sets of seeds (e.g. plastic vs static
     models), each resampled in two stages on its own.
 
@@ -154,8 +161,13 @@ def _sizes(arrays: Sequence[np.ndarray]) -> Optional[tuple[int, int]]:
 MeanStatistic = Callable[[np.ndarray], np.ndarray]
 
 
-def bootstrap_mean_intervals(groups: Sequence[np.ndarray], statistics: Sequence[MeanStatistic],
-                             n_resamples: int = 2000, level: float = 0.95, seed: int = 0) -> list[Interval]:
+def bootstrap_mean_intervals(
+    groups: Sequence[np.ndarray],
+    statistics: Sequence[MeanStatistic],
+    n_resamples: int = 2000,
+    level: float = 0.95,
+    seed: int = 0,
+) -> list[Interval]:
     """:func:`bootstrap_interval` of statistics of the per-seed mean returns, all replicates at once.
 
     The draws are those of :func:`bootstrap_interval` with the same ``seed``, so each interval is the same; only
@@ -172,25 +184,36 @@ def bootstrap_mean_intervals(groups: Sequence[np.ndarray], statistics: Sequence[
     arrays = _check(groups, n_resamples, level)
     sizes = _sizes(arrays)
     if sizes is None:
-        return [bootstrap_interval(arrays, lambda s, f=f: float(f(_means(s))), n_resamples, level, seed)
-                for f in statistics]
+        return [
+            bootstrap_interval(arrays, lambda s, f=f: float(f(_means(s))), n_resamples, level, seed) for f in statistics
+        ]
     ((seeds, episodes),) = _draws((sizes,), n_resamples, seed)
     means, measured = _resampled_means(arrays, seeds, episodes), _means(arrays)
     return [Interval(float(f(measured)), *_percentiles(np.asarray(f(means), dtype=float), level)) for f in statistics]
 
 
-def bootstrap_mean_differences(groups_a: Sequence[np.ndarray], groups_b: Sequence[np.ndarray],
-                               statistics: Sequence[MeanStatistic], n_resamples: int = 2000, level: float = 0.95,
-                               seed: int = 0) -> list[Interval]:
+def bootstrap_mean_differences(
+    groups_a: Sequence[np.ndarray],
+    groups_b: Sequence[np.ndarray],
+    statistics: Sequence[MeanStatistic],
+    n_resamples: int = 2000,
+    level: float = 0.95,
+    seed: int = 0,
+) -> list[Interval]:
     """:func:`bootstrap_difference` of statistics of the per-seed means (see :func:`bootstrap_mean_intervals`),
     with the same draws as :func:`bootstrap_difference`."""
     a, b = _check(groups_a, n_resamples, level), _check(groups_b, n_resamples, level)
     sizes_a, sizes_b = _sizes(a), _sizes(b)
     if sizes_a is None or sizes_b is None:
-        return [bootstrap_difference(a, b, lambda s, f=f: float(f(_means(s))), n_resamples, level, seed)
-                for f in statistics]
+        return [
+            bootstrap_difference(a, b, lambda s, f=f: float(f(_means(s))), n_resamples, level, seed) for f in statistics
+        ]
     (seeds_a, eps_a), (seeds_b, eps_b) = _draws((sizes_a, sizes_b), n_resamples, seed)
     means_a, means_b = _resampled_means(a, seeds_a, eps_a), _resampled_means(b, seeds_b, eps_b)
     measured_a, measured_b = _means(a), _means(b)
-    return [Interval(float(f(measured_a) - f(measured_b)),
-                     *_percentiles(np.asarray(f(means_a) - f(means_b), dtype=float), level)) for f in statistics]
+    return [
+        Interval(
+            float(f(measured_a) - f(measured_b)), *_percentiles(np.asarray(f(means_a) - f(means_b), dtype=float), level)
+        )
+        for f in statistics
+    ]

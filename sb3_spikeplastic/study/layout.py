@@ -47,8 +47,10 @@ class StudyFolder:
     def run_folders(self, env: str, variant: str, seed: int) -> list[Path]:
         """The run folders of a cell (``ppo/<training env>_<n>``), oldest first (a later one continues an earlier
         one)."""
-        return sorted((p for p in self.run_root(env, variant, seed).glob("ppo/*") if _RUN.fullmatch(p.name)),
-                      key=lambda p: int(p.name.rsplit("_", 1)[1]))
+        return sorted(
+            (p for p in self.run_root(env, variant, seed).glob("ppo/*") if _RUN.fullmatch(p.name)),
+            key=lambda p: int(p.name.rsplit("_", 1)[1]),
+        )
 
     def checkpoints(self, env: str, variant: str, seed: int) -> dict[int, Path]:
         """Steps -> checkpoint, over every run folder of the cell (a later folder's wins)."""
@@ -89,8 +91,10 @@ def read_final(path: Path) -> dict[str, np.ndarray]:
     """A final-evaluation file: ``return``, ``length`` and ``success`` (NaN where the task reports none)."""
     with open(path) as f:
         rows = list(csv.DictReader(f))
-    return {key: np.array([float(r[key]) if r[key] != "" else np.nan for r in rows])
-            for key in ("return", "length", "success")}
+    return {
+        key: np.array([float(r[key]) if r[key] != "" else np.nan for r in rows])
+        for key in ("return", "length", "success")
+    }
 
 
 def read_training(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -108,8 +112,10 @@ def read_sensitivity(path: Path) -> tuple[np.ndarray, np.ndarray]:
     (NaN where not recorded)."""
     with open(path) as f:
         rows = sorted(csv.DictReader(f), key=lambda r: int(r["element"]))
-    return (np.array([float(r["sensitivity"]) for r in rows]),
-            np.array([float(r["obs_sd"]) if r.get("obs_sd") not in (None, "") else np.nan for r in rows]))
+    return (
+        np.array([float(r["sensitivity"]) for r in rows]),
+        np.array([float(r["obs_sd"]) if r.get("obs_sd") not in (None, "") else np.nan for r in rows]),
+    )
 
 
 @dataclass
@@ -152,7 +158,7 @@ def read_study(study: Study, folder: Path) -> StudyData:
                     elif evaluation.kind == "sensitivity":
                         data.sensitivity.setdefault((env, name), {})[model] = read_sensitivity(path)
                     else:
-                        noise = file[len(name) + 1:-len(".csv")]
+                        noise = file[len(name) + 1 : -len(".csv")]
                         runs = data.robustness.setdefault((env, name), {}).setdefault(model, {})
                         runs[noise] = read_robustness(path)
     return data

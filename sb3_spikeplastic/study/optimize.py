@@ -23,8 +23,19 @@ from typing import Callable, Optional, Sequence
 from ..zoo.config import check_env_id, dump_yaml, resolve_hyperparams
 from ..zoo.zoo_yaml import load_hyperparams_file, parse_override
 from .search_space import load_search_space, sample_overrides, searched_space
-from .storage import (check_model, check_settings, count_states, create_study, describe_storage, open_storage,
-                      one_line, quiet_optuna, storage_exists, train_command, worker_name)
+from .storage import (
+    check_model,
+    check_settings,
+    count_states,
+    create_study,
+    describe_storage,
+    one_line,
+    open_storage,
+    quiet_optuna,
+    storage_exists,
+    train_command,
+    worker_name,
+)
 
 SAMPLERS = ("tpe", "random")
 PRUNERS = ("median", "none")
@@ -34,6 +45,7 @@ SETTINGS_KEY = "optimize"
 
 # ----------------------------------------------------------------------------------------------------------------
 # Trials
+
 
 def _trial_report_class():
     from stable_baselines3.common.callbacks import BaseCallback
@@ -55,8 +67,7 @@ def _trial_report_class():
         def _on_step(self) -> bool:
             self.last_value = float(self.parent.last_mean_reward)
             successes = self.parent.evaluations_successes
-            self.last_success = float(sum(successes[-1]) / len(successes[-1])) if successes and successes[-1] \
-                else None
+            self.last_success = float(sum(successes[-1]) / len(successes[-1])) if successes and successes[-1] else None
             self.trial.report(self.last_value, self.step)
             self.step += 1
             if self.trial.should_prune():
@@ -125,14 +136,21 @@ class Search:
     def fingerprint(self) -> dict:
         """What makes the trials comparable: an existing study must have been made with the same."""
         s = self.settings
-        return dict(env=s.env_id, entry=self.entry, space={k: list(v) for k, v in self.space.items()},
-                    n_evaluations=s.n_evaluations, eval_episodes=s.eval_episodes, seeds=s.seeds)
+        return dict(
+            env=s.env_id,
+            entry=self.entry,
+            space={k: list(v) for k, v in self.space.items()},
+            n_evaluations=s.n_evaluations,
+            eval_episodes=s.eval_episodes,
+            seeds=s.seeds,
+        )
 
     def resolve(self, overrides: Sequence[str] = (), full_run: bool = False) -> dict:
         """The entry of one configuration (``full_run``: with the file's ``n_timesteps``, not the trials')."""
         s = self.settings
-        return resolve_hyperparams(s.env_id, s.conf, [*s.hyperparams, *overrides], rule=s.rule,
-                                   n_timesteps=None if full_run else s.n_timesteps)
+        return resolve_hyperparams(
+            s.env_id, s.conf, [*s.hyperparams, *overrides], rule=s.rule, n_timesteps=None if full_run else s.n_timesteps
+        )
 
     def sampler(self):
         import optuna
@@ -146,8 +164,9 @@ class Search:
 
         if self.settings.pruner == "none":
             return optuna.pruners.NopPruner()
-        return optuna.pruners.MedianPruner(n_startup_trials=self.settings.n_startup_trials,
-                                           n_warmup_steps=self.settings.n_evaluations // 3)
+        return optuna.pruners.MedianPruner(
+            n_startup_trials=self.settings.n_startup_trials, n_warmup_steps=self.settings.n_evaluations // 3
+        )
 
     def objective(self, trial) -> float:
         """Train the trial's configuration on every seed; the mean of the last evaluations."""
@@ -164,14 +183,36 @@ class Search:
             report = _trial_report_class()(trial)
             values, successes, run_dirs = [], [], []
             for seed in s.seeds:
-                experiment = Experiment(s.env_id, config, seed, s.folder / f"trial_{trial.number}", device=s.device,
-                                        verbose=0, eval_freq=max(config["n_timesteps"] // s.n_evaluations, 1),
-                                        eval_episodes=s.eval_episodes, progress=False, after_eval=report)
+                experiment = Experiment(
+                    s.env_id,
+                    config,
+                    seed,
+                    s.folder / f"trial_{trial.number}",
+                    device=s.device,
+                    verbose=0,
+                    eval_freq=max(config["n_timesteps"] // s.n_evaluations, 1),
+                    eval_episodes=s.eval_episodes,
+                    progress=False,
+                    after_eval=report,
+                )
                 experiment.setup()
-                command = train_command(s.env_id, s.conf, s.rule, [*s.hyperparams, *overrides], seed,
-                                        config["n_timesteps"], experiment.eval_freq, s.eval_episodes)
-                run_dirs.append(str(experiment.create_run_folder(command, dict(
-                    study=s.name, trial=trial.number, hyperparams=[*s.hyperparams, *overrides]))))
+                command = train_command(
+                    s.env_id,
+                    s.conf,
+                    s.rule,
+                    [*s.hyperparams, *overrides],
+                    seed,
+                    config["n_timesteps"],
+                    experiment.eval_freq,
+                    s.eval_episodes,
+                )
+                run_dirs.append(
+                    str(
+                        experiment.create_run_folder(
+                            command, dict(study=s.name, trial=trial.number, hyperparams=[*s.hyperparams, *overrides])
+                        )
+                    )
+                )
                 trial.set_user_attr("run_dirs", run_dirs)
                 evaluations = report.step
                 if not experiment.learn():
@@ -212,9 +253,13 @@ def prepare(settings: OptimizeSettings) -> Search:
         raise ValueError(f"unknown sampler {s.sampler!r}; accepted: {', '.join(SAMPLERS)}")
     if s.pruner not in PRUNERS:
         raise ValueError(f"unknown pruner {s.pruner!r}; accepted: {', '.join(PRUNERS)}")
-    for name, value, minimum in (("--n-trials", s.n_trials, 1), ("--n-evaluations", s.n_evaluations, 1),
-                                 ("--eval-episodes", s.eval_episodes, 1), ("--seeds-per-trial", s.seeds_per_trial, 1),
-                                 ("--n-startup-trials", s.n_startup_trials, 0)):
+    for name, value, minimum in (
+        ("--n-trials", s.n_trials, 1),
+        ("--n-evaluations", s.n_evaluations, 1),
+        ("--eval-episodes", s.eval_episodes, 1),
+        ("--seeds-per-trial", s.seeds_per_trial, 1),
+        ("--n-startup-trials", s.n_startup_trials, 0),
+    ):
         if value < minimum:
             raise ValueError(f"{name}={value} must be >= {minimum}")
     check_env_id(s.env_id, list(load_hyperparams_file(s.conf)))
@@ -226,13 +271,15 @@ def prepare(settings: OptimizeSettings) -> Search:
     fixed = [".".join(parse_override(o)[0]) for o in s.hyperparams]
     space = searched_space(load_search_space(s.env_id, s.search_space), entry, fixed, rule_fixed=s.rule is not None)
     search = Search(s, entry, space, fixed)
-    overrides = sample_overrides(optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0)).ask(), space,
-                                 entry, fixed)
+    overrides = sample_overrides(
+        optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0)).ask(), space, entry, fixed
+    )
     try:
         check_model(s.env_id, search.resolve(overrides), s.device)
     except ValueError as exc:
-        raise ValueError(f"the search space gives an invalid configuration for {s.env_id} ({' '.join(overrides)}): "
-                         f"{exc}") from None
+        raise ValueError(
+            f"the search space gives an invalid configuration for {s.env_id} ({' '.join(overrides)}): {exc}"
+        ) from None
     if storage_exists(s.storage, s.folder):
         check_settings(open_storage(s.storage, s.folder), s.name, SETTINGS_KEY, search.fingerprint)
     return search
@@ -243,9 +290,11 @@ def trial_line(study, trial) -> str:
     if trial.state.name == "COMPLETE":
         seeds = trial.user_attrs.get("values", [])
         success = trial.user_attrs.get("success_rate")
-        line = f"trial {trial.number}: {trial.value:.4g}" + (
-            f" (seeds: {' / '.join(f'{v:.4g}' for v in seeds)})" if len(seeds) > 1 else "") + (
-            f", success {success:.3f}" if success is not None else "")
+        line = (
+            f"trial {trial.number}: {trial.value:.4g}"
+            + (f" (seeds: {' / '.join(f'{v:.4g}' for v in seeds)})" if len(seeds) > 1 else "")
+            + (f", success {success:.3f}" if success is not None else "")
+        )
         best = study.best_trial
         return line + f"; best {best.value:.4g} (trial {best.number})"
     if trial.state.name == "PRUNED":
@@ -258,17 +307,20 @@ def trial_line(study, trial) -> str:
 def summary(search: Search, study) -> list[str]:
     """The study's trial counts and its best trial, as printed at the end."""
     counts = count_states(study)
-    lines = [f"Study {study.study_name!r} ({describe_storage(search.settings.storage, search.settings.folder)}): "
-             f"{sum(counts.values())} trials: {counts.get('COMPLETE', 0)} complete, {counts.get('PRUNED', 0)} "
-             f"pruned, {counts.get('FAIL', 0)} failed"
-             + (f", {counts['RUNNING']} running" if counts.get("RUNNING") else "")]
+    lines = [
+        f"Study {study.study_name!r} ({describe_storage(search.settings.storage, search.settings.folder)}): "
+        f"{sum(counts.values())} trials: {counts.get('COMPLETE', 0)} complete, {counts.get('PRUNED', 0)} "
+        f"pruned, {counts.get('FAIL', 0)} failed" + (f", {counts['RUNNING']} running" if counts.get("RUNNING") else "")
+    ]
     if counts.get("COMPLETE"):
         best = study.best_trial
         s = search.settings
         success = best.user_attrs.get("success_rate")
-        lines.append(f"Best trial {best.number}: {best.value:.4g} (mean return of the last evaluation, "
-                     f"{s.eval_episodes} episodes, over {len(s.seeds)} seed(s))"
-                     + (f", success rate {success:.3f}" if success is not None else ""))
+        lines.append(
+            f"Best trial {best.number}: {best.value:.4g} (mean return of the last evaluation, "
+            f"{s.eval_episodes} episodes, over {len(s.seeds)} seed(s))"
+            + (f", success rate {success:.3f}" if success is not None else "")
+        )
         lines += [f"  {o}" for o in best.user_attrs.get("overrides", [])]
     return lines
 
@@ -282,10 +334,12 @@ def write_best(search: Search, study) -> Path:
     best = study.best_trial
     path = s.folder / "best.yml"
     path.parent.mkdir(parents=True, exist_ok=True)
-    header = (f"# Best trial {best.number} of the study {study.study_name!r}: {best.value:.6g}, the mean return of "
-              f"the last evaluation ({s.eval_episodes} deterministic episodes) over {len(s.seeds)} seed(s) after "
-              f"{search.entry['n_timesteps']:,} steps.\n# Train it: sb3-spikeplastic train --env {s.env_id} "
-              f"--conf {path}\n")
+    header = (
+        f"# Best trial {best.number} of the study {study.study_name!r}: {best.value:.6g}, the mean return of "
+        f"the last evaluation ({s.eval_episodes} deterministic episodes) over {len(s.seeds)} seed(s) after "
+        f"{search.entry['n_timesteps']:,} steps.\n# Train it: sb3-spikeplastic train --env {s.env_id} "
+        f"--conf {path}\n"
+    )
     text = header + dump_yaml({s.env_id: search.best_entry(study)})
     return atomic_write(path, lambda f: f.write(text), binary=False)
 
@@ -307,13 +361,20 @@ def run(search: Search, log: Callable[[str], None] = print) -> int:
     keep_freed_memory()
     storage = open_storage(s.storage, s.folder)
     study = create_study(storage, s.name, SETTINGS_KEY, search.fingerprint, search.sampler(), search.pruner())
-    log(f"Study {s.name!r} in {describe_storage(s.storage, s.folder)}: {s.n_trials} trial(s) of "
+    log(
+        f"Study {s.name!r} in {describe_storage(s.storage, s.folder)}: {s.n_trials} trial(s) of "
         f"{search.entry['n_timesteps']:,} steps x {len(s.seeds)} seed(s) on {s.env_id}, searching "
-        f"{', '.join(search.space) or 'nothing'}")
+        f"{', '.join(search.space) or 'nothing'}"
+    )
     status = 0
     try:
-        study.optimize(search.objective, n_trials=s.n_trials, catch=(Exception,), gc_after_trial=True,
-                       callbacks=[lambda st, trial: log(trial_line(st, trial))])
+        study.optimize(
+            search.objective,
+            n_trials=s.n_trials,
+            catch=(Exception,),
+            gc_after_trial=True,
+            callbacks=[lambda st, trial: log(trial_line(st, trial))],
+        )
     except KeyboardInterrupt:
         log("interrupted")
         status = 130
@@ -322,18 +383,34 @@ def run(search: Search, log: Callable[[str], None] = print) -> int:
     if not count_states(study).get("COMPLETE"):
         log("no trial has completed: no best entry written")
         return status or 1
-    log(f"Best entry: {write_best(search, study)} (sb3-spikeplastic train --env {s.env_id} --conf "
-        f"{s.folder / 'best.yml'})")
+    log(
+        f"Best entry: {write_best(search, study)} (sb3-spikeplastic train --env {s.env_id} --conf "
+        f"{s.folder / 'best.yml'})"
+    )
     return status
 
 
-def optimize_command(env: str, conf: Optional[str] = None, rule: Optional[str] = None,
-                     hyperparams: Optional[Sequence[str]] = None, n_timesteps: Optional[int] = None,
-                     n_trials: int = 20, sampler: str = "tpe", pruner: str = "median", n_startup_trials: int = 5,
-                     n_evaluations: int = 5, eval_episodes: int = 10, seeds_per_trial: int = 1,
-                     storage: Optional[str] = None, study_name: Optional[str] = None, log_folder: str = "logs",
-                     seed: Optional[int] = None, search_space: Optional[str] = None, device: str = "cpu",
-                     torch_threads: int = 1) -> Callable[[], int]:
+def optimize_command(
+    env: str,
+    conf: Optional[str] = None,
+    rule: Optional[str] = None,
+    hyperparams: Optional[Sequence[str]] = None,
+    n_timesteps: Optional[int] = None,
+    n_trials: int = 20,
+    sampler: str = "tpe",
+    pruner: str = "median",
+    n_startup_trials: int = 5,
+    n_evaluations: int = 5,
+    eval_episodes: int = 10,
+    seeds_per_trial: int = 1,
+    storage: Optional[str] = None,
+    study_name: Optional[str] = None,
+    log_folder: str = "logs",
+    seed: Optional[int] = None,
+    search_space: Optional[str] = None,
+    device: str = "cpu",
+    torch_threads: int = 1,
+) -> Callable[[], int]:
     """``sb3-spikeplastic optimize`` with these options (its long names): everything is checked by
     :func:`prepare` (``ValueError``, nothing written); returns the search (:func:`run`)."""
     from ..zoo.inputs import check_device, check_int, check_output_path
@@ -343,10 +420,29 @@ def optimize_command(env: str, conf: Optional[str] = None, rule: Optional[str] =
     check_device(device)
     check_output_path(log_folder, "-f/--log-folder", directory=True)
     check_storage(storage)
-    search = prepare(OptimizeSettings(
-        env, conf, rule, hyperparams or (), n_timesteps, n_trials, sampler, pruner, n_startup_trials, n_evaluations,
-        eval_episodes, seeds_per_trial, storage, study_name, Path(log_folder), seed, device, torch_threads,
-        search_space))
+    search = prepare(
+        OptimizeSettings(
+            env,
+            conf,
+            rule,
+            hyperparams or (),
+            n_timesteps,
+            n_trials,
+            sampler,
+            pruner,
+            n_startup_trials,
+            n_evaluations,
+            eval_episodes,
+            seeds_per_trial,
+            storage,
+            study_name,
+            Path(log_folder),
+            seed,
+            device,
+            torch_threads,
+            search_space,
+        )
+    )
     if hyperparams:
         from ..zoo.config import print_replaced_mappings
 

@@ -70,8 +70,14 @@ class RobustnessRow:
     returns: tuple[float, ...] = ()
 
 
-def _make_eval_env(env_id: str, noise: Mapping[str, Any], env_kwargs: Mapping[str, Any], n_envs: int, seed: int,
-                   vec_normalize_path: str | os.PathLike | None) -> VecEnv:
+def _make_eval_env(
+    env_id: str,
+    noise: Mapping[str, Any],
+    env_kwargs: Mapping[str, Any],
+    n_envs: int,
+    seed: int,
+    vec_normalize_path: str | os.PathLike | None,
+) -> VecEnv:
     """:func:`frozen_eval_env` of the noise-wrapped ``env_id``."""
     return frozen_eval_env(lambda: make_noisy_env(env_id, **noise, **env_kwargs), n_envs, seed, vec_normalize_path)
 
@@ -146,7 +152,6 @@ def evaluate_robustness(
     with tqdm(
         total=len(models) * len(grid) * n_episodes, disable=not progress_bar, desc="robustness", unit="episode"
     ) as bar:
-
         finished: list[tuple[int, int]] = []  # (episode within its environment, environment) of each return
 
         def count_episode(local_vars: dict[str, Any], _globals: dict[str, Any]) -> None:
@@ -162,8 +167,12 @@ def evaluate_robustness(
             for sigma in grid:
                 bar.set_postfix(model=name, noise=noise_type, sigma=sigma)
                 venv = _make_eval_env(
-                    env_id, noise_kwargs(noise_type, sigma, friction_target, obs_indices), env_kwargs, n_envs, seed,
-                    stats.get(name)
+                    env_id,
+                    noise_kwargs(noise_type, sigma, friction_target, obs_indices),
+                    env_kwargs,
+                    n_envs,
+                    seed,
+                    stats.get(name),
                 )
                 if not deterministic:
                     torch.manual_seed(seed)
@@ -185,8 +194,9 @@ def evaluate_robustness(
                 if sigma == 0.0:
                     baseline = mean
                 ratio = return_ratio(mean, baseline)
-                rows.append(RobustnessRow(name, noise_type, sigma, mean, float(np.std(ordered)), len(ordered), ratio,
-                                          ordered))
+                rows.append(
+                    RobustnessRow(name, noise_type, sigma, mean, float(np.std(ordered)), len(ordered), ratio, ordered)
+                )
     return rows
 
 
@@ -250,8 +260,14 @@ def format_table(rows: Sequence[RobustnessRow]) -> str:
     return "\n".join(lines)
 
 
-def write_report(rows: Sequence[RobustnessRow], folder: str | os.PathLike, env_id: str, noise_type: str,
-                 n_episodes: int, ablation: str | Ablation | None = None) -> tuple[str, list[Path]]:
+def write_report(
+    rows: Sequence[RobustnessRow],
+    folder: str | os.PathLike,
+    env_id: str,
+    noise_type: str,
+    n_episodes: int,
+    ablation: str | Ablation | None = None,
+) -> tuple[str, list[Path]]:
     """Write ``robustness_<env_id>_<noise_type>`` ``.csv`` (:func:`write_csv`), ``.md`` (:func:`format_table`),
     ``.png`` (:func:`robustness_figure`) and, when the rows hold their episodes,
     ``_episodes.csv`` (:func:`write_episodes_csv`) into ``folder`` (created if needed). Under an ``ablation`` other
@@ -296,13 +312,24 @@ def parse_models(specs: Sequence[str]) -> dict[str, RunInfo]:
     return infos
 
 
-def robustness_command(models: Sequence[str], noise: str, env: Optional[str] = None,
-                       sigmas: Sequence[float] = FIG4.sigmas, episodes: int = FIG4.episodes, seed: int = FIG4.seed,
-                       n_envs: int = FIG4.n_envs, env_kwargs: Optional[Sequence[str]] = None,
-                       friction_target: str = "damping", obs_indices: Optional[Sequence[int]] = None,
-                       deterministic: bool = True, output: str = "robustness",
-                       no_progress: bool = False, device: str = "cpu", torch_threads: int = 1,
-                       ablation: Optional[str] = None) -> Callable[[], int]:
+def robustness_command(
+    models: Sequence[str],
+    noise: str,
+    env: Optional[str] = None,
+    sigmas: Sequence[float] = FIG4.sigmas,
+    episodes: int = FIG4.episodes,
+    seed: int = FIG4.seed,
+    n_envs: int = FIG4.n_envs,
+    env_kwargs: Optional[Sequence[str]] = None,
+    friction_target: str = "damping",
+    obs_indices: Optional[Sequence[int]] = None,
+    deterministic: bool = True,
+    output: str = "robustness",
+    no_progress: bool = False,
+    device: str = "cpu",
+    torch_threads: int = 1,
+    ablation: Optional[str] = None,
+) -> Callable[[], int]:
     """``sb3-spikeplastic robustness`` with these options (its long names): the noise is applied to the
     environment once, the models are loaded and checked against it (``ValueError``, nothing written); returns the
     comparison, which prints the table, writes it (:func:`write_report`) and returns 0."""
@@ -326,8 +353,9 @@ def robustness_command(models: Sequence[str], noise: str, env: Optional[str] = N
     env_id = env
     if env_id is None:
         if len(env_ids) != 1:
-            raise ValueError("--env is needed" + (f": the runs were trained on {', '.join(sorted(env_ids))}"
-                                                  if env_ids else ""))
+            raise ValueError(
+                "--env is needed" + (f": the runs were trained on {', '.join(sorted(env_ids))}" if env_ids else "")
+            )
         env_id = env_ids.pop()
     env_id = check_env_id(env_id)
     kwargs = parse_env_kwargs(env_kwargs) or {}
@@ -351,10 +379,21 @@ def robustness_command(models: Sequence[str], noise: str, env: Optional[str] = N
 
     def compare() -> int:
         rows = evaluate_robustness(
-            loaded, env_id, noise, sigmas, n_episodes=episodes, seed=seed, deterministic=deterministic,
+            loaded,
+            env_id,
+            noise,
+            sigmas,
+            n_episodes=episodes,
+            seed=seed,
+            deterministic=deterministic,
             vec_normalize_stats={name: info.vecnormalize for name, info in infos.items()},
-            progress_bar=not no_progress, n_envs=n_envs, friction_target=friction_target, obs_indices=obs_indices,
-            env_kwargs=kwargs, ablation=ablation)
+            progress_bar=not no_progress,
+            n_envs=n_envs,
+            friction_target=friction_target,
+            obs_indices=obs_indices,
+            env_kwargs=kwargs,
+            ablation=ablation,
+        )
         table, paths = write_report(rows, output, env_id, noise, episodes, ablation)
         print(table)
         print(f"\nwrote {', '.join(str(p) for p in paths)}")
@@ -383,8 +422,11 @@ def robustness_figure(rows: Sequence["RobustnessRow"], title: Optional[str] = No
     noise = rows[0].noise_type if rows else ""
     ax.set_xlabel(f"{noise} noise σ")
     # RobustnessRow.ratio: R_sigma / R_0 for a positive R_0, and below 1 exactly when the noise lowers the return.
-    ax.set_ylabel(r"return ratio $1 + (R_\sigma - R_0)\,/\,|R_0|$" "\n"
-                  r"($R_\sigma / R_0$ for $R_0 > 0$; $R$: mean return)")
+    ax.set_ylabel(
+        r"return ratio $1 + (R_\sigma - R_0)\,/\,|R_0|$"
+        "\n"
+        r"($R_\sigma / R_0$ for $R_0 > 0$; $R$: mean return)"
+    )
     ax.grid(alpha=0.3)
     ax.legend(loc="best", fontsize=8)
     if title:

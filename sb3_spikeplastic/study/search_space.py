@@ -38,19 +38,27 @@ def load_search_space(env_id: str, path: Optional[Path] = None) -> dict[str, tup
             continue
         where = f"search space {key!r} in {str(path)!r}"
         if not (isinstance(spec, dict) and len(spec) == 1 and next(iter(spec)) in SPACE_FORMS):
-            raise ValueError(f"{where} must be one of {{log: [low, high]}}, {{uniform: [low, high]}}, "
-                             f"{{int: [low, high]}}, {{choices: [...]}}; got {spec!r}")
+            raise ValueError(
+                f"{where} must be one of {{log: [low, high]}}, {{uniform: [low, high]}}, "
+                f"{{int: [low, high]}}, {{choices: [...]}}; got {spec!r}"
+            )
         form, values = next(iter(spec.items()))
         if not isinstance(values, list) or not values:
             raise ValueError(f"{where}: {form} needs a non-empty list, got {values!r}")
         if form != "choices":
-            numbers = len(values) == 2 and all(isinstance(v, (int, float)) and not isinstance(v, bool)
-                                               for v in values)
-            if not numbers or values[0] >= values[1] or (form == "log" and values[0] <= 0) or (
-                    form == "int" and not all(float(v).is_integer() for v in values)):
-                raise ValueError(f"{where}: {form} needs [low, high] with low < high"
-                                 + (" and low > 0" if form == "log" else "")
-                                 + (", both integers" if form == "int" else "") + f"; got {values!r}")
+            numbers = len(values) == 2 and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
+            if (
+                not numbers
+                or values[0] >= values[1]
+                or (form == "log" and values[0] <= 0)
+                or (form == "int" and not all(float(v).is_integer() for v in values))
+            ):
+                raise ValueError(
+                    f"{where}: {form} needs [low, high] with low < high"
+                    + (" and low > 0" if form == "log" else "")
+                    + (", both integers" if form == "int" else "")
+                    + f"; got {values!r}"
+                )
         space[key] = (form, values)
     return space
 

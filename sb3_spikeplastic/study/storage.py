@@ -47,7 +47,7 @@ def quiet_optuna() -> None:
     try:
         import optuna
     except ImportError:
-        raise ValueError("optimize and study need Optuna: pip install \"sb3-spikeplastic[optimize]\"") from None
+        raise ValueError('optimize and study need Optuna: pip install "sb3-spikeplastic[optimize]"') from None
 
     optuna.logging.set_verbosity(optuna.logging.ERROR)
     warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning)
@@ -88,8 +88,9 @@ def _journal_heartbeat_class():
         :param stale_callback: called with ``(study, trial)`` for each trial failed as stale
         """
 
-        def __init__(self, backend, heartbeat_interval: int, grace_period: int,
-                     stale_callback: Optional[Callable] = None):
+        def __init__(
+            self, backend, heartbeat_interval: int, grace_period: int, stale_callback: Optional[Callable] = None
+        ):
             super().__init__(backend)
             self.heartbeat_interval, self.grace_period = heartbeat_interval, grace_period
             self.stale_callback = stale_callback
@@ -139,8 +140,13 @@ def retry_callback(max_retry: Optional[int] = MAX_RETRY) -> Callable:
     return RetryHeartbeatStaleTrialCallback(max_retry=max_retry)
 
 
-def open_storage(storage: Optional[str], folder: Path, heartbeat_interval: int = HEARTBEAT_INTERVAL,
-                 grace_period: Optional[int] = None, retry: bool = False):
+def open_storage(
+    storage: Optional[str],
+    folder: Path,
+    heartbeat_interval: int = HEARTBEAT_INTERVAL,
+    grace_period: Optional[int] = None,
+    retry: bool = False,
+):
     """The Optuna storage that ``--storage`` names, with heartbeats (see the module docstring).
 
     :param storage: ``None`` (SQLite in ``folder``), an RDB URL or a journal file path
@@ -164,21 +170,25 @@ def open_storage(storage: Optional[str], folder: Path, heartbeat_interval: int =
             sqlite = storage.startswith("sqlite")
             # The driver's own transaction handling off (isolation_level None): see _serialise_sqlite.
             engine_kwargs = {"connect_args": {"timeout": SQLITE_TIMEOUT, "isolation_level": None}} if sqlite else {}
-            rdb = optuna.storages.RDBStorage(storage, engine_kwargs=engine_kwargs,
-                                             heartbeat_interval=heartbeat_interval, grace_period=grace_period,
-                                             heartbeat_stale_trial_callback=callback)
+            rdb = optuna.storages.RDBStorage(
+                storage,
+                engine_kwargs=engine_kwargs,
+                heartbeat_interval=heartbeat_interval,
+                grace_period=grace_period,
+                heartbeat_stale_trial_callback=callback,
+            )
             if sqlite:
                 _serialise_sqlite(rdb.engine)
             return rdb
         from optuna.storages.journal import JournalFileBackend
 
         Path(storage).parent.mkdir(parents=True, exist_ok=True)
-        return _journal_heartbeat_class()(JournalFileBackend(str(storage)), heartbeat_interval, grace_period,
-                                          callback)
+        return _journal_heartbeat_class()(JournalFileBackend(str(storage)), heartbeat_interval, grace_period, callback)
     except Exception as exc:  # SQLAlchemy's errors for a bad URL, a missing driver, a refused connection...
         message = " ".join(str(exc).split()) or type(exc).__name__
-        raise ValueError(f"cannot open the storage {masked(storage)!r}: {message.replace(storage, masked(storage))}") \
-            from None
+        raise ValueError(
+            f"cannot open the storage {masked(storage)!r}: {message.replace(storage, masked(storage))}"
+        ) from None
 
 
 def masked(storage: str) -> str:
@@ -207,7 +217,7 @@ def storage_exists(storage: Optional[str], folder: Path) -> bool:
     if storage is None:
         return (Path(folder) / DEFAULT_STORAGE_FILE).exists()
     if storage.startswith("sqlite:///"):
-        return Path(storage[len("sqlite:///"):]).exists()
+        return Path(storage[len("sqlite:///") :]).exists()
     return is_url(storage) or Path(storage).exists()
 
 
@@ -234,8 +244,10 @@ def check_settings(storage, study_name: str, key: str, settings: dict) -> None:
     settings = _plain(settings)
     if stored is not None and stored != settings:
         differ = sorted(k for k in set(stored) | set(settings) if stored.get(k) != settings.get(k))
-        raise ValueError(f"study {study_name!r} holds a {key} with other settings (they differ in "
-                         f"{', '.join(differ)}); give another --study-name, or the same settings to continue it")
+        raise ValueError(
+            f"study {study_name!r} holds a {key} with other settings (they differ in "
+            f"{', '.join(differ)}); give another --study-name, or the same settings to continue it"
+        )
 
 
 def create_study(storage, study_name: str, key: str, settings: dict, sampler=None, pruner=None):
@@ -243,8 +255,14 @@ def create_study(storage, study_name: str, key: str, settings: dict, sampler=Non
     ``key`` when it is new (:func:`check_settings` compared them before)."""
     import optuna
 
-    study = optuna.create_study(storage=storage, study_name=study_name, sampler=sampler, pruner=pruner,
-                                direction="maximize", load_if_exists=True)
+    study = optuna.create_study(
+        storage=storage,
+        study_name=study_name,
+        sampler=sampler,
+        pruner=pruner,
+        direction="maximize",
+        load_if_exists=True,
+    )
     if key not in study.user_attrs:
         study.set_user_attr(key, _plain(settings))
     return study
@@ -258,14 +276,35 @@ def count_states(study) -> dict[str, int]:
     return counts
 
 
-def train_command(env_id: str, conf: Optional[str], rule: Optional[str], overrides: Sequence[str], seed: int,
-                  n_timesteps: int, eval_freq: int, eval_episodes: int) -> str:
+def train_command(
+    env_id: str,
+    conf: Optional[str],
+    rule: Optional[str],
+    overrides: Sequence[str],
+    seed: int,
+    n_timesteps: int,
+    eval_freq: int,
+    eval_episodes: int,
+) -> str:
     """The ``sb3-spikeplastic train`` command that trains the same run as a trial or a grid cell (written to the
     run folder's ``command.txt``)."""
-    argv = ["sb3-spikeplastic", "train", "--env", env_id, *(["--conf", str(conf)] if conf else []),
-            *(["--rule", rule] if rule else []), "--seed", str(seed), "-n", str(n_timesteps),
-            "--eval-freq", str(eval_freq), "--eval-episodes", str(eval_episodes),
-            *(["--hyperparams", *overrides] if overrides else [])]
+    argv = [
+        "sb3-spikeplastic",
+        "train",
+        "--env",
+        env_id,
+        *(["--conf", str(conf)] if conf else []),
+        *(["--rule", rule] if rule else []),
+        "--seed",
+        str(seed),
+        "-n",
+        str(n_timesteps),
+        "--eval-freq",
+        str(eval_freq),
+        "--eval-episodes",
+        str(eval_episodes),
+        *(["--hyperparams", *overrides] if overrides else []),
+    ]
     return shlex.join(argv)
 
 

@@ -9,9 +9,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterator, Mapping, Optional, Union
 
 import gymnasium
-
 import numpy as np
-
 from stable_baselines3.common.callbacks import BaseCallback, EvalCallback
 from stable_baselines3.common.logger import Figure
 
@@ -81,8 +79,10 @@ def rounding_note(model, total_timesteps: int) -> Optional[str]:
     if steps == max(total_timesteps - model.num_timesteps, 0):
         return None
     more = f" (to {model.num_timesteps + steps:,})" if model.num_timesteps else ""
-    return (f"trains {steps:,} steps{more}: -n is rounded up to whole rollouts of n_steps x n_envs = "
-            f"{rollout_size(model):,}")
+    return (
+        f"trains {steps:,} steps{more}: -n is rounded up to whole rollouts of n_steps x n_envs = "
+        f"{rollout_size(model):,}"
+    )
 
 
 class WallClockProgress(BaseCallback):
@@ -176,9 +176,11 @@ class TrainingSummary(BaseCallback):
         """The line of ``evaluation``'s latest result, e.g. ``  4,096 steps | evaluation: return 0.62 ± 0.31 over 20
         episodes | success 0.81``."""
         returns = np.asarray(evaluation.evaluations_results[-1], dtype=float)
-        parts = [f"{evaluation.evaluations_timesteps[-1]:>11,} steps",
-                 f"evaluation: return {returns.mean():.4g} ± {returns.std():.4g} over {returns.size} "
-                 f"episode{'s' if returns.size != 1 else ''}"]
+        parts = [
+            f"{evaluation.evaluations_timesteps[-1]:>11,} steps",
+            f"evaluation: return {returns.mean():.4g} ± {returns.std():.4g} over {returns.size} "
+            f"episode{'s' if returns.size != 1 else ''}",
+        ]
         successes = evaluation.evaluations_successes
         if len(successes) == len(evaluation.evaluations_timesteps) and len(successes[-1]):
             parts.append(f"success {np.mean(successes[-1]):.2f}")
@@ -219,9 +221,17 @@ class ActivityFigureCallback(BaseCallback):
     :param tag: the logger key.
     """
 
-    def __init__(self, env: Union[str, Callable[[], gymnasium.Env]], every: int = 10,
-                 env_kwargs: Optional[Mapping[str, Any]] = None, seed: int = 0, max_steps: Optional[int] = None,
-                 deterministic: bool = True, tag: str = "snn/activity", verbose: int = 0):
+    def __init__(
+        self,
+        env: Union[str, Callable[[], gymnasium.Env]],
+        every: int = 10,
+        env_kwargs: Optional[Mapping[str, Any]] = None,
+        seed: int = 0,
+        max_steps: Optional[int] = None,
+        deterministic: bool = True,
+        tag: str = "snn/activity",
+        verbose: int = 0,
+    ):
         super().__init__(verbose)
         if int(every) < 1:
             raise ValueError(f"every={every!r} must be >= 1 rollout")
@@ -260,8 +270,14 @@ class ActivityFigureCallback(BaseCallback):
         was_training = policy.training
         policy.set_training_mode(False)
         try:
-            activity = record_episode(policy, self._env, seed=self.seed, deterministic=self.deterministic,
-                                      max_steps=self.max_steps, obs_transform=obs_transform)
+            activity = record_episode(
+                policy,
+                self._env,
+                seed=self.seed,
+                deterministic=self.deterministic,
+                max_steps=self.max_steps,
+                obs_transform=obs_transform,
+            )
         finally:
             policy.set_training_mode(was_training)
         return activity_figure(activity, title=f"{self._title}  step {self.num_timesteps:,}")

@@ -114,8 +114,9 @@ def check_keys(what: str, values: Mapping, accepted: Sequence[str], context: str
     if unknown:
         close = difflib.get_close_matches(str(unknown[0]), sorted(accepted), n=1, cutoff=0.6)
         hint = f" (did you mean {close[0]!r}?)" if close else ""
-        raise ValueError(f"unknown {what} {unknown[0]!r}{context}{hint}; accepted: "
-                         f"{', '.join(sorted(accepted)) or 'none'}")
+        raise ValueError(
+            f"unknown {what} {unknown[0]!r}{context}{hint}; accepted: {', '.join(sorted(accepted)) or 'none'}"
+        )
 
 
 def signature_hints(fn) -> dict[str, Any]:
@@ -126,5 +127,4 @@ def signature_hints(fn) -> dict[str, Any]:
         hints = typing.get_type_hints(fn)
     except Exception:  # unresolvable annotations: no type checks, keys still checked
         hints = {}
-    return {name: hints.get(name, Any) for name, p in params.items()
-            if p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)}
+    return {name: hints.get(name, Any) for name, p in params.items() if p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)}

@@ -40,9 +40,9 @@ from .schedules import SCHEDULE_KEYS, schedule_argument
 from .validation import CLASS_KEYS, META_KEYS, algorithm_class, resolve_class_name, validate_entry
 from .zoo_yaml import as_mapping, default_hyperparams_path, load_hyperparams_file, parse_override
 
-
 # ----------------------------------------------------------------------------------------------------------------
 # Merging and overriding
+
 
 def deep_merge(base: Mapping, top: Mapping) -> dict:
     """``top`` over ``base``: nested mappings merge key by key, everything else is replaced."""
@@ -58,13 +58,15 @@ def deep_merge(base: Mapping, top: Mapping) -> dict:
 def _set_path(entry: dict, path: Sequence[str], value: Any) -> None:
     node = entry
     for depth, key in enumerate(path[:-1]):
-        child = as_mapping(node.get(key), ".".join(path[:depth + 1]))
+        child = as_mapping(node.get(key), ".".join(path[: depth + 1]))
         if child is None or child is True:  # normalize: true -> {} before setting one of its arguments
             child = {}
         if not isinstance(child, dict):
-            where = ".".join(path[:depth + 1])
-            raise ValueError(f"cannot set {'.'.join(path)}: {where} is {child!r}, not a mapping"
-                             + (" (set normalize=true first)" if where == "normalize" else ""))
+            where = ".".join(path[: depth + 1])
+            raise ValueError(
+                f"cannot set {'.'.join(path)}: {where} is {child!r}, not a mapping"
+                + (" (set normalize=true first)" if where == "normalize" else "")
+            )
         node[key] = child
         node = child
     node[path[-1]] = value
@@ -85,15 +87,21 @@ def _get_path(entry: Mapping, path: Sequence[str]) -> Any:
 _MAPPING_KEYS = ("policy_kwargs", "normalize", "env_kwargs", "rule_kwargs", "neuron", "optimizer_kwargs")
 
 
-def _overridden_entry(env_id: str, conf: Union[str, Path, None], parsed: Sequence[tuple[tuple[str, ...], Any]],
-                      rule: Optional[str], replaced: Optional[list] = None) -> dict:
+def _overridden_entry(
+    env_id: str,
+    conf: Union[str, Path, None],
+    parsed: Sequence[tuple[tuple[str, ...], Any]],
+    rule: Optional[str],
+    replaced: Optional[list] = None,
+) -> dict:
     """The file's ``default`` and ``env_id`` entries merged, with the parsed overrides and ``rule`` applied (not
     validated). ``replaced`` collects ``(index, path, keys)`` for each override that replaces a whole mapping."""
     data = load_hyperparams_file(conf)
     where = str(default_hyperparams_path() if conf is None else conf)
     if env_id not in data and "default" not in data:
-        raise ValueError(f"no hyperparameters for {env_id!r} in {where} and no 'default' entry; "
-                         f"entries: {', '.join(data) or 'none'}")
+        raise ValueError(
+            f"no hyperparameters for {env_id!r} in {where} and no 'default' entry; entries: {', '.join(data) or 'none'}"
+        )
     base = data.get("default", {})
     entry = deep_merge(base, data.get(env_id, {}))
     for key in ("policy_kwargs", "normalize", "env_kwargs"):  # string forms, before dotted overrides reach in
@@ -110,15 +118,21 @@ def _overridden_entry(env_id: str, conf: Union[str, Path, None], parsed: Sequenc
     return entry
 
 
-def print_replaced_mappings(env_id: str, conf: Union[str, Path, None] = None, overrides: Sequence[str] = (),
-                            rule: Optional[str] = None) -> None:
+def print_replaced_mappings(
+    env_id: str, conf: Union[str, Path, None] = None, overrides: Sequence[str] = (), rule: Optional[str] = None
+) -> None:
     """Print :func:`replaced_mappings`'s lines, one ``sb3-spikeplastic: ...`` notice each (``train``, ``optimize``)."""
     for line in replaced_mappings(env_id, conf, overrides, rule):
         print(f"sb3-spikeplastic: {line}")
 
 
-def replaced_mappings(env_id: str, conf: Union[str, Path, None] = None, overrides: Sequence[str] = (),
-                      rule: Optional[str] = None, option: str = "--hyperparams") -> list[str]:
+def replaced_mappings(
+    env_id: str,
+    conf: Union[str, Path, None] = None,
+    overrides: Sequence[str] = (),
+    rule: Optional[str] = None,
+    option: str = "--hyperparams",
+) -> list[str]:
     """One line for each override that replaces a whole mapping of the entry and so drops some of its keys
     (``policy_kwargs=dict(hidden_sizes=[32])`` drops the entry's other ``policy_kwargs``, whose defaults then
     apply), naming them; a dotted key (``policy_kwargs.hidden_sizes=[32]``) sets one key and keeps the others.
@@ -135,9 +149,11 @@ def replaced_mappings(env_id: str, conf: Union[str, Path, None] = None, override
         dropped = [k for k in keys if not (isinstance(final, Mapping) and k in final)]
         if dropped:
             name = ".".join(path)
-            lines.append(f"{option} {overrides[index]} replaces the entry's whole {name}, dropping its "
-                         f"{', '.join(map(str, dropped))} (their defaults apply; {name}.KEY=VALUE sets one key and "
-                         "keeps the others)")
+            lines.append(
+                f"{option} {overrides[index]} replaces the entry's whole {name}, dropping its "
+                f"{', '.join(map(str, dropped))} (their defaults apply; {name}.KEY=VALUE sets one key and "
+                "keeps the others)"
+            )
     return lines
 
 
@@ -186,11 +202,13 @@ def resolve_hyperparams(
 # ----------------------------------------------------------------------------------------------------------------
 # From a resolved entry to the model's arguments
 
+
 def model_arguments(config: Mapping[str, Any]) -> tuple[str, dict, dict]:
     """``(policy, ppo_kwargs, policy_kwargs)`` for ``PPO(policy, env, **ppo_kwargs, policy_kwargs=policy_kwargs)``
     from a resolved entry (meta keys removed, ``lin_`` schedules and class names resolved)."""
-    ppo_kwargs = {k: (schedule_argument(v) if k in SCHEDULE_KEYS else v) for k, v in config.items()
-                  if k not in META_KEYS}
+    ppo_kwargs = {
+        k: (schedule_argument(v) if k in SCHEDULE_KEYS else v) for k, v in config.items() if k not in META_KEYS
+    }
     policy_kwargs = dict(config.get("policy_kwargs") or {})
     for key in CLASS_KEYS:
         if key in policy_kwargs:
@@ -207,8 +225,9 @@ def normalize_arguments(config: Mapping[str, Any]) -> Optional[dict]:
     if normalize is False:
         return None
     kwargs = {} if normalize is True else dict(normalize)
-    gamma = config.get("gamma", inspect.signature(algorithm_class(config.get("algo", "ppo")).__init__).parameters[
-        "gamma"].default)  # the algorithm's default where the entry does not state it
+    gamma = config.get(
+        "gamma", inspect.signature(algorithm_class(config.get("algo", "ppo")).__init__).parameters["gamma"].default
+    )  # the algorithm's default where the entry does not state it
     kwargs.setdefault("gamma", gamma)
     return kwargs
 
@@ -216,11 +235,11 @@ def normalize_arguments(config: Mapping[str, Any]) -> Optional[dict]:
 class Hyperparams(NamedTuple):
     """A packaged entry, ready to build the environment and the model (:func:`load_hyperparams`)::
 
-        env = make_vec_env(env_id, n_envs=h.n_envs, env_kwargs=h.env_kwargs)
-        if h.normalize is not None:
-            env = VecNormalize(env, **h.normalize)
-        model = PPO(h.policy, env, **h.model_kwargs)
-        model.learn(h.n_timesteps)
+    env = make_vec_env(env_id, n_envs=h.n_envs, env_kwargs=h.env_kwargs)
+    if h.normalize is not None:
+        env = VecNormalize(env, **h.normalize)
+    model = PPO(h.policy, env, **h.model_kwargs)
+    model.learn(h.n_timesteps)
     """
 
     #: Policy name for the algorithm's first argument (``"SpikePlasticPolicy"``, ``"MlpPolicy"``...).
@@ -255,9 +274,11 @@ def check_env_id(env_id: str, entries: Sequence[str] = ()) -> str:
     close = difflib.get_close_matches(env_id, sorted(gymnasium.registry), n=3, cutoff=0.6)
     hint = f"did you mean {', '.join(close)}? " if close else ""
     listed = ", ".join(e for e in entries if e != "default") or "none"
-    raise ValueError(f"unknown environment id {env_id!r}; {hint}accepted: an entry of the file ({listed}) or any "
-                     f"of gymnasium's {len(gymnasium.registry)} registered ids (python -c 'import gymnasium, "
-                     "sb3_spikeplastic; gymnasium.pprint_registry()' lists them)")
+    raise ValueError(
+        f"unknown environment id {env_id!r}; {hint}accepted: an entry of the file ({listed}) or any "
+        f"of gymnasium's {len(gymnasium.registry)} registered ids (python -c 'import gymnasium, "
+        "sb3_spikeplastic; gymnasium.pprint_registry()' lists them)"
+    )
 
 
 def load_hyperparams(env_id: str, conf: Union[str, Path] = "ppo", rule: Optional[str] = None) -> Hyperparams:
@@ -280,10 +301,15 @@ def load_hyperparams(env_id: str, conf: Union[str, Path] = "ppo", rule: Optional
     check_env_id(env_id, tuple(data))
     resolved = resolve_hyperparams(env_id, conf, rule=rule)
     policy, ppo_kwargs, policy_kwargs = model_arguments(resolved)
-    return Hyperparams(policy=policy, n_envs=resolved["n_envs"], n_timesteps=resolved["n_timesteps"],
-                       normalize=normalize_arguments(resolved), env_kwargs=copy.deepcopy(resolved["env_kwargs"]),
-                       model_kwargs={**ppo_kwargs, "policy_kwargs": policy_kwargs},
-                       algo=resolved.get("algo", "ppo"))
+    return Hyperparams(
+        policy=policy,
+        n_envs=resolved["n_envs"],
+        n_timesteps=resolved["n_timesteps"],
+        normalize=normalize_arguments(resolved),
+        env_kwargs=copy.deepcopy(resolved["env_kwargs"]),
+        model_kwargs={**ppo_kwargs, "policy_kwargs": policy_kwargs},
+        algo=resolved.get("algo", "ppo"),
+    )
 
 
 def dump_yaml(data: Any) -> str:

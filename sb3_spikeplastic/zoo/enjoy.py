@@ -25,8 +25,18 @@ from typing import Any, Callable, Iterator, Optional, Sequence
 import gymnasium
 import numpy as np
 
-from .video import (CAPTION_MIN_WIDTH, SpikeRaster, VideoFile, caption_strip, check_video_options, is_mujoco_env,
-                    make_env, resize_nearest, select_mujoco_gl, video_fps)
+from .video import (
+    CAPTION_MIN_WIDTH,
+    SpikeRaster,
+    VideoFile,
+    caption_strip,
+    check_video_options,
+    is_mujoco_env,
+    make_env,
+    resize_nearest,
+    select_mujoco_gl,
+    video_fps,
+)
 
 
 @dataclasses.dataclass
@@ -45,11 +55,19 @@ class Episode:
     cut: bool
 
 
-def play(model, env: gymnasium.Env, n_episodes: Optional[int] = 1, deterministic: bool = True,
-         seed: Optional[int] = 0, max_steps: Optional[int] = None,
-         obs_transform: Optional[Callable[[np.ndarray], np.ndarray]] = None,
-         on_frame: Optional[Callable[[np.ndarray], None]] = None, on_step: Optional[Callable[[], None]] = None,
-         on_reset: Optional[Callable[[], None]] = None, total_steps: Optional[int] = None) -> Iterator[Episode]:
+def play(
+    model,
+    env: gymnasium.Env,
+    n_episodes: Optional[int] = 1,
+    deterministic: bool = True,
+    seed: Optional[int] = 0,
+    max_steps: Optional[int] = None,
+    obs_transform: Optional[Callable[[np.ndarray], np.ndarray]] = None,
+    on_frame: Optional[Callable[[np.ndarray], None]] = None,
+    on_step: Optional[Callable[[], None]] = None,
+    on_reset: Optional[Callable[[], None]] = None,
+    total_steps: Optional[int] = None,
+) -> Iterator[Episode]:
     """Play ``n_episodes`` episodes of ``model`` on ``env``, yielding each :class:`Episode` as it ends.
 
     The policy's recurrent state is carried through ``model.predict(obs, state=..., episode_start=...)`` and reset
@@ -90,8 +108,9 @@ def play(model, env: gymnasium.Env, n_episodes: Optional[int] = 1, deterministic
             extra: dict[str, Any] = {}
             if masked:
                 extra["action_masks"] = np.asarray(env.get_wrapper_attr("action_masks")())[None]
-            actions, state = model.predict(batch, state=state, episode_start=episode_start,
-                                           deterministic=deterministic, **extra)
+            actions, state = model.predict(
+                batch, state=state, episode_start=episode_start, deterministic=deterministic, **extra
+            )
             episode_start = np.zeros((1,), dtype=bool)
             obs, reward, terminated, truncated, info = env.step(actions[0])
             total += float(reward)
@@ -134,9 +153,18 @@ class Player:
         MuJoCo cannot render here, or ``raster`` is asked of a policy without spiking hidden layers.
     """
 
-    def __init__(self, model, env_id: str, env_kwargs: Optional[dict] = None, vecnormalize: Optional[Path] = None,
-                 model_path: Optional[os.PathLike] = None, video: Optional[os.PathLike] = None,
-                 fps: Optional[float] = None, size: Optional[Sequence[int]] = None, raster: bool = False):
+    def __init__(
+        self,
+        model,
+        env_id: str,
+        env_kwargs: Optional[dict] = None,
+        vecnormalize: Optional[Path] = None,
+        model_path: Optional[os.PathLike] = None,
+        video: Optional[os.PathLike] = None,
+        fps: Optional[float] = None,
+        size: Optional[Sequence[int]] = None,
+        raster: bool = False,
+    ):
         from .run_folder import check_spaces
 
         self.model, self.env_id, self.vecnormalize = model, env_id, vecnormalize
@@ -169,8 +197,10 @@ class Player:
         try:  # loaded around this environment, which checks that the statistics fit its observations
             stats = VecNormalize.load(str(self.vecnormalize), DummyVecEnv([lambda: self.env]))
         except Exception as exc:  # statistics of other spaces, or not statistics at all
-            raise ValueError(f"cannot use the VecNormalize statistics {str(self.vecnormalize)!r} with "
-                             f"{self.env_id}: {' '.join(str(exc).split())}") from None
+            raise ValueError(
+                f"cannot use the VecNormalize statistics {str(self.vecnormalize)!r} with "
+                f"{self.env_id}: {' '.join(str(exc).split())}"
+            ) from None
         return stats.normalize_obs if stats.norm_obs else None
 
     def _frame(self, frame: np.ndarray) -> np.ndarray:
@@ -185,9 +215,15 @@ class Player:
             frame = np.concatenate([self._caption, frame.astype(np.uint8)], axis=0)
         return frame if self.raster is None else self.raster.draw(frame)
 
-    def run(self, n_episodes: Optional[int] = 1, deterministic: bool = True, seed: Optional[int] = 0,
-            max_steps: Optional[int] = None, progress: bool = True,
-            total_steps: Optional[int] = None) -> list[Episode]:
+    def run(
+        self,
+        n_episodes: Optional[int] = 1,
+        deterministic: bool = True,
+        seed: Optional[int] = 0,
+        max_steps: Optional[int] = None,
+        progress: bool = True,
+        total_steps: Optional[int] = None,
+    ) -> list[Episode]:
         """Play and print each episode (and a summary); write the video if one was asked for.
 
         :param n_episodes: episodes to play (``None``: as many as ``total_steps`` allows).
@@ -211,13 +247,24 @@ class Player:
             if self.raster is not None:
                 stack.callback(self.raster.close)
             total = total_steps if total_steps is not None else cap and n_episodes * cap
-            bar = stack.enter_context(tqdm(total=total, unit="step", disable=not progress, dynamic_ncols=True,
-                                           leave=False))
+            bar = stack.enter_context(
+                tqdm(total=total, unit="step", disable=not progress, dynamic_ncols=True, leave=False)
+            )
             video = stack.enter_context(VideoFile(self.video, self.fps)) if self.video is not None else None
             on_frame = (lambda frame: video.append(self._frame(frame))) if video is not None else None
-            for episode in play(self.model, self.env, n_episodes, deterministic, seed, max_steps,
-                                self.obs_transform, on_frame, lambda: bar.update(1),
-                                self.raster.reset if self.raster is not None else None, total_steps):
+            for episode in play(
+                self.model,
+                self.env,
+                n_episodes,
+                deterministic,
+                seed,
+                max_steps,
+                self.obs_transform,
+                on_frame,
+                lambda: bar.update(1),
+                self.raster.reset if self.raster is not None else None,
+                total_steps,
+            ):
                 episodes.append(episode)
                 budget_spent = total_steps is not None and sum(e.length for e in episodes) >= total_steps
                 cut_by = "-n" if budget_spent and not (max_steps and episode.length >= max_steps) else "--max-steps"
@@ -238,20 +285,37 @@ class Player:
             print(f"success rate {np.mean(successes):.3f} ({sum(successes)}/{len(successes)})")
         if video is not None:
             height, width = video.shape[:2]
-            print(f"wrote {video.path}: {video.n_frames} frames ({sum(e.length for e in episodes)} steps + one "
-                  f"reset frame per episode), {width}x{height}, {self.fps:g} fps")
+            print(
+                f"wrote {video.path}: {video.n_frames} frames ({sum(e.length for e in episodes)} steps + one "
+                f"reset frame per episode), {width}x{height}, {self.fps:g} fps"
+            )
         return episodes
 
 
-def enjoy_command(run: Optional[str] = None, model: Optional[str] = None, env: Optional[str] = None,
-                  vecnormalize: Optional[str] = None, best: bool = False, env_kwargs: Optional[Sequence[str]] = None,
-                  n_episodes: Optional[int] = None, deterministic: bool = True, seed: Optional[int] = None,
-                  max_steps: Optional[int] = None,
-                  video: Optional[str] = None, fps: Optional[float] = None, size: Optional[Sequence[int]] = None,
-                  raster: bool = False, no_progress: bool = False, device: str = "cpu",
-                  torch_threads: int = 1, n_timesteps: Optional[int] = None, folder: Optional[str] = None,
-                  exp_id: int = 0, load_checkpoint: Optional[int] = None,
-                  load_last_checkpoint: bool = False) -> Callable[[], int]:
+def enjoy_command(
+    run: Optional[str] = None,
+    model: Optional[str] = None,
+    env: Optional[str] = None,
+    vecnormalize: Optional[str] = None,
+    best: bool = False,
+    env_kwargs: Optional[Sequence[str]] = None,
+    n_episodes: Optional[int] = None,
+    deterministic: bool = True,
+    seed: Optional[int] = None,
+    max_steps: Optional[int] = None,
+    video: Optional[str] = None,
+    fps: Optional[float] = None,
+    size: Optional[Sequence[int]] = None,
+    raster: bool = False,
+    no_progress: bool = False,
+    device: str = "cpu",
+    torch_threads: int = 1,
+    n_timesteps: Optional[int] = None,
+    folder: Optional[str] = None,
+    exp_id: int = 0,
+    load_checkpoint: Optional[int] = None,
+    load_last_checkpoint: bool = False,
+) -> Callable[[], int]:
     """``sb3-spikeplastic enjoy`` with these options (its long names): the model is found and loaded and its
     :class:`Player` built (``ValueError``, nothing written); returns the play, which prints the model and each
     episode (:meth:`Player.run`) and returns 0. ``n_episodes`` defaults to 1, or with ``n_timesteps`` (rl-zoo's
@@ -269,11 +333,21 @@ def enjoy_command(run: Optional[str] = None, model: Optional[str] = None, env: O
     if video:
         check_output_path(video, "--video", directory=False)
     check_video_options(video, fps, size, raster)
-    info, env_id = model_source(run, model, env, vecnormalize, best, env_kwargs, folder, exp_id, load_checkpoint,
-                                load_last_checkpoint)
+    info, env_id = model_source(
+        run, model, env, vecnormalize, best, env_kwargs, folder, exp_id, load_checkpoint, load_last_checkpoint
+    )
     torch.set_num_threads(torch_threads)
-    player = Player(load_model(info, device), env_id, info.env_kwargs, info.vecnormalize, info.model_path,
-                    video=video, fps=fps, size=size, raster=raster)
+    player = Player(
+        load_model(info, device),
+        env_id,
+        info.env_kwargs,
+        info.vecnormalize,
+        info.model_path,
+        video=video,
+        fps=fps,
+        size=size,
+        raster=raster,
+    )
 
     def enjoy() -> int:
         print(f"{env_id}: {info.model_path}" + (f" (VecNormalize: {info.vecnormalize})" if info.vecnormalize else ""))
@@ -283,8 +357,12 @@ def enjoy_command(run: Optional[str] = None, model: Optional[str] = None, env: O
             if hasattr(player.model.policy, "snn") and deterministic:
                 from .recording import typical_seed
 
-                first, note = typical_seed(player.model.policy, lambda: gymnasium.make(env_id, **info.env_kwargs),
-                                           0, obs_transform=player.obs_transform)
+                first, note = typical_seed(
+                    player.model.policy,
+                    lambda: gymnasium.make(env_id, **info.env_kwargs),
+                    0,
+                    obs_transform=player.obs_transform,
+                )
             if note:
                 print(f"first episode: seed {first} ({note}; --seed picks another)")
         torch.manual_seed(first)

@@ -39,13 +39,19 @@ class Evaluation:
 
     def as_dict(self) -> dict[str, Any]:
         """Summary statistics, JSON-ready."""
-        return dict(episodes=len(self.returns), mean_return=float(self.returns.mean()),
-                    std_return=float(self.returns.std()), mean_length=float(self.lengths.mean()),
-                    success_rate=self.success_rate, energy=self.energy)
+        return dict(
+            episodes=len(self.returns),
+            mean_return=float(self.returns.mean()),
+            std_return=float(self.returns.std()),
+            mean_length=float(self.lengths.mean()),
+            success_rate=self.success_rate,
+            energy=self.energy,
+        )
 
 
-def evaluate_model(model, venv, n_episodes: int, deterministic: bool = True, seed: int = 0,
-                   progress: bool = False, ablation=None) -> Evaluation:
+def evaluate_model(
+    model, venv, n_episodes: int, deterministic: bool = True, seed: int = 0, progress: bool = False, ablation=None
+) -> Evaluation:
     """Run ``n_episodes`` episodes of ``model`` on the (seeded) vectorised ``venv`` with SB3's ``evaluate_policy``,
     which carries a recurrent policy's state and resets it at episode starts.
 
@@ -80,14 +86,27 @@ def evaluate_model(model, venv, n_episodes: int, deterministic: bool = True, see
     torch.manual_seed(seed)
     snn = getattr(model.policy, "snn", None)
     try:
-        with ablated(model, ablation), cpu_settings_of(model), \
-                EnergyMeter(snn) if snn is not None else contextlib.nullcontext() as meter:
-            returns, lengths = evaluate_policy(model, venv, n_eval_episodes=n_episodes, deterministic=deterministic,
-                                               return_episode_rewards=True, callback=on_step)
+        with (
+            ablated(model, ablation),
+            cpu_settings_of(model),
+            EnergyMeter(snn) if snn is not None else contextlib.nullcontext() as meter,
+        ):
+            returns, lengths = evaluate_policy(
+                model,
+                venv,
+                n_eval_episodes=n_episodes,
+                deterministic=deterministic,
+                return_episode_rewards=True,
+                callback=on_step,
+            )
     finally:
         bar.close()
-    return Evaluation(np.asarray(returns, dtype=float), np.asarray(lengths, dtype=float), successes,
-                      meter.summary() if meter is not None else None)
+    return Evaluation(
+        np.asarray(returns, dtype=float),
+        np.asarray(lengths, dtype=float),
+        successes,
+        meter.summary() if meter is not None else None,
+    )
 
 
 def check_fits(model, info: RunInfo, env_id: str, make_error: Optional[str] = None) -> None:
@@ -114,8 +133,9 @@ def load_checked(info: RunInfo, env_id: str, device: str = "cpu"):
     return model
 
 
-def report_lines(result: Evaluation, env_id: str, info: RunInfo, deterministic: bool,
-                 ablation: Optional[str] = None) -> list[str]:
+def report_lines(
+    result: Evaluation, env_id: str, info: RunInfo, deterministic: bool, ablation: Optional[str] = None
+) -> list[str]:
     """What ``evaluate`` prints: the model, the mean return and episode length, the success rate (environments
     that report one) and the energy proxies (spiking policies); ``ablation`` (other than ``none``) is named beside
     the action mode."""
@@ -123,33 +143,53 @@ def report_lines(result: Evaluation, env_id: str, info: RunInfo, deterministic: 
     mode = "deterministic" if deterministic else "stochastic"
     if ablation is not None and ablation != "none":
         mode += f", ablation {ablation}"
-    lines = [f"{env_id}: {info.model_path}" + (f" (VecNormalize: {info.vecnormalize})" if info.vecnormalize else ""),
-             f"mean return {summary['mean_return']:.3f} ± {summary['std_return']:.3f} over {summary['episodes']} "
-             f"episodes ({mode}); mean episode length {summary['mean_length']:.1f}"]
+    lines = [
+        f"{env_id}: {info.model_path}" + (f" (VecNormalize: {info.vecnormalize})" if info.vecnormalize else ""),
+        f"mean return {summary['mean_return']:.3f} ± {summary['std_return']:.3f} over {summary['episodes']} "
+        f"episodes ({mode}); mean episode length {summary['mean_length']:.1f}",
+    ]
     if result.successes:
         lines.append(f"success rate {result.success_rate:.3f} ({int(sum(result.successes))}/{len(result.successes)})")
     energy = result.energy
     if energy is not None:
         layers = " / ".join(f"{x:,.0f}" for x in energy["synops_per_step"])
-        lines.append(f"per environment step: {energy['total_spikes_per_step']:,.1f} spikes in the hidden and output "
-                     f"layers and {energy['spikes_per_step'][0]:,.1f} in the input population, "
-                     f"{energy['total_synops_per_step']:,.0f} SynOps ({layers} by layer)")
+        lines.append(
+            f"per environment step: {energy['total_spikes_per_step']:,.1f} spikes in the hidden and output "
+            f"layers and {energy['spikes_per_step'][0]:,.1f} in the input population, "
+            f"{energy['total_synops_per_step']:,.0f} SynOps ({layers} by layer)"
+        )
         joules = energy["energy_nj"]
         if energy["total_plasticity_macs_per_step"] is not None:
-            lines.append(f"energy estimate per environment step: {joules['total_nj']:,.1f} nJ = SynOps "
-                         f"{joules['synops_nj']:,.1f} nJ + plasticity {joules['plasticity_nj']:,.1f} nJ "
-                         f"({energy['total_plasticity_macs_per_step']:,.0f} MACs of trace updates; 45 nm costs, "
-                         "sb3_spikeplastic.snn.energy)")
+            lines.append(
+                f"energy estimate per environment step: {joules['total_nj']:,.1f} nJ = SynOps "
+                f"{joules['synops_nj']:,.1f} nJ + plasticity {joules['plasticity_nj']:,.1f} nJ "
+                f"({energy['total_plasticity_macs_per_step']:,.0f} MACs of trace updates; 45 nm costs, "
+                "sb3_spikeplastic.snn.energy)"
+            )
     return lines
 
 
-def evaluate_command(run: Optional[str] = None, model: Optional[str] = None, env: Optional[str] = None,
-                     vecnormalize: Optional[str] = None, best: bool = False,
-                     env_kwargs: Optional[Sequence[str]] = None, episodes: int = 100, deterministic: bool = True,
-                     seed: int = 0, n_envs: int = 1, output: Optional[str] = None, no_progress: bool = False,
-                     device: str = "cpu", torch_threads: int = 1,
-                     folder: Optional[str] = None, exp_id: int = 0, load_checkpoint: Optional[int] = None,
-                     load_last_checkpoint: bool = False, ablation: Optional[str] = None) -> Callable[[], int]:
+def evaluate_command(
+    run: Optional[str] = None,
+    model: Optional[str] = None,
+    env: Optional[str] = None,
+    vecnormalize: Optional[str] = None,
+    best: bool = False,
+    env_kwargs: Optional[Sequence[str]] = None,
+    episodes: int = 100,
+    deterministic: bool = True,
+    seed: int = 0,
+    n_envs: int = 1,
+    output: Optional[str] = None,
+    no_progress: bool = False,
+    device: str = "cpu",
+    torch_threads: int = 1,
+    folder: Optional[str] = None,
+    exp_id: int = 0,
+    load_checkpoint: Optional[int] = None,
+    load_last_checkpoint: bool = False,
+    ablation: Optional[str] = None,
+) -> Callable[[], int]:
     """``sb3-spikeplastic evaluate`` with these options (its long names): the model is found, loaded and checked
     against its environment and the evaluation environments are made (``ValueError``, nothing written); returns
     the evaluation, which prints :func:`report_lines`, writes ``output`` (JSON) if given and returns 0."""
@@ -163,8 +203,9 @@ def evaluate_command(run: Optional[str] = None, model: Optional[str] = None, env
         Ablation.parse(ablation).check_envs(n_envs)  # a bad --ablation before the model loads
     if output:
         check_output_path(output, "-o/--output", directory=False)
-    info, env_id = model_source(run, model, env, vecnormalize, best, env_kwargs, folder, exp_id,
-                                load_checkpoint, load_last_checkpoint)
+    info, env_id = model_source(
+        run, model, env, vecnormalize, best, env_kwargs, folder, exp_id, load_checkpoint, load_last_checkpoint
+    )
     torch.set_num_threads(torch_threads)
     loaded = load_checked(info, env_id, device)
     in_force = str(check_ablation(loaded, ablation, n_envs))
@@ -175,14 +216,21 @@ def evaluate_command(run: Optional[str] = None, model: Optional[str] = None, env
 
     def evaluate() -> int:
         try:
-            result = evaluate_model(loaded, venv, episodes, deterministic, seed, progress=not no_progress,
-                                    ablation=ablation)
+            result = evaluate_model(
+                loaded, venv, episodes, deterministic, seed, progress=not no_progress, ablation=ablation
+            )
         finally:
             venv.close()
         print("\n".join(report_lines(result, env_id, info, deterministic, in_force)))
         if output:
-            record = dict(env=env_id, model=str(info.model_path), deterministic=deterministic, seed=seed,
-                          ablation=in_force, **result.as_dict())
+            record = dict(
+                env=env_id,
+                model=str(info.model_path),
+                deterministic=deterministic,
+                seed=seed,
+                ablation=in_force,
+                **result.as_dict(),
+            )
             atomic_write(Path(output), lambda f: json.dump(record, f, indent=1), binary=False)
         return 0
 

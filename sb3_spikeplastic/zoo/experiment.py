@@ -39,8 +39,9 @@ class SuccessColumn(gymnasium.Wrapper):
         return obs, reward, terminated, truncated, info
 
 
-def make_train_env(env_id: str, n_envs: int, env_kwargs: dict, monitor_dir: Optional[Path] = None,
-                   vec_env: str = "dummy"):
+def make_train_env(
+    env_id: str, n_envs: int, env_kwargs: dict, monitor_dir: Optional[Path] = None, vec_env: str = "dummy"
+):
     """``n_envs`` monitored environments (Monitor CSVs in ``monitor_dir`` when given), stepped in this process
     (``vec_env="dummy"``) or each in a process of its own (``"subproc"``)."""
     from stable_baselines3.common.monitor import Monitor
@@ -143,11 +144,26 @@ class Experiment:
         table) are written every this many rollouts
     """
 
-    def __init__(self, env_id: str, config: dict, seed: int, log_folder: Path, tensorboard_log: Optional[Path] = None,
-                 device: str = "cpu", verbose: int = 1, eval_freq: int = 0, eval_episodes: int = 20,
-                 save_freq: int = 0, keep_checkpoints: int = 2, figure_freq: int = 0, vec_env: str = "dummy",
-                 progress: bool = True, trained_agent: Optional[RunInfo] = None, after_eval=None,
-                 log_interval: int = 1):
+    def __init__(
+        self,
+        env_id: str,
+        config: dict,
+        seed: int,
+        log_folder: Path,
+        tensorboard_log: Optional[Path] = None,
+        device: str = "cpu",
+        verbose: int = 1,
+        eval_freq: int = 0,
+        eval_episodes: int = 20,
+        save_freq: int = 0,
+        keep_checkpoints: int = 2,
+        figure_freq: int = 0,
+        vec_env: str = "dummy",
+        progress: bool = True,
+        trained_agent: Optional[RunInfo] = None,
+        after_eval=None,
+        log_interval: int = 1,
+    ):
         self.env_id, self.config, self.seed = env_id, config, seed
         self.log_interval = log_interval
         self.log_folder, self.tensorboard_log = Path(log_folder), tensorboard_log
@@ -200,17 +216,26 @@ class Experiment:
                 policy, ppo_kwargs, policy_kwargs = model_arguments(self.config)
                 algorithm = algorithm_class(self.config.get("algo", "ppo"))
                 # Quiet while built (SB3 says "Using cpu device"): bad hyperparameters must fail on one line.
-                self.model = algorithm(policy, probe, **ppo_kwargs, policy_kwargs=policy_kwargs, seed=self.seed,
-                                       device=self.device, verbose=0)
+                self.model = algorithm(
+                    policy,
+                    probe,
+                    **ppo_kwargs,
+                    policy_kwargs=policy_kwargs,
+                    seed=self.seed,
+                    device=self.device,
+                    verbose=0,
+                )
                 self.model.verbose = self.sb3_verbose
             else:
                 self.model = load_model(self.source, device=self.device)
                 check_spaces(self.model, probe, self.env_id, self.source.model_path)
                 self.model.verbose = self.sb3_verbose
                 if self.model.num_timesteps >= self.config["n_timesteps"]:
-                    raise ValueError(f"{str(self.source.model_path)!r} has trained {self.model.num_timesteps:,} of "
-                                     f"n_timesteps={self.config['n_timesteps']:,} steps already; pass a larger -n "
-                                     "(the run's total)")
+                    raise ValueError(
+                        f"{str(self.source.model_path)!r} has trained {self.model.num_timesteps:,} of "
+                        f"n_timesteps={self.config['n_timesteps']:,} steps already; pass a larger -n "
+                        "(the run's total)"
+                    )
         finally:
             probe.close()
         return self.model
@@ -233,11 +258,19 @@ class Experiment:
         atomic_write(self.run_dir / "command.txt", lambda f: f.write(command + "\n"), binary=False)
         entry = dump_yaml({self.env_id: resolved_entry(self.model, self.config)})
         atomic_write(meta_dir / "config.yml", lambda f: f.write(entry), binary=False)
-        run_args = {**args, "seed": self.seed, "env": self.env_id, "run_dir": str(self.run_dir),
-                    "tensorboard_dir": str(self.tb_dir)}
+        run_args = {
+            **args,
+            "seed": self.seed,
+            "env": self.env_id,
+            "run_dir": str(self.run_dir),
+            "tensorboard_dir": str(self.tb_dir),
+        }
         if self.source is not None:
-            run_args.update(trained_agent=str(self.source.model_path), start_timesteps=self.model.num_timesteps,
-                            continues=None if self.source.run_dir is None else str(self.source.run_dir))
+            run_args.update(
+                trained_agent=str(self.source.model_path),
+                start_timesteps=self.model.num_timesteps,
+                continues=None if self.source.run_dir is None else str(self.source.run_dir),
+            )
         atomic_write(meta_dir / "args.yml", lambda f: f.write(dump_yaml(run_args)), binary=False)
         return self.run_dir
 
@@ -250,17 +283,27 @@ class Experiment:
         if self.verbose == 1:
             callbacks.append(TrainingSummary(self.config["n_timesteps"] // 10))
         if eval_env is not None:
-            callbacks.append(EvalCallback(
-                eval_env, callback_on_new_best=SaveBest(self.run_dir / "best_model.zip"),
-                n_eval_episodes=self.eval_episodes, eval_freq=max(self.eval_freq // self.n_envs, 1),
-                log_path=str(self.run_dir), best_model_save_path=None, deterministic=True, verbose=self.sb3_verbose,
-                callback_after_eval=self.after_eval))
+            callbacks.append(
+                EvalCallback(
+                    eval_env,
+                    callback_on_new_best=SaveBest(self.run_dir / "best_model.zip"),
+                    n_eval_episodes=self.eval_episodes,
+                    eval_freq=max(self.eval_freq // self.n_envs, 1),
+                    log_path=str(self.run_dir),
+                    best_model_save_path=None,
+                    deterministic=True,
+                    verbose=self.sb3_verbose,
+                    callback_after_eval=self.after_eval,
+                )
+            )
         if self.save_freq:
-            callbacks.append(AtomicCheckpoint(max(self.save_freq // self.n_envs, 1), self.run_dir,
-                                              self.keep_checkpoints))
+            callbacks.append(
+                AtomicCheckpoint(max(self.save_freq // self.n_envs, 1), self.run_dir, self.keep_checkpoints)
+            )
         if self.figure_freq:
-            callbacks.append(ActivityFigureCallback(self.env_id, every=self.figure_freq, env_kwargs=self.env_kwargs,
-                                                    seed=self.seed))
+            callbacks.append(
+                ActivityFigureCallback(self.env_id, every=self.figure_freq, env_kwargs=self.env_kwargs, seed=self.seed)
+            )
         return callbacks + list(self.extra_callbacks)
 
     def _environments(self):
@@ -288,8 +331,18 @@ class Experiment:
     def continue_command(self) -> str:
         """The ``train`` command that continues this run exactly: the saved model, the total steps and the
         TensorBoard root; ``-i`` brings back the seed and every other run option from ``args.yml``."""
-        argv = ["sb3-spikeplastic", "train", "--env", self.env_id, "-i", str(self.model_path), "-f",
-                str(self.log_folder), "-n", str(self.config["n_timesteps"])]
+        argv = [
+            "sb3-spikeplastic",
+            "train",
+            "--env",
+            self.env_id,
+            "-i",
+            str(self.model_path),
+            "-f",
+            str(self.log_folder),
+            "-n",
+            str(self.config["n_timesteps"]),
+        ]
         if self.tensorboard_log:
             argv += ["--tensorboard-log", str(self.tensorboard_log)]
         return shlex.join(argv)
@@ -319,17 +372,24 @@ class Experiment:
             outputs = [make_output_format(f, str(self.run_dir)) for f in formats + ["csv"]]
             outputs.append(make_output_format("tensorboard", str(self.tb_dir)))
             model.set_logger(Logger(str(self.run_dir), outputs))
-            write_hyperparameters(model.logger, {"env_id": self.env_id, "seed": self.seed,
-                                                 **resolved_entry(model, self.config)})
+            write_hyperparameters(
+                model.logger, {"env_id": self.env_id, "seed": self.seed, **resolved_entry(model, self.config)}
+            )
             # Continuing: the remaining steps with the counter kept, so schedules resume where they stopped.
             callback = CallbackList(self._callbacks(eval_env))
             with sigterm_interrupts():
-                model.learn(self.config["n_timesteps"] - model.num_timesteps, callback=callback,
-                            reset_num_timesteps=self.source is None, log_interval=self.log_interval)
+                model.learn(
+                    self.config["n_timesteps"] - model.num_timesteps,
+                    callback=callback,
+                    reset_num_timesteps=self.source is None,
+                    log_interval=self.log_interval,
+                )
         except KeyboardInterrupt:
             self.save()
-            note = (f"interrupted after {model.num_timesteps:,} of {self.config['n_timesteps']:,} steps; continue "
-                    f"with\n{self.continue_command()}\n")
+            note = (
+                f"interrupted after {model.num_timesteps:,} of {self.config['n_timesteps']:,} steps; continue "
+                f"with\n{self.continue_command()}\n"
+            )
             atomic_write(self.run_dir / "INTERRUPTED.txt", lambda f: f.write(note), binary=False)
             return False
         except BaseException:

@@ -38,14 +38,30 @@ def _raster(ax, spikes: np.ndarray, colour="k", groups=None, max_points: int = 4
     if groups:
         for k, (label, first, stop) in enumerate(groups):
             sel = (n >= first) & (n < stop)
-            ax.scatter(t[sel], n[sel], s=size, marker="|" if spikes.shape[1] <= 80 else ".", linewidths=0.8,
-                       color=_GROUP_COLOURS[k % len(_GROUP_COLOURS)], label=label, rasterized=True)
+            ax.scatter(
+                t[sel],
+                n[sel],
+                s=size,
+                marker="|" if spikes.shape[1] <= 80 else ".",
+                linewidths=0.8,
+                color=_GROUP_COLOURS[k % len(_GROUP_COLOURS)],
+                label=label,
+                rasterized=True,
+            )
         # Above the axes, not over the raster's last steps (where the T-maze's decision cue fires).
-        ax.legend(loc="lower right", bbox_to_anchor=(1.0, 1.0), fontsize=7, markerscale=3, ncol=len(groups),
-                  frameon=False, borderaxespad=0.1)
+        ax.legend(
+            loc="lower right",
+            bbox_to_anchor=(1.0, 1.0),
+            fontsize=7,
+            markerscale=3,
+            ncol=len(groups),
+            frameon=False,
+            borderaxespad=0.1,
+        )
     else:
-        ax.scatter(t, n, s=size, marker="|" if spikes.shape[1] <= 80 else ".", linewidths=0.8, color=colour,
-                   rasterized=True)
+        ax.scatter(
+            t, n, s=size, marker="|" if spikes.shape[1] <= 80 else ".", linewidths=0.8, color=colour, rasterized=True
+        )
     ax.set_ylim(spikes.shape[1] - 0.5, -0.5)
     ax.yaxis.set_major_locator(MaxNLocator(nbins=4, integer=True))
 
@@ -62,12 +78,19 @@ def _row_subset(spikes: np.ndarray, max_rows: int) -> tuple[np.ndarray, str]:
 
 def _step_lines(ax, n_steps: int, T: int) -> None:
     if 1 < n_steps <= 60:
-        ax.vlines(np.arange(1, n_steps) * T, 0, 1, transform=ax.get_xaxis_transform(), colors="0.85",
-                  linewidth=0.6, zorder=0)
+        ax.vlines(
+            np.arange(1, n_steps) * T, 0, 1, transform=ax.get_xaxis_transform(), colors="0.85", linewidth=0.6, zorder=0
+        )
 
 
-def activity_figure(activity: "EpisodeActivity", title: Optional[str] = None, n_synapses: int = 5,
-                    n_membrane: int = 4, max_trace_layers: int = 3, max_rows: int = 150) -> Figure:
+def activity_figure(
+    activity: "EpisodeActivity",
+    title: Optional[str] = None,
+    n_synapses: int = 5,
+    n_membrane: int = 4,
+    max_trace_layers: int = 3,
+    max_rows: int = 150,
+) -> Figure:
     """One episode's activity: input, hidden and output spike rasters, the membrane potential of a few output
     neurons, the traces ``E`` of the ``n_synapses`` synapses of each plastic layer that moved most, and the
     neuromodulatory signals (mean and range over neurons) of modulated layers. Faint vertical lines separate
@@ -141,8 +164,13 @@ def activity_figure(activity: "EpisodeActivity", title: Optional[str] = None, n_
         top = np.argsort(-moved, kind="stable")[:n_synapses]
         for s in top:
             post, pre = divmod(int(s), trace.shape[2])
-            ax.step(np.concatenate([[0], interval_ends]), np.concatenate([[0.0], flat[:, s]]), where="post",
-                    linewidth=0.9, label=f"{post}←{pre}")
+            ax.step(
+                np.concatenate([[0], interval_ends]),
+                np.concatenate([[0.0], flat[:, s]]),
+                where="post",
+                linewidth=0.9,
+                label=f"{post}←{pre}",
+            )
         ax.set_ylabel(f"E layer {i}\n(top {len(top)})")
         ax.legend(loc="upper left", fontsize=6, ncol=len(top), title="post←pre", title_fontsize=6)
         row += 1
@@ -204,17 +232,25 @@ def read_monitor_files(folder: Union[str, os.PathLike]) -> dict[str, np.ndarray]
             starts.append(t_start)
             for row in csv.DictReader(f):
                 success = (row.get("is_success") or "").strip()
-                rows.append((float(row["t"]) + t_start, float(row["r"]), float(row["l"]),
-                             {"true": 1.0, "1": 1.0, "1.0": 1.0, "false": 0.0, "0": 0.0, "0.0": 0.0}.get(
-                                 success.lower(), math.nan)))
+                rows.append(
+                    (
+                        float(row["t"]) + t_start,
+                        float(row["r"]),
+                        float(row["l"]),
+                        {"true": 1.0, "1": 1.0, "1.0": 1.0, "false": 0.0, "0": 0.0, "0.0": 0.0}.get(
+                            success.lower(), math.nan
+                        ),
+                    )
+                )
     rows.sort(key=lambda r: r[0])
     data = np.array(rows, dtype=float).reshape(-1, 4)
     origin = min(starts) if starts else 0.0
     return {"t": data[:, 0] - origin, "r": data[:, 1], "l": data[:, 2], "is_success": data[:, 3]}
 
 
-def training_curves_figure(runs: Mapping[str, Mapping[str, np.ndarray]], x: str = "timesteps", smooth: int = 10,
-                           title: Optional[str] = None) -> Figure:
+def training_curves_figure(
+    runs: Mapping[str, Mapping[str, np.ndarray]], x: str = "timesteps", smooth: int = 10, title: Optional[str] = None
+) -> Figure:
     """Episode return (and success rate, when any run's Monitor files have ``is_success``) of several runs.
 
     :param runs: label -> Monitor data (:func:`read_monitor_files`: arrays ``r``, ``l``, ``t`` and optionally
@@ -242,10 +278,12 @@ def training_curves_figure(runs: Mapping[str, Mapping[str, np.ndarray]], x: str 
             success = np.asarray(df["is_success"], dtype=float)
             valid = ~np.isnan(success)
             if valid.any():
-                axes[1].plot(xs[valid], _moving_average(success[valid], smooth), color=colour, linewidth=1.4,
-                             label=label)
-    axes[0].set_ylabel("episode return" + (f"\n(moving average of {smooth};\nfaint: every episode)" if smooth > 1
-                                           else ""))
+                axes[1].plot(
+                    xs[valid], _moving_average(success[valid], smooth), color=colour, linewidth=1.4, label=label
+                )
+    axes[0].set_ylabel(
+        "episode return" + (f"\n(moving average of {smooth};\nfaint: every episode)" if smooth > 1 else "")
+    )
     axes[0].legend(loc="best", fontsize=8)
     axes[0].grid(alpha=0.3)
     if has_success:
@@ -294,8 +332,10 @@ def curve_summaries(runs: Mapping[str, Mapping[str, np.ndarray]], last: int = 10
     lines = []
     for label, data in runs.items():
         tail = slice(-last, None)
-        line = (f"{label}: {len(data['r'])} episodes, {int(data['l'].sum()):,} steps, mean return of the last "
-                f"{len(data['r'][tail])}: {data['r'][tail].mean():.3f}")
+        line = (
+            f"{label}: {len(data['r'])} episodes, {int(data['l'].sum()):,} steps, mean return of the last "
+            f"{len(data['r'][tail])}: {data['r'][tail].mean():.3f}"
+        )
         success = data["is_success"][~np.isnan(data["is_success"])]
         if len(success):
             line += f", success rate of the last {len(success[tail])}: {success[tail].mean():.3f}"
@@ -303,8 +343,13 @@ def curve_summaries(runs: Mapping[str, Mapping[str, np.ndarray]], last: int = 10
     return lines
 
 
-def plot_command(runs: Sequence[Union[str, os.PathLike]], output: Union[str, os.PathLike] = "training_curves.png",
-                 x: str = "timesteps", smooth: int = 20, title: Optional[str] = None) -> Callable[[], int]:
+def plot_command(
+    runs: Sequence[Union[str, os.PathLike]],
+    output: Union[str, os.PathLike] = "training_curves.png",
+    x: str = "timesteps",
+    smooth: int = 20,
+    title: Optional[str] = None,
+) -> Callable[[], int]:
     """``sb3-spikeplastic plot`` with these options: the run folders are read (``ValueError``, nothing written);
     returns the plot, which writes :func:`training_curves_figure` to ``output``, prints :func:`curve_summaries`
     and returns 0."""

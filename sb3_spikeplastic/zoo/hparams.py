@@ -7,7 +7,6 @@ from typing import Any, Mapping
 from stable_baselines3.common.logger import Logger, TensorBoardOutputFormat
 
 
-
 def flatten_config(config: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
     """Nested mappings flattened to dotted keys (``policy_kwargs.rule``)."""
     flat: dict[str, Any] = {}
@@ -29,7 +28,9 @@ def hyperparameter_markdown(config: Mapping[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def write_hyperparameters(logger: Logger, config: Mapping[str, Any], tag: str = "hyperparameters", step: int = 0) -> bool:
+def write_hyperparameters(
+    logger: Logger, config: Mapping[str, Any], tag: str = "hyperparameters", step: int = 0
+) -> bool:
     """Write ``config`` as a Markdown table to the TensorBoard outputs of an SB3 ``logger`` (TensorBoard's TEXT
     tab). Returns whether there was a TensorBoard output to write to."""
     written = False

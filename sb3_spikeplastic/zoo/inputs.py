@@ -31,8 +31,9 @@ def check_device(device: str) -> str:
     except (RuntimeError, TypeError):
         raise ValueError(f"unknown device {device!r}; accepted: cpu, cuda, cuda:<n>, mps, auto") from None
     if parsed.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"--device {device}: no CUDA device is available (torch {torch.__version__}); "
-                         "accepted here: cpu, auto")
+        raise ValueError(
+            f"--device {device}: no CUDA device is available (torch {torch.__version__}); accepted here: cpu, auto"
+        )
     if parsed.type == "cuda" and parsed.index is not None and parsed.index >= torch.cuda.device_count():
         raise ValueError(f"--device {device}: only {torch.cuda.device_count()} CUDA device(s) here")
     return device
@@ -69,8 +70,9 @@ def parse_env_kwargs(items: Optional[Sequence[str]]) -> Optional[dict]:
     for item in items:
         path, value = parse_override(item, "--env-kwargs entry", "max_episode_steps=200 or noise:high")
         if len(path) != 1:
-            raise ValueError(f"malformed --env-kwargs entry {item!r}; expected key=value or key:value with a "
-                             "key without dots")
+            raise ValueError(
+                f"malformed --env-kwargs entry {item!r}; expected key=value or key:value with a key without dots"
+            )
         out[path[0]] = value
     return out
 
@@ -84,15 +86,22 @@ def zoo_run_folder(folder: os.PathLike, env_id: Optional[str], exp_id: int = 0) 
         raise ValueError(f"--exp-id {exp_id}: accepted: 0 (the latest run) or a run's number")
     root = Path(folder) / "ppo"
     pattern = re.compile(rf"{re.escape(env_id)}_(\d+)")
-    numbers = sorted(int(m.group(1)) for p in (root.iterdir() if root.is_dir() else ())
-                     if p.is_dir() and (m := pattern.fullmatch(p.name)))
+    numbers = sorted(
+        int(m.group(1))
+        for p in (root.iterdir() if root.is_dir() else ())
+        if p.is_dir() and (m := pattern.fullmatch(p.name))
+    )
     if not numbers:
-        raise FileNotFoundError(f"no run of {env_id} in {str(root)!r} (-f {folder}): `sb3-spikeplastic train --env "
-                                f"{env_id} -f {folder}` writes one")
+        raise FileNotFoundError(
+            f"no run of {env_id} in {str(root)!r} (-f {folder}): `sb3-spikeplastic train --env "
+            f"{env_id} -f {folder}` writes one"
+        )
     run = root / f"{env_id}_{exp_id or numbers[-1]}"
     if not run.is_dir():
-        raise FileNotFoundError(f"no run folder {str(run)!r} (--exp-id {exp_id}); runs of {env_id} there: "
-                                f"{', '.join(map(str, numbers))} (--exp-id 0: the latest)")
+        raise FileNotFoundError(
+            f"no run folder {str(run)!r} (--exp-id {exp_id}); runs of {env_id} there: "
+            f"{', '.join(map(str, numbers))} (--exp-id 0: the latest)"
+        )
     return run
 
 
@@ -104,22 +113,34 @@ def checkpoint_of(run: os.PathLike, steps: Optional[int] = None) -> Path:
     if steps is None:
         path = latest_checkpoint(Path(run))
         if path is None:
-            raise FileNotFoundError(f"run folder {str(run)!r} has no checkpoint (rl_model_<steps>_steps.zip: "
-                                    "train --save-freq writes them)")
+            raise FileNotFoundError(
+                f"run folder {str(run)!r} has no checkpoint (rl_model_<steps>_steps.zip: train --save-freq writes them)"
+            )
         return path
     path = Path(run) / f"rl_model_{steps}_steps.zip"
     if not path.is_file():
-        found = sorted(int(m.group(1)) for p in Path(run).glob("rl_model_*_steps.zip")
-                       if (m := CHECKPOINT.fullmatch(p.name)))
-        raise FileNotFoundError(f"run folder {str(run)!r} has no checkpoint {path.name}; its checkpoints: "
-                                f"{', '.join(map(str, found)) or 'none'} (--load-checkpoint STEPS)")
+        found = sorted(
+            int(m.group(1)) for p in Path(run).glob("rl_model_*_steps.zip") if (m := CHECKPOINT.fullmatch(p.name))
+        )
+        raise FileNotFoundError(
+            f"run folder {str(run)!r} has no checkpoint {path.name}; its checkpoints: "
+            f"{', '.join(map(str, found)) or 'none'} (--load-checkpoint STEPS)"
+        )
     return path
 
 
-def model_source(run: Optional[str] = None, model: Optional[str] = None, env: Optional[str] = None,
-                 vecnormalize: Optional[str] = None, best: bool = False,
-                 env_kwargs: Optional[Sequence[str]] = None, folder: Optional[str] = None, exp_id: int = 0,
-                 load_checkpoint: Optional[int] = None, load_last_checkpoint: bool = False) -> tuple[RunInfo, str]:
+def model_source(
+    run: Optional[str] = None,
+    model: Optional[str] = None,
+    env: Optional[str] = None,
+    vecnormalize: Optional[str] = None,
+    best: bool = False,
+    env_kwargs: Optional[Sequence[str]] = None,
+    folder: Optional[str] = None,
+    exp_id: int = 0,
+    load_checkpoint: Optional[int] = None,
+    load_last_checkpoint: bool = False,
+) -> tuple[RunInfo, str]:
     """The model that ``--run FOLDER``, ``--model PATH`` or rl-zoo's ``-f LOGS --env ID --exp-id N``
     (:func:`zoo_run_folder`) names, with the environment it plays in: ``(info, env_id)``. Of a run, the final
     model, ``best`` (``--best``/``--load-best``) ``best_model.zip``, ``load_checkpoint`` the checkpoint of that
@@ -136,13 +157,22 @@ def model_source(run: Optional[str] = None, model: Optional[str] = None, env: Op
     if bool(run) == bool(model):
         raise ValueError("give either --run FOLDER or --model PATH (with --env)")
     if load_checkpoint is not None or load_last_checkpoint:
-        chosen = [flag for flag, given in (("--best", best), ("--load-checkpoint", load_checkpoint is not None),
-                                           ("--load-last-checkpoint", load_last_checkpoint)) if given]
+        chosen = [
+            flag
+            for flag, given in (
+                ("--best", best),
+                ("--load-checkpoint", load_checkpoint is not None),
+                ("--load-last-checkpoint", load_last_checkpoint),
+            )
+            if given
+        ]
         if len(chosen) > 1:
             raise ValueError(f"{' and '.join(chosen)}: give one of them")
         if not run:
-            raise ValueError(f"{chosen[0]} picks a checkpoint of a run: give --run FOLDER or -f LOGS --env ID, "
-                             "or the checkpoint itself as --model PATH")
+            raise ValueError(
+                f"{chosen[0]} picks a checkpoint of a run: give --run FOLDER or -f LOGS --env ID, "
+                "or the checkpoint itself as --model PATH"
+            )
         run, model = None, str(checkpoint_of(run, load_checkpoint))
     info = locate_run(run or model, best=best)
     if model and vecnormalize:

@@ -13,14 +13,25 @@ from typing import Callable, Optional, Sequence
 import torch
 
 
-
-def inspect_command(run: Optional[str] = None, model: Optional[str] = None, env: Optional[str] = None,
-                    vecnormalize: Optional[str] = None, best: bool = False,
-                    env_kwargs: Optional[Sequence[str]] = None, output: Optional[str] = None, seed: int = 0,
-                    max_steps: Optional[int] = None, deterministic: bool = True, no_progress: bool = False,
-                    device: str = "cpu", torch_threads: int = 1,
-                    folder: Optional[str] = None, exp_id: int = 0, load_checkpoint: Optional[int] = None,
-                    load_last_checkpoint: bool = False) -> Callable[[], int]:
+def inspect_command(
+    run: Optional[str] = None,
+    model: Optional[str] = None,
+    env: Optional[str] = None,
+    vecnormalize: Optional[str] = None,
+    best: bool = False,
+    env_kwargs: Optional[Sequence[str]] = None,
+    output: Optional[str] = None,
+    seed: int = 0,
+    max_steps: Optional[int] = None,
+    deterministic: bool = True,
+    no_progress: bool = False,
+    device: str = "cpu",
+    torch_threads: int = 1,
+    folder: Optional[str] = None,
+    exp_id: int = 0,
+    load_checkpoint: Optional[int] = None,
+    load_last_checkpoint: bool = False,
+) -> Callable[[], int]:
     """``sb3-spikeplastic inspect`` with these options (its long names): the model is found, loaded and checked
     (``ValueError``, nothing written); returns the inspection, which records each of :func:`inspection_episodes`
     (``typical`` from :func:`typical_seed`), draws it into ``<output>/activity_<name>.png`` (default:
@@ -32,8 +43,9 @@ def inspect_command(run: Optional[str] = None, model: Optional[str] = None, env:
 
     if output:
         check_output_path(output, "-o/--output", directory=True)
-    info, env_id = model_source(run, model, env, vecnormalize, best, env_kwargs, folder, exp_id,
-                                load_checkpoint, load_last_checkpoint)
+    info, env_id = model_source(
+        run, model, env, vecnormalize, best, env_kwargs, folder, exp_id, load_checkpoint, load_last_checkpoint
+    )
     torch.set_num_threads(torch_threads)
     loaded = load_model(info, device)
     if not hasattr(loaded.policy, "snn"):
@@ -60,17 +72,25 @@ def inspect_command(run: Optional[str] = None, model: Optional[str] = None, env:
         from .figures import activity_figure
 
         out.mkdir(parents=True, exist_ok=True)
-        bar = tqdm(episodes.items(), total=len(episodes), unit="episode", disable=no_progress, dynamic_ncols=True,
-                   leave=False)
+        bar = tqdm(
+            episodes.items(), total=len(episodes), unit="episode", disable=no_progress, dynamic_ncols=True, leave=False
+        )
         for name, make in bar:
             episode_seed, note = seed, None
             if name == "typical":
-                episode_seed, note = typical_seed(loaded.policy, make, seed, deterministic=deterministic,
-                                                  obs_transform=obs_transform)
+                episode_seed, note = typical_seed(
+                    loaded.policy, make, seed, deterministic=deterministic, obs_transform=obs_transform
+                )
             episode_env = make()
             try:
-                activity = record_episode(loaded.policy, episode_env, seed=episode_seed, deterministic=deterministic,
-                                          max_steps=max_steps, obs_transform=obs_transform)
+                activity = record_episode(
+                    loaded.policy,
+                    episode_env,
+                    seed=episode_seed,
+                    deterministic=deterministic,
+                    max_steps=max_steps,
+                    obs_transform=obs_transform,
+                )
             finally:
                 episode_env.close()
             if name == "no_cue":  # the decision is made on the decision cue alone
@@ -79,8 +99,9 @@ def inspect_command(run: Optional[str] = None, model: Optional[str] = None, env:
             path = out / f"activity_{name}.png"
             fig.savefig(path, dpi=110)
             detail = f" (seed {episode_seed}: {note})" if note else ""
-            bar.write(f"{name:>9}: return {activity.episode_return:.3g} over {activity.n_steps} steps{detail} "
-                      f"-> {path}")
+            bar.write(
+                f"{name:>9}: return {activity.episode_return:.3g} over {activity.n_steps} steps{detail} -> {path}"
+            )
         return 0
 
     return inspect

@@ -17,7 +17,6 @@ import torch
 from gymnasium import spaces
 
 
-
 @dataclasses.dataclass
 class EpisodeActivity:
     """Everything the network did during (the first ``max_steps`` steps of) one episode, as numpy arrays.
@@ -98,9 +97,15 @@ def inspection_episodes(env_id: str, env_kwargs: Mapping[str, Any]) -> dict[str,
 
 
 @torch.no_grad()
-def typical_seed(policy, make_env: Callable[[], gymnasium.Env], seed: int = 0, n_episodes: int = 10,
-                 deterministic: bool = True, obs_transform: Optional[Callable[[np.ndarray], np.ndarray]] = None,
-                 max_steps: int = 1000) -> tuple[int, Optional[str]]:
+def typical_seed(
+    policy,
+    make_env: Callable[[], gymnasium.Env],
+    seed: int = 0,
+    n_episodes: int = 10,
+    deterministic: bool = True,
+    obs_transform: Optional[Callable[[np.ndarray], np.ndarray]] = None,
+    max_steps: int = 1000,
+) -> tuple[int, Optional[str]]:
     """A reset seed whose episode ends the way most do: the first of ``seed .. seed + n_episodes - 1`` whose
     ``info["is_success"]`` is the majority's, and a note such as ``"9 of 10 episodes from seed 0 succeeded"``.
 
@@ -112,16 +117,21 @@ def typical_seed(policy, make_env: Callable[[], gymnasium.Env], seed: int = 0, n
     for k in range(n_episodes):
         env = make_env()
         try:
-            episode = record_episode(policy, env, seed=seed + k, deterministic=deterministic, max_steps=max_steps,
-                                     obs_transform=obs_transform)
+            episode = record_episode(
+                policy,
+                env,
+                seed=seed + k,
+                deterministic=deterministic,
+                max_steps=max_steps,
+                obs_transform=obs_transform,
+            )
         finally:
             env.close()
         if not episode.done or "is_success" not in episode.info:
             return seed, None
         outcomes.append(bool(episode.info["is_success"]))
     majority = sum(outcomes) * 2 >= len(outcomes)
-    return seed + outcomes.index(majority), (f"{sum(outcomes)} of {n_episodes} episodes from seed {seed} "
-                                             "succeeded")
+    return seed + outcomes.index(majority), (f"{sum(outcomes)} of {n_episodes} episodes from seed {seed} succeeded")
 
 
 @torch.no_grad()
@@ -182,10 +192,13 @@ def record_episode(
         input_spikes=cat([r.input_spikes for r in records]),
         spikes=[cat([r.spikes[i] for r in records]) for i in range(n_layers)],
         membrane=[cat([r.membrane[i] for r in records]) for i in range(n_layers)],
-        modulation=[cat([r.modulation[i] for r in records]) if records[0].modulation[i] is not None else None
-                    for i in range(n_layers)],
-        traces=[cat([r.traces[i] for r in records]) if records[0].traces[i] is not None else None
-                for i in range(n_layers)],
+        modulation=[
+            cat([r.modulation[i] for r in records]) if records[0].modulation[i] is not None else None
+            for i in range(n_layers)
+        ],
+        traces=[
+            cat([r.traces[i] for r in records]) if records[0].traces[i] is not None else None for i in range(n_layers)
+        ],
         steps_per_env_step=T,
         interval=net.interval,
         theta=float(net.neuron.theta),

@@ -121,8 +121,9 @@ def read_run_args(run_dir: Path, env_id: str) -> dict:
 
 def latest_checkpoint(run_dir: Path) -> Optional[Path]:
     """The ``rl_model_<steps>_steps.zip`` of ``run_dir`` with the most steps (``None`` if there is none)."""
-    found = [(int(m.group(1)), p) for p in Path(run_dir).glob("rl_model_*_steps.zip")
-             if (m := CHECKPOINT.fullmatch(p.name))]
+    found = [
+        (int(m.group(1)), p) for p in Path(run_dir).glob("rl_model_*_steps.zip") if (m := CHECKPOINT.fullmatch(p.name))
+    ]
     return max(found)[1] if found else None
 
 
@@ -133,8 +134,9 @@ def locate_run(path: os.PathLike, best: bool = False) -> RunInfo:
     if p.is_dir():
         env_id, config = read_run_config(p)
         if env_id is None:
-            raise ValueError(f"{str(path)!r} is not a run folder of `sb3-spikeplastic train` "
-                             "(no <EnvId>/config.yml in it)")
+            raise ValueError(
+                f"{str(path)!r} is not a run folder of `sb3-spikeplastic train` (no <EnvId>/config.yml in it)"
+            )
         model = p / ("best_model.zip" if best else f"{env_id}.zip")
         if not model.is_file():
             failed = " (training failed: see FAILED.txt)" if (p / "FAILED.txt").exists() else ""
@@ -169,8 +171,9 @@ def load_model(info: RunInfo, device: str = "cpu"):
         raise ValueError(f"cannot load model {str(info.model_path)!r}: {type(exc).__name__}: {exc}") from None
 
 
-def make_eval_env(env_id: str, n_envs: int, seed: int, env_kwargs: Optional[dict] = None,
-                  vecnormalize: Optional[Path] = None):
+def make_eval_env(
+    env_id: str, n_envs: int, seed: int, env_kwargs: Optional[dict] = None, vecnormalize: Optional[Path] = None
+):
     """Monitored ``DummyVecEnv`` of ``env_id`` with the run's frozen ``VecNormalize`` statistics if given."""
     import gymnasium
 
@@ -185,13 +188,16 @@ def check_spaces(model, env, env_id: str, model_path) -> None:
     try:
         check_for_correct_spaces(env, model.observation_space, model.action_space)
     except ValueError:
-        raise ValueError(f"model {str(model_path)!r} (observations {model.observation_space}, actions "
-                         f"{model.action_space}) does not fit {env_id} (observations {env.observation_space}, "
-                         f"actions {env.action_space})") from None
+        raise ValueError(
+            f"model {str(model_path)!r} (observations {model.observation_space}, actions "
+            f"{model.action_space}) does not fit {env_id} (observations {env.observation_space}, "
+            f"actions {env.action_space})"
+        ) from None
 
 
-def frozen_eval_env(make: Callable[[], gymnasium.Env], n_envs: int, seed: int,
-                    vec_normalize_path: str | os.PathLike | None = None) -> VecEnv:
+def frozen_eval_env(
+    make: Callable[[], gymnasium.Env], n_envs: int, seed: int, vec_normalize_path: str | os.PathLike | None = None
+) -> VecEnv:
     """Seeded ``DummyVecEnv`` of ``Monitor(make())``, with frozen ``VecNormalize`` statistics if given.
 
     The Monitor is outermost so that it records the returns of the (possibly noisy) environment.

@@ -41,8 +41,9 @@ def check_schedule(key: str, value: Any, allow_none: bool) -> Any:
                 pass
     if isinstance(value, (int, float)) and not isinstance(value, bool):
         return float(value)
-    raise ValueError(f"{key}={value!r} must be a number or lin_<number> (linear decay)"
-                     + (" or null" if allow_none else ""))
+    raise ValueError(
+        f"{key}={value!r} must be a number or lin_<number> (linear decay)" + (" or null" if allow_none else "")
+    )
 
 
 def schedule_argument(value: Any) -> Any:

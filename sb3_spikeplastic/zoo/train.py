@@ -20,7 +20,6 @@ from .run_folder import RunInfo, latest_checkpoint, locate_run, read_run_args, r
 from .validation import validate_entry
 from .zoo_yaml import load_hyperparams_file
 
-
 #: ``train --torch-threads auto``: a policy with a weight matrix of at least this many entries trains on every core,
 #: a smaller one on one (its products are too small to split). Measured on 2 cores: the HalfCheetah entry
 #: (170 x 64 input layer) and RecurrentPPO (1024 x 256) train ~25 % faster on two threads, MlpPolicy (64 x 64) and
@@ -56,8 +55,10 @@ def continued_run(trained_agent: str, env_id: str, overridden: bool = False) -> 
     statistics and TensorBoard folder; ``ValueError`` if it cannot be continued as asked (``overridden``: options
     that would change its configuration were given)."""
     if overridden:
-        raise ValueError("--trained-agent continues a run with its own configuration; only -n (the total "
-                         "steps), --seed and the callback options may be given with it")
+        raise ValueError(
+            "--trained-agent continues a run with its own configuration; only -n (the total "
+            "steps), --seed and the callback options may be given with it"
+        )
     folder = Path(trained_agent)
     env_id_of_folder = read_run_config(folder)[0] if folder.is_dir() else None
     if env_id_of_folder and not (folder / f"{env_id_of_folder}.zip").is_file() and latest_checkpoint(folder):
@@ -76,10 +77,16 @@ def continued_run(trained_agent: str, env_id: str, overridden: bool = False) -> 
     return info
 
 
-def train_config(env_id: str, conf: Optional[str] = None, rule: Optional[str] = None,
-                 hyperparams: Optional[Sequence[str]] = None, env_kwargs: Optional[Sequence[str]] = None,
-                 n_timesteps: Optional[int] = None, n_envs: Optional[int] = None,
-                 source: Optional[RunInfo] = None) -> dict:
+def train_config(
+    env_id: str,
+    conf: Optional[str] = None,
+    rule: Optional[str] = None,
+    hyperparams: Optional[Sequence[str]] = None,
+    env_kwargs: Optional[Sequence[str]] = None,
+    n_timesteps: Optional[int] = None,
+    n_envs: Optional[int] = None,
+    source: Optional[RunInfo] = None,
+) -> dict:
     """The resolved entry of ``train``'s options: a continued run's own entry (with ``n_timesteps``), else the
     file's entry with the overrides (``env_kwargs`` ``KEY=VALUE`` after ``hyperparams``: they win)."""
     if source is not None and source.config:
@@ -101,21 +108,37 @@ def build(experiment: Experiment) -> None:
         raise ValueError(f"invalid configuration for {experiment.env_id}: {message}") from None
     except Exception as exc:
         if type(exc).__module__.startswith("gymnasium"):
-            raise ValueError(f"cannot make {experiment.env_id} with env_kwargs={experiment.env_kwargs}: "
-                             f"{exc}") from None
+            raise ValueError(
+                f"cannot make {experiment.env_id} with env_kwargs={experiment.env_kwargs}: {exc}"
+            ) from None
         raise
 
 
-def train_command(env: str, rule: Optional[str] = None, n_timesteps: Optional[int] = None,
-                  seed: Optional[int] = None, log_folder: str = "logs", tensorboard_log: Optional[str] = None,
-                  hyperparams: Optional[Sequence[str]] = None, env_kwargs: Optional[Sequence[str]] = None,
-                  conf: Optional[str] = None, n_envs: Optional[int] = None, vec_env: Optional[str] = None,
-                  eval_freq: Optional[int] = None, eval_episodes: Optional[int] = None,
-                  save_freq: Optional[int] = None, keep_checkpoints: Optional[int] = None,
-                  figure_freq: Optional[int] = None, trained_agent: Optional[str] = None,
-                  verbose: int = 1, no_progress: bool = False, device: str = "cpu",
-                  torch_threads: Union[int, str] = "auto", log_interval: int = 1,
-                  command_line: str = "sb3-spikeplastic train") -> Callable[[], int]:
+def train_command(
+    env: str,
+    rule: Optional[str] = None,
+    n_timesteps: Optional[int] = None,
+    seed: Optional[int] = None,
+    log_folder: str = "logs",
+    tensorboard_log: Optional[str] = None,
+    hyperparams: Optional[Sequence[str]] = None,
+    env_kwargs: Optional[Sequence[str]] = None,
+    conf: Optional[str] = None,
+    n_envs: Optional[int] = None,
+    vec_env: Optional[str] = None,
+    eval_freq: Optional[int] = None,
+    eval_episodes: Optional[int] = None,
+    save_freq: Optional[int] = None,
+    keep_checkpoints: Optional[int] = None,
+    figure_freq: Optional[int] = None,
+    trained_agent: Optional[str] = None,
+    verbose: int = 1,
+    no_progress: bool = False,
+    device: str = "cpu",
+    torch_threads: Union[int, str] = "auto",
+    log_interval: int = 1,
+    command_line: str = "sb3-spikeplastic train",
+) -> Callable[[], int]:
     """``sb3-spikeplastic train`` with these options (its long names): every option is checked and the model built
     in memory (``ValueError``, nothing written); returns the run, which creates the run folder (``command_line``
     in ``command.txt``, the options in ``<EnvId>/args.yml``), trains, prints the files written and returns the exit
@@ -129,10 +152,16 @@ def train_command(env: str, rule: Optional[str] = None, n_timesteps: Optional[in
     env_id = check_env_id(env, list(load_hyperparams_file(conf)))
     if rule is not None:
         get_rule_class(rule)
-    for name, value, minimum in (("--n-timesteps", n_timesteps, 1), ("--n-envs", n_envs, 1),
-                                 ("--eval-freq", eval_freq, 0), ("--eval-episodes", eval_episodes, 1),
-                                 ("--save-freq", save_freq, 0), ("--keep-checkpoints", keep_checkpoints, 0),
-                                 ("--figure-freq", figure_freq, 0), ("--log-interval", log_interval, 1)):
+    for name, value, minimum in (
+        ("--n-timesteps", n_timesteps, 1),
+        ("--n-envs", n_envs, 1),
+        ("--eval-freq", eval_freq, 0),
+        ("--eval-episodes", eval_episodes, 1),
+        ("--save-freq", save_freq, 0),
+        ("--keep-checkpoints", keep_checkpoints, 0),
+        ("--figure-freq", figure_freq, 0),
+        ("--log-interval", log_interval, 1),
+    ):
         check_int(name, value, minimum)
     check_device(device)
     check_output_path(log_folder, "-f/--log-folder", directory=True)
@@ -142,8 +171,15 @@ def train_command(env: str, rule: Optional[str] = None, n_timesteps: Optional[in
     if trained_agent:
         source = continued_run(trained_agent, env_id, bool(hyperparams or rule or n_envs or conf or env_kwargs))
         inherited = read_run_args(source.run_dir, source.env_id or env_id) if source.run_dir is not None else {}
-        given = dict(vec_env=vec_env, eval_freq=eval_freq, eval_episodes=eval_episodes, save_freq=save_freq,
-                     keep_checkpoints=keep_checkpoints, figure_freq=figure_freq, tensorboard_log=tensorboard_log)
+        given = dict(
+            vec_env=vec_env,
+            eval_freq=eval_freq,
+            eval_episodes=eval_episodes,
+            save_freq=save_freq,
+            keep_checkpoints=keep_checkpoints,
+            figure_freq=figure_freq,
+            tensorboard_log=tensorboard_log,
+        )
         chosen = {k: inherited.get(k) if v is None else v for k, v in given.items()}
         vec_env, eval_freq, eval_episodes, save_freq, keep_checkpoints, figure_freq, tensorboard_log = chosen.values()
     vec_env = vec_env or "dummy"
@@ -168,23 +204,57 @@ def train_command(env: str, rule: Optional[str] = None, n_timesteps: Optional[in
     if seed is None:
         seed = random.SystemRandom().randrange(2**31 - 1)
     experiment = Experiment(
-        env_id, config, seed, Path(log_folder), tensorboard_log, device=device, verbose=verbose, eval_freq=eval_freq,
-        eval_episodes=eval_episodes, save_freq=save_freq, keep_checkpoints=keep_checkpoints, figure_freq=figure_freq,
-        vec_env=vec_env, progress=not no_progress, trained_agent=source, log_interval=log_interval)
+        env_id,
+        config,
+        seed,
+        Path(log_folder),
+        tensorboard_log,
+        device=device,
+        verbose=verbose,
+        eval_freq=eval_freq,
+        eval_episodes=eval_episodes,
+        save_freq=save_freq,
+        keep_checkpoints=keep_checkpoints,
+        figure_freq=figure_freq,
+        vec_env=vec_env,
+        progress=not no_progress,
+        trained_agent=source,
+        log_interval=log_interval,
+    )
     build(experiment)
     if torch_threads == "auto":
         load = machine_load()
         chosen = training_threads(experiment.model.policy, cores, load)
         torch.set_num_threads(chosen)
         if verbose:
-            print(f"--torch-threads auto: {chosen} of {cores} core(s) (load {load:.1f}; "
-                  f"{'a policy big enough to split' if chosen > 1 or load >= cores - 0.5 else 'a small policy'})")
-    options = dict(env=env, rule=rule, n_timesteps=n_timesteps, seed=seed, log_folder=log_folder,
-                   tensorboard_log=tensorboard_log, hyperparams=hyperparams, env_kwargs=env_kwargs, conf=conf,
-                   n_envs=n_envs, vec_env=vec_env, eval_freq=eval_freq, eval_episodes=eval_episodes,
-                   save_freq=save_freq, keep_checkpoints=keep_checkpoints, figure_freq=figure_freq,
-                   trained_agent=trained_agent, verbose=verbose, no_progress=no_progress, device=device,
-                   torch_threads=torch_threads, log_interval=log_interval)
+            print(
+                f"--torch-threads auto: {chosen} of {cores} core(s) (load {load:.1f}; "
+                f"{'a policy big enough to split' if chosen > 1 or load >= cores - 0.5 else 'a small policy'})"
+            )
+    options = dict(
+        env=env,
+        rule=rule,
+        n_timesteps=n_timesteps,
+        seed=seed,
+        log_folder=log_folder,
+        tensorboard_log=tensorboard_log,
+        hyperparams=hyperparams,
+        env_kwargs=env_kwargs,
+        conf=conf,
+        n_envs=n_envs,
+        vec_env=vec_env,
+        eval_freq=eval_freq,
+        eval_episodes=eval_episodes,
+        save_freq=save_freq,
+        keep_checkpoints=keep_checkpoints,
+        figure_freq=figure_freq,
+        trained_agent=trained_agent,
+        verbose=verbose,
+        no_progress=no_progress,
+        device=device,
+        torch_threads=torch_threads,
+        log_interval=log_interval,
+    )
     return lambda: _train(experiment, command_line, {"command": "train", **options}, tensorboard_log or log_folder)
 
 
@@ -196,11 +266,15 @@ def _train(experiment: Experiment, command_line: str, options: dict[str, Any], t
     run_dir = experiment.create_run_folder(command_line, dict(sorted(options.items())))
     algo_name = "RecurrentPPO" if config.get("algo") == "ppo_lstm" else "PPO"
     if experiment.source is not None:
-        print(f"Continuing {experiment.source.run_dir or experiment.source.model_path} from step "
-              f"{experiment.model.num_timesteps:,} ({experiment.source.model_path.name}), with its seed and run "
-              "options unless given")
-    print(f"Training {algo_name} ({config['policy']}, rule {rule_label(config)}) on {env_id} for "
-          f"{config['n_timesteps']:,} steps, seed {experiment.seed}, {torch.get_num_threads()} torch thread(s)")
+        print(
+            f"Continuing {experiment.source.run_dir or experiment.source.model_path} from step "
+            f"{experiment.model.num_timesteps:,} ({experiment.source.model_path.name}), with its seed and run "
+            "options unless given"
+        )
+    print(
+        f"Training {algo_name} ({config['policy']}, rule {rule_label(config)}) on {env_id} for "
+        f"{config['n_timesteps']:,} steps, seed {experiment.seed}, {torch.get_num_threads()} torch thread(s)"
+    )
     print(f"Run folder:  {run_dir}")
     print(f"TensorBoard: tensorboard --logdir {tensorboard_root}")
     sys.stdout.flush()
@@ -209,15 +283,22 @@ def _train(experiment: Experiment, command_line: str, options: dict[str, Any], t
         finished = experiment.learn()
     except BaseException:
         if run_dir.exists():
-            print(f"sb3-spikeplastic: training failed after {model.num_timesteps:,} steps; logs kept in {run_dir} "
-                  "(see FAILED.txt; no final model written)", file=sys.stderr)
+            print(
+                f"sb3-spikeplastic: training failed after {model.num_timesteps:,} steps; logs kept in {run_dir} "
+                "(see FAILED.txt; no final model written)",
+                file=sys.stderr,
+            )
         else:
-            print(f"sb3-spikeplastic: training failed before its first environment step; removed {run_dir}",
-                  file=sys.stderr)
+            print(
+                f"sb3-spikeplastic: training failed before its first environment step; removed {run_dir}",
+                file=sys.stderr,
+            )
         raise
     if not finished:
-        print(f"\nInterrupted after {model.num_timesteps:,} steps; saved {experiment.model_path}. Continue with\n"
-              f"  {experiment.continue_command()}")
+        print(
+            f"\nInterrupted after {model.num_timesteps:,} steps; saved {experiment.model_path}. Continue with\n"
+            f"  {experiment.continue_command()}"
+        )
         return 130
     print(f"\nDone: {model.num_timesteps:,} steps.")
     print(f"  model:        {experiment.model_path}")

@@ -19,12 +19,26 @@ META_KEYS = ("algo", "n_timesteps", "n_envs", "policy", "policy_kwargs", "normal
 #: and SB3 policies), ``ppo_lstm`` sb3-contrib's ``RecurrentPPO`` (a baseline; ``pip install sb3-contrib``).
 ALGOS = ("ppo", "ppo_lstm")
 #: PPO arguments that the command line (or the run) sets, not the hyperparameter file.
-_PPO_EXCLUDED = ("self", "policy", "env", "policy_kwargs", "tensorboard_log", "verbose", "seed", "device",
-                 "_init_setup_model", "rollout_buffer_class", "rollout_buffer_kwargs")
+_PPO_EXCLUDED = (
+    "self",
+    "policy",
+    "env",
+    "policy_kwargs",
+    "tensorboard_log",
+    "verbose",
+    "seed",
+    "device",
+    "_init_setup_model",
+    "rollout_buffer_class",
+    "rollout_buffer_kwargs",
+)
 #: Policy arguments naming a class: accepted as a name (``ReLU``, ``nn.ReLU``, ``th.optim.AdamW``,
 #: ``PlaceCellFeatures``...).
-CLASS_KEYS = {"activation_fn": "torch.nn", "optimizer_class": "torch.optim",
-              "features_extractor_class": "sb3_spikeplastic.sb3.encoder_features"}
+CLASS_KEYS = {
+    "activation_fn": "torch.nn",
+    "optimizer_class": "torch.optim",
+    "features_extractor_class": "sb3_spikeplastic.sb3.encoder_features",
+}
 #: Policy arguments of SB3's ActorCriticPolicy that SpikePlasticPolicy passes on and that make sense for it.
 _SPIKE_EXTRA_POLICY_KEYS = ("optimizer_class", "optimizer_kwargs")
 _UNSETTABLE_POLICY_KEYS = ("self", "observation_space", "action_space", "lr_schedule", "kwargs")
@@ -97,10 +111,12 @@ def resolve_class_name(name: str, key: str) -> type:
     prefix, _, short = name.rpartition(".")
     candidate = getattr(module, short, None) if (not prefix or DOTTED_PREFIXES.get(prefix) == module_name) else None
     if not (isinstance(candidate, type) and issubclass(candidate, base)):
-        choices = sorted(n for n, c in vars(module).items()
-                         if isinstance(c, type) and issubclass(c, base) and c is not base)
-        raise ValueError(f"policy_kwargs.{key}={name!r} is not a class of {module_name}; "
-                         f"accepted: {', '.join(choices)}")
+        choices = sorted(
+            n for n, c in vars(module).items() if isinstance(c, type) and issubclass(c, base) and c is not base
+        )
+        raise ValueError(
+            f"policy_kwargs.{key}={name!r} is not a class of {module_name}; accepted: {', '.join(choices)}"
+        )
     return candidate
 
 
@@ -139,26 +155,35 @@ def _validate_policy_kwargs(policy: str, kwargs: Any, algo: str = "ppo") -> dict
         if key in CLASS_KEYS:
             if not isinstance(value, str):
                 example = {"activation_fn": "nn.ReLU", "optimizer_class": "th.optim.AdamW"}.get(
-                    key, "PlaceCellFeatures")
+                    key, "PlaceCellFeatures"
+                )
                 raise ValueError(f"policy_kwargs.{key}={value!r} must be a class name such as {example}")
             resolve_class_name(value, key)
             out[key] = value
             continue
-        out[key] = check_value(f"policy_kwargs.{key}", as_mapping(value, f"policy_kwargs.{key}")
-                               if key in ("neuron", "rule_kwargs", "optimizer_kwargs", "net_arch") else value,
-                               hints[key])
+        out[key] = check_value(
+            f"policy_kwargs.{key}",
+            as_mapping(value, f"policy_kwargs.{key}")
+            if key in ("neuron", "rule_kwargs", "optimizer_kwargs", "net_arch")
+            else value,
+            hints[key],
+        )
     if "rule" in out:
         get_rule_class(out["rule"])  # a one-line error for an unknown name
     if "rule" in hints:
         default_rule = inspect.signature(_policy_class(policy, algo).__init__).parameters["rule"].default
         out_rule = out.get("rule", default_rule)
         if out.get("rule_kwargs"):
-            rule_hints = {k: v for k, v in signature_hints(get_rule_class(out_rule).__init__).items()
-                          if k not in ("self", "n_in", "n_out", "e_max")}
-            check_keys("policy_kwargs.rule_kwargs key", out["rule_kwargs"], list(rule_hints),
-                        f" for rule {out_rule!r}")
-            out["rule_kwargs"] = {k: check_value(f"policy_kwargs.rule_kwargs.{k}", v, rule_hints[k])
-                                  for k, v in out["rule_kwargs"].items()}
+            rule_hints = {
+                k: v
+                for k, v in signature_hints(get_rule_class(out_rule).__init__).items()
+                if k not in ("self", "n_in", "n_out", "e_max")
+            }
+            check_keys("policy_kwargs.rule_kwargs key", out["rule_kwargs"], list(rule_hints), f" for rule {out_rule!r}")
+            out["rule_kwargs"] = {
+                k: check_value(f"policy_kwargs.rule_kwargs.{k}", v, rule_hints[k])
+                for k, v in out["rule_kwargs"].items()
+            }
             _check_rule_values(out_rule, out["rule_kwargs"])
     if out.get("neuron"):
         from ..snn.neurons import SRMParameters

@@ -24,7 +24,6 @@ from typing import Any, Callable, Optional, Sequence
 import gymnasium
 import numpy as np
 
-
 #: Video file extensions and the imageio format that writes them.
 VIDEO_FORMATS = {".mp4": "FFMPEG", ".gif": "GIF"}
 #: Frames per second of a video when the environment names none (``metadata["render_fps"]``).
@@ -42,8 +41,12 @@ mujoco.MjrContext(mujoco.MjModel.from_xml_string("<mujoco/>"), mujoco.mjtFontSca
 """
 
 
-def check_video_options(video: Optional[os.PathLike], fps: Optional[float] = None,
-                        size: Optional[Sequence[int]] = None, raster: bool = False) -> None:
+def check_video_options(
+    video: Optional[os.PathLike],
+    fps: Optional[float] = None,
+    size: Optional[Sequence[int]] = None,
+    raster: bool = False,
+) -> None:
     """``ValueError`` unless the video options can be honoured: a known extension, imageio (and imageio-ffmpeg for
     ``.mp4``) installed, a positive finite ``fps`` and a ``size`` of two integers >= 16; ``fps``, ``size`` and
     ``raster`` only with a video. Checked before any work, so that a long run never fails at its end.
@@ -54,15 +57,20 @@ def check_video_options(video: Optional[os.PathLike], fps: Optional[float] = Non
     :param raster: whether the frames get a spike raster (:class:`SpikeRaster`).
     """
     if video is None:
-        given = [flag for flag, value in (("--fps", fps), ("--size", size), ("--raster", raster or None))
-                 if value is not None]
+        given = [
+            flag
+            for flag, value in (("--fps", fps), ("--size", size), ("--raster", raster or None))
+            if value is not None
+        ]
         if given:
             raise ValueError(f"{', '.join(given)}: only with a video; give --video FILE too")
         return
     suffix = Path(video).suffix.lower()
     if suffix not in VIDEO_FORMATS:
-        raise ValueError(f"--video {str(video)!r}: unknown video format {suffix or '(no extension)'!r}; accepted: "
-                         f"{', '.join(VIDEO_FORMATS)}")
+        raise ValueError(
+            f"--video {str(video)!r}: unknown video format {suffix or '(no extension)'!r}; accepted: "
+            f"{', '.join(VIDEO_FORMATS)}"
+        )
     if fps is not None and not (np.isfinite(fps) and fps > 0):
         raise ValueError(f"--fps {fps!r} must be a finite number > 0")
     if size is not None and min(size) < 16:
@@ -78,8 +86,10 @@ def check_video_options(video: Optional[os.PathLike], fps: Optional[float] = Non
 
 def is_mujoco_env(env: gymnasium.Env) -> bool:
     """Whether ``env`` is a Gymnasium MuJoCo environment (it renders through OpenGL)."""
-    return any(c.__name__ == "MujocoEnv" and c.__module__.startswith("gymnasium.envs.mujoco")
-               for c in type(env.unwrapped).__mro__)
+    return any(
+        c.__name__ == "MujocoEnv" and c.__module__.startswith("gymnasium.envs.mujoco")
+        for c in type(env.unwrapped).__mro__
+    )
 
 
 def _gl_works(backend: str) -> bool:
@@ -88,8 +98,9 @@ def _gl_works(backend: str) -> bool:
     env = {**os.environ, "MUJOCO_GL": backend}
     try:
         # (in the temporary folder: a MuJoCo that fails may leave MUJOCO_LOG.TXT in its working folder)
-        result = subprocess.run([sys.executable, "-c", _GL_PROBE], env=env, capture_output=True, timeout=120,
-                                cwd=tempfile.gettempdir())
+        result = subprocess.run(
+            [sys.executable, "-c", _GL_PROBE], env=env, capture_output=True, timeout=120, cwd=tempfile.gettempdir()
+        )
     except (OSError, subprocess.TimeoutExpired):
         return False
     return result.returncode == 0
@@ -111,13 +122,16 @@ def select_mujoco_gl(works: Callable[[str], bool] = _gl_works) -> str:
         if works(backend):
             os.environ["MUJOCO_GL"] = backend
             return backend
-    raise RuntimeError(f"MuJoCo cannot render offscreen here (tried MUJOCO_GL={', '.join(candidates)}): install "
-                       "EGL (Debian/Ubuntu: apt install libegl1) or OSMesa (apt install libosmesa6), or set "
-                       "MUJOCO_GL to a backend that works")
+    raise RuntimeError(
+        f"MuJoCo cannot render offscreen here (tried MUJOCO_GL={', '.join(candidates)}): install "
+        "EGL (Debian/Ubuntu: apt install libegl1) or OSMesa (apt install libosmesa6), or set "
+        "MUJOCO_GL to a backend that works"
+    )
 
 
-def make_env(env_id: str, env_kwargs: Optional[dict] = None, render: bool = False,
-             size: Optional[Sequence[int]] = None) -> gymnasium.Env:
+def make_env(
+    env_id: str, env_kwargs: Optional[dict] = None, render: bool = False, size: Optional[Sequence[int]] = None
+) -> gymnasium.Env:
     """``gymnasium.make(env_id, **env_kwargs)``, rendering ``rgb_array`` frames when ``render``.
 
     :param env_id: Gymnasium id.
@@ -143,8 +157,10 @@ def make_env(env_id: str, env_kwargs: Optional[dict] = None, render: bool = Fals
         raise ValueError(f"cannot make {env_id} with env_kwargs={kwargs}: {' '.join(str(exc).split())}") from None
     if render and "rgb_array" not in env.metadata.get("render_modes", ()):
         env.close()
-        raise ValueError(f"{env_id} cannot render video frames (its render modes: "
-                         f"{', '.join(env.metadata.get('render_modes', ())) or 'none'}; rgb_array is needed)")
+        raise ValueError(
+            f"{env_id} cannot render video frames (its render modes: "
+            f"{', '.join(env.metadata.get('render_modes', ())) or 'none'}; rgb_array is needed)"
+        )
     return env
 
 
@@ -155,8 +171,11 @@ def _mujoco_camera(env: gymnasium.Env, kwargs: dict, size: Optional[Sequence[int
     extra: dict[str, Any] = {}
     if size is not None:
         extra.update(width=int(size[0]), height=int(size[1]))
-    if ("camera_name" not in kwargs and "camera_id" not in kwargs
-            and mujoco.mj_name2id(env.unwrapped.model, mujoco.mjtObj.mjOBJ_CAMERA, "track") != -1):
+    if (
+        "camera_name" not in kwargs
+        and "camera_id" not in kwargs
+        and mujoco.mj_name2id(env.unwrapped.model, mujoco.mjtObj.mjOBJ_CAMERA, "track") != -1
+    ):
         extra["camera_name"] = "track"
     return extra
 
@@ -281,8 +300,10 @@ class SpikeRaster:
         self.steps_per_env_step = int(snn.steps)
         self.n_steps = max(1, duration_ms // self.steps_per_env_step)
         self.window = np.zeros((sum(self.sizes), self.n_steps * self.steps_per_env_step), dtype=bool)
-        self._hooks = [snn.register_forward_pre_hook(self._record, with_kwargs=True),
-                       snn.register_forward_hook(self._keep)]
+        self._hooks = [
+            snn.register_forward_pre_hook(self._record, with_kwargs=True),
+            snn.register_forward_hook(self._keep),
+        ]
 
     @staticmethod
     def _record(module, args, kwargs):
@@ -291,7 +312,7 @@ class SpikeRaster:
     def _keep(self, module, args, output) -> None:
         spikes = np.concatenate([s[0].cpu().numpy() > 0 for s in output[0].record.spikes[:-1]], axis=1)  # (T, n)
         self.window = np.roll(self.window, -len(spikes), axis=1)
-        self.window[:, -len(spikes):] = spikes.T
+        self.window[:, -len(spikes) :] = spikes.T
 
     def reset(self) -> None:
         """Clear the window (a new episode)."""
@@ -308,9 +329,9 @@ class SpikeRaster:
         height = frame.shape[0]
         scale = max(1, height // self.window.shape[1])  # whole pixels per millisecond
         image = np.where(self.window[..., None], np.uint8(255), np.uint8(0)).repeat(3, axis=-1)
-        ticks = image[:, ::self.steps_per_env_step]
-        ticks[~self.window[:, ::self.steps_per_env_step]] = 48  # the first millisecond of each step
-        image[:, ::self.steps_per_env_step] = ticks
+        ticks = image[:, :: self.steps_per_env_step]
+        ticks[~self.window[:, :: self.steps_per_env_step]] = 48  # the first millisecond of each step
+        image[:, :: self.steps_per_env_step] = ticks
         image = np.insert(image, np.cumsum(self.sizes)[:-1], 96, axis=0)  # a line between layers
         image = resize_nearest(image, self.window.shape[1] * scale, height)
         gap = np.full((height, 4, 3), 128, dtype=np.uint8)

@@ -37,6 +37,7 @@ PACKAGED_HYPERPARAMS = ("ppo", "paper", "mlp", "ppo_lstm", "mlp_zoo", "ppo_lstm_
 # ----------------------------------------------------------------------------------------------------------------
 # YAML with rl-zoo friendly floats
 
+
 class _Loader(yaml.SafeLoader):
     """``yaml.SafeLoader`` that also reads ``1e5`` / ``3e-4`` as floats (YAML 1.1 needs a dot: ``3.0e-4``)."""
 
@@ -47,11 +48,14 @@ _Loader.yaml_implicit_resolvers = {
 }
 _Loader.add_implicit_resolver(
     "tag:yaml.org,2002:float",
-    re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+    re.compile(
+        r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
                    |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
                    |[-+]?\.[0-9_]+(?:[eE][-+]?[0-9]+)?
                    |[-+]?\.(?:inf|Inf|INF)
-                   |\.(?:nan|NaN|NAN))$""", re.X),
+                   |\.(?:nan|NaN|NAN))$""",
+        re.X,
+    ),
     list("-+0123456789."),
 )
 
@@ -75,8 +79,10 @@ def load_hyperparams_file(path: Union[str, Path, None] = None) -> dict[str, dict
     try:
         text = path.read_text()
     except OSError as exc:
-        raise ValueError(f"cannot read hyperparameter file {str(path)!r}: {exc.strerror or exc} (packaged files: "
-                         f"{', '.join(PACKAGED_HYPERPARAMS)})") from None
+        raise ValueError(
+            f"cannot read hyperparameter file {str(path)!r}: {exc.strerror or exc} (packaged files: "
+            f"{', '.join(PACKAGED_HYPERPARAMS)})"
+        ) from None
     try:
         data = yaml_load(text)
     except yaml.YAMLError as exc:
@@ -91,8 +97,14 @@ def load_hyperparams_file(path: Union[str, Path, None] = None) -> dict[str, dict
 # ----------------------------------------------------------------------------------------------------------------
 # Safe parsing of rl-zoo's "dict(...)" strings
 
-DOTTED_PREFIXES = {"nn": "torch.nn", "th.nn": "torch.nn", "torch.nn": "torch.nn", "optim": "torch.optim",
-                    "th.optim": "torch.optim", "torch.optim": "torch.optim"}
+DOTTED_PREFIXES = {
+    "nn": "torch.nn",
+    "th.nn": "torch.nn",
+    "torch.nn": "torch.nn",
+    "optim": "torch.optim",
+    "th.optim": "torch.optim",
+    "torch.optim": "torch.optim",
+}
 
 
 def _dotted_name(node: ast.AST) -> Optional[str]:
@@ -117,8 +129,10 @@ def parse_python_literal(text: str, what: str = "value") -> Any:
     :param text: the Python expression.
     :param what: what the value is, for error messages (e.g. ``"policy_kwargs"``).
     """
-    accepted = ("only literals (numbers, strings, True/False/None, lists, tuples, dicts), dict(key=value, ...) "
-                "and nn./th.optim. class names are accepted")
+    accepted = (
+        "only literals (numbers, strings, True/False/None, lists, tuples, dicts), dict(key=value, ...) "
+        "and nn./th.optim. class names are accepted"
+    )
     try:
         tree = ast.parse(text.strip(), mode="eval")
     except SyntaxError:
@@ -138,8 +152,12 @@ def parse_python_literal(text: str, what: str = "value") -> Any:
             if all(k is not None for k in node.keys):
                 return {convert(k): convert(v) for k, v in zip(node.keys, node.values)}
         elif isinstance(node, ast.Call):
-            if isinstance(node.func, ast.Name) and node.func.id == "dict" and not node.args and all(
-                    k.arg is not None for k in node.keywords):
+            if (
+                isinstance(node.func, ast.Name)
+                and node.func.id == "dict"
+                and not node.args
+                and all(k.arg is not None for k in node.keywords)
+            ):
                 return {k.arg: convert(k.value) for k in node.keywords}
         elif isinstance(node, ast.Attribute):
             name = _dotted_name(node)
@@ -163,8 +181,9 @@ def as_mapping(value: Any, what: str) -> Any:
 _KEY_PATTERN = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
 
 
-def parse_override(text: str, what: str = "hyperparameter override",
-                   example: str = "n_steps=128 or policy_kwargs.rule=dp-bcm") -> tuple[tuple[str, ...], Any]:
+def parse_override(
+    text: str, what: str = "hyperparameter override", example: str = "n_steps=128 or policy_kwargs.rule=dp-bcm"
+) -> tuple[tuple[str, ...], Any]:
     """Parse one ``key=value`` override, or rl-zoo's ``key:value``: the (dotted) key path and the value read as
     YAML. The key ends at the first ``=`` or ``:`` (keys have neither), so values may hold both.
 

@@ -12,7 +12,6 @@ import pytest
 
 import sb3_spikeplastic.envs
 
-
 IDS = ("TMazeCue-v0", "TMazeCueNoisy-v0", "NoisyHalfCheetah-v5", "HalfCheetahSwitch-v5")
 
 

@@ -94,15 +94,18 @@ def test_a_seed_fixes_the_episode_and_the_same_choice_gets_the_same_outcome():
     assert not np.array_equal(a[0], play(8, choices)[0])
 
 
-@pytest.mark.parametrize("kwargs, message", [
-    (dict(noise="medium"), "noise='medium' is not one of"),
-    (dict(n_trials=0), "n_trials=0 must be an integer >= 1"),
-    (dict(p_reward=1.5), "p_reward=1.5 must be a probability"),
-    (dict(reversal="yes"), "reversal='yes' must be True or False"),
-    (dict(reversal_trials=(4,)), "reversal_trials=(4,) must be (first, last)"),
-    (dict(reversal_trials=(6, 10)), "must satisfy 1 <= first <= last < n_trials=10"),
-    (dict(outcome_ms=0), "outcome_ms=0 must be an integer >= 1"),
-])
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(noise="medium"), "noise='medium' is not one of"),
+        (dict(n_trials=0), "n_trials=0 must be an integer >= 1"),
+        (dict(p_reward=1.5), "p_reward=1.5 must be a probability"),
+        (dict(reversal="yes"), "reversal='yes' must be True or False"),
+        (dict(reversal_trials=(4,)), "reversal_trials=(4,) must be (first, last)"),
+        (dict(reversal_trials=(6, 10)), "must satisfy 1 <= first <= last < n_trials=10"),
+        (dict(outcome_ms=0), "outcome_ms=0 must be an integer >= 1"),
+    ],
+)
 def test_bad_arguments_are_one_line_errors(kwargs, message):
     with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")) as error:
         TMazeReversalEnv(**kwargs)

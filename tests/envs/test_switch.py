@@ -187,8 +187,12 @@ def test_halfcheetah_switch_defaults_and_spec_recreate_the_run():
     env = gymnasium.make("HalfCheetahSwitch-v5")
     switch = env.env.env.env
     assert isinstance(switch, DynamicsSwitch)
-    assert (switch.kind, switch.window, switch.factor_range, switch.target) == ("actuator_gain", (300, 700),
-                                                                                  (0.2, 0.5), None)
+    assert (switch.kind, switch.window, switch.factor_range, switch.target) == (
+        "actuator_gain",
+        (300, 700),
+        (0.2, 0.5),
+        None,
+    )
 
     def rollout(e):
         obs = [e.reset(seed=4)[0]] + [e.step(a)[0] for a in ACTIONS]
@@ -215,8 +219,11 @@ def test_make_switch_env_wraps_an_id_or_an_environment():
 @pytest.mark.parametrize(
     "make, bad, accepted",
     [
-        (lambda: DynamicsSwitch(cheetah(), "gravity"), "'gravity'",
-         "'actuator_gain', 'friction', 'action_flip', 'mass'"),
+        (
+            lambda: DynamicsSwitch(cheetah(), "gravity"),
+            "'gravity'",
+            "'actuator_gain', 'friction', 'action_flip', 'mass'",
+        ),
         (lambda: DynamicsSwitch(cheetah(), window=(700, 300)), "[700, 300]", "0 <= lo <= hi <= max_episode_steps=1000"),
         (lambda: DynamicsSwitch(cheetah(), window=(-1, 3)), "[-1, 3]", "0 <= lo <= hi"),
         (lambda: DynamicsSwitch(cheetah(200), window=[300, 700]), "[300, 700]", "max_episode_steps=200"),

@@ -28,8 +28,9 @@ def tmaze(n=2, **env_kwargs):
 
 def tmaze_model(rule="ndp-oja", n_envs=2, env_kwargs=None, **ppo_kwargs):
     """A small spiking plastic PPO on the T-maze (one hidden layer of 16; one 32-step rollout per update)."""
-    kwargs = dict(n_steps=32, batch_size=32, bptt_steps=16, n_epochs=1, seed=0,
-                  policy_kwargs=dict(rule=rule, hidden_sizes=(16,)))
+    kwargs = dict(
+        n_steps=32, batch_size=32, bptt_steps=16, n_epochs=1, seed=0, policy_kwargs=dict(rule=rule, hidden_sizes=(16,))
+    )
     return PPO("SpikePlasticPolicy", tmaze(n_envs, **(env_kwargs or {})), **{**kwargs, **ppo_kwargs})
 
 

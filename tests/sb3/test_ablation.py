@@ -10,10 +10,10 @@ from helpers import tmaze, tmaze_model
 
 from sb3_spikeplastic import PPO
 from sb3_spikeplastic.sb3.ablation import AblatedState, Ablation, ablated
-from sb3_spikeplastic.zoo.evaluation import evaluate_model
+from sb3_spikeplastic.sb3.policy import SpikePlasticPolicy
 from sb3_spikeplastic.snn.network import NetworkState, tensor_leaves
 from sb3_spikeplastic.snn.plasticity import PlasticState
-from sb3_spikeplastic.sb3.policy import SpikePlasticPolicy
+from sb3_spikeplastic.zoo.evaluation import evaluate_model
 
 STEPS = 40  # two T-maze episodes and more: the environments' episodes end at different steps
 
@@ -65,15 +65,18 @@ def by_hand(policy, before, n_envs=2, steps=STEPS):
 
 def with_plastic(state, fn):
     """``state`` with ``fn`` applied to every trace and rule state."""
-    layers = tuple(s._replace(plastic=PlasticState(fn(s.plastic.trace), tuple(fn(x) for x in s.plastic.extra)))
-                   for s in state.layers)
+    layers = tuple(
+        s._replace(plastic=PlasticState(fn(s.plastic.trace), tuple(fn(x) for x in s.plastic.extra)))
+        for s in state.layers
+    )
     return NetworkState(layers, state.noise_key)
 
 
 def same(a, b) -> bool:
     """Bit-identical actions and states, step by step."""
     return all(np.array_equal(x, y) for x, y in zip(a[0], b[0])) and all(
-        torch.equal(x, y) for s, t in zip(a[1], b[1]) for x, y in zip(tensor_leaves(s), tensor_leaves(t)))
+        torch.equal(x, y) for s, t in zip(a[1], b[1]) for x, y in zip(tensor_leaves(s), tensor_leaves(t))
+    )
 
 
 def neurons(state):
@@ -90,10 +93,17 @@ def test_parse_and_str_round_trip(text):
     assert str(Ablation.parse(text)) == text and Ablation.parse(Ablation.parse(text)) == Ablation.parse(text)
 
 
-@pytest.mark.parametrize("bad, message", [("freeze", "unknown ablation 'freeze'; accepted: none, frozen"),
-                                          ("reset-every", "needs N"), ("reset-every:0", "needs N"),
-                                          ("reset-every:x", "needs N"), ("frozen:3", "unknown ablation"),
-                                          (3, "is not a string")])
+@pytest.mark.parametrize(
+    "bad, message",
+    [
+        ("freeze", "unknown ablation 'freeze'; accepted: none, frozen"),
+        ("reset-every", "needs N"),
+        ("reset-every:0", "needs N"),
+        ("reset-every:x", "needs N"),
+        ("frozen:3", "unknown ablation"),
+        (3, "is not a string"),
+    ],
+)
 def test_bad_values_are_one_line_errors(bad, message):
     with pytest.raises(ValueError, match=message) as info:
         Ablation.parse(bad)
@@ -182,22 +192,57 @@ def test_learn_ignores_the_mode():
 def test_command_line(tmp_path, run_cli):
     tmaze_model().save(tmp_path / "m.zip")
     model = ["--model", tmp_path / "m.zip", "--env", "TMazeCue-v0", "--env-kwargs", "neurons_per_population=4"]
-    code, out, _ = run_cli("evaluate", *model, "--episodes", "2", "--ablation", "frozen", "-o",
-                           tmp_path / "eval.json", "--no-progress")
+    code, out, _ = run_cli(
+        "evaluate", *model, "--episodes", "2", "--ablation", "frozen", "-o", tmp_path / "eval.json", "--no-progress"
+    )
     assert code == 0 and "over 2 episodes (deterministic, ablation frozen)" in out
     assert json.loads((tmp_path / "eval.json").read_text())["ablation"] == "frozen"
-    code, out, _ = run_cli("robustness", "--models", f"a={tmp_path / 'm.zip'}", "--env", "TMazeCue-v0",
-                           "--env-kwargs", "neurons_per_population=4", "--noise", "obs", "--sigmas", "0.1",
-                           "--episodes", "2", "--n-envs", "2", "--ablation", "reset-every:5", "-o", tmp_path / "r",
-                           "--no-progress")
+    code, out, _ = run_cli(
+        "robustness",
+        "--models",
+        f"a={tmp_path / 'm.zip'}",
+        "--env",
+        "TMazeCue-v0",
+        "--env-kwargs",
+        "neurons_per_population=4",
+        "--noise",
+        "obs",
+        "--sigmas",
+        "0.1",
+        "--episodes",
+        "2",
+        "--n-envs",
+        "2",
+        "--ablation",
+        "reset-every:5",
+        "-o",
+        tmp_path / "r",
+        "--no-progress",
+    )
     assert code == 0 and "| a | obs | 0.1 |" in out
     assert (tmp_path / "r" / "robustness_TMazeCue-v0_obs_reset-every-5.csv").is_file()
     PPO("MlpPolicy", "CartPole-v1", n_steps=16, batch_size=16).save(tmp_path / "mlp.zip")
-    for argv, message in [(["evaluate", *model, "--ablation", "bogus"], "unknown ablation 'bogus'; accepted:"),
-                          (["evaluate", *model, "--ablation", "shuffled"], "'shuffled' needs 2 or more"),
-                          (["evaluate", "--model", tmp_path / "mlp.zip", "--env", "CartPole-v1", "--ablation",
-                            "frozen"], "ablation 'frozen' needs a spiking plastic policy"),
-                          (["robustness", "--models", f"a={tmp_path / 'm.zip'}", "--env", "TMazeCue-v0",
-                            "--noise", "obs", "--ablation", "reset-every:-1"], "needs N")]:
+    for argv, message in [
+        (["evaluate", *model, "--ablation", "bogus"], "unknown ablation 'bogus'; accepted:"),
+        (["evaluate", *model, "--ablation", "shuffled"], "'shuffled' needs 2 or more"),
+        (
+            ["evaluate", "--model", tmp_path / "mlp.zip", "--env", "CartPole-v1", "--ablation", "frozen"],
+            "ablation 'frozen' needs a spiking plastic policy",
+        ),
+        (
+            [
+                "robustness",
+                "--models",
+                f"a={tmp_path / 'm.zip'}",
+                "--env",
+                "TMazeCue-v0",
+                "--noise",
+                "obs",
+                "--ablation",
+                "reset-every:-1",
+            ],
+            "needs N",
+        ),
+    ]:
         code, out, err = run_cli(*argv)
         assert code == 2 and message in err and err.count("\n") == 1, (argv, err)

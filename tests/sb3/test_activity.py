@@ -51,21 +51,39 @@ def test_rollout_scalars_discrete():
     assert 0.0 < rate <= 1.0 - silent
     snn = model.policy.snn
     assert values["snn/layer0/spikes_per_step"] == pytest.approx(rate * snn.sizes[1] * snn.steps, rel=1e-5)
-    for key in ("snn/layer0/spike_rate", "snn/layer0/silent_fraction", "snn/layer1/spike_rate",
-                "plasticity/layer0/eta", "plasticity/layer0/trace_abs_mean", "plasticity/layer0/trace_clip_fraction",
-                "plasticity/layer0/alpha_abs_mean", "plasticity/layer0/modulation_mean",
-                "plasticity/layer0/modulation_std"):
+    for key in (
+        "snn/layer0/spike_rate",
+        "snn/layer0/silent_fraction",
+        "snn/layer1/spike_rate",
+        "plasticity/layer0/eta",
+        "plasticity/layer0/trace_abs_mean",
+        "plasticity/layer0/trace_clip_fraction",
+        "plasticity/layer0/alpha_abs_mean",
+        "plasticity/layer0/modulation_mean",
+        "plasticity/layer0/modulation_std",
+    ):
         assert key in values, key
     assert "snn/action_std" not in values  # discrete actions: no Gaussian
 
 
 def test_rollout_scalars_action_std_for_continuous_actions():
     env = DummyVecEnv([lambda: gym.make("Pendulum-v1", max_episode_steps=20)])
-    model = PPO("SpikePlasticPolicy", env, n_steps=16, batch_size=16, bptt_steps=8, n_epochs=1, seed=0,
-                policy_kwargs=dict(rule="dp-oja", log_std_init=-0.5, **SMALL))
+    model = PPO(
+        "SpikePlasticPolicy",
+        env,
+        n_steps=16,
+        batch_size=16,
+        bptt_steps=8,
+        n_epochs=1,
+        seed=0,
+        policy_kwargs=dict(rule="dp-oja", log_std_init=-0.5, **SMALL),
+    )
     activity = RolloutActivity(model.policy.snn, model.policy)
-    activity.add(model.policy.step(torch.zeros(1, 3, device=model.device), model.policy.initial_state(1),
-                                   torch.ones(1, device=model.device))[-1])
+    activity.add(
+        model.policy.step(
+            torch.zeros(1, 3, device=model.device), model.policy.initial_state(1), torch.ones(1, device=model.device)
+        )[-1]
+    )
     capture = Capture()
     activity.record(capture, model.policy.initial_state(1))
     assert capture.values["snn/action_std"] == pytest.approx(np.exp(-0.5), rel=1e-6)
@@ -83,8 +101,9 @@ def test_rollout_statistics_are_the_means_of_every_steps():
         return torch.where(r < 0.3, torch.zeros_like(r), r)
 
     n_steps = RolloutActivity.BATCH_STEPS + 37
-    outputs = [NetworkOutput(None, tuple(rates(n) for n in snn.sizes[1:]), None, rates(snn.sizes[0]))
-               for _ in range(n_steps)]
+    outputs = [
+        NetworkOutput(None, tuple(rates(n) for n in snn.sizes[1:]), None, rates(snn.sizes[0])) for _ in range(n_steps)
+    ]
     activity = RolloutActivity(snn, model.policy)
     for out in outputs:
         activity.add(out)
@@ -92,10 +111,11 @@ def test_rollout_statistics_are_the_means_of_every_steps():
     activity.record(capture, snn.initial_state(3))
     for i, layer in enumerate(snn.layers):
         layer_rates = [out.rates[i] for out in outputs]
-        expected = {"snn/layer{}/spike_rate": np.mean([float(r.mean()) for r in layer_rates]),
-                    "snn/layer{}/silent_fraction": np.mean([float((r == 0).float().mean()) for r in layer_rates]),
-                    "snn/layer{}/spikes_per_step": np.mean([float(spike_counts(out, snn.steps)[i + 1])
-                                                            for out in outputs])}
+        expected = {
+            "snn/layer{}/spike_rate": np.mean([float(r.mean()) for r in layer_rates]),
+            "snn/layer{}/silent_fraction": np.mean([float((r == 0).float().mean()) for r in layer_rates]),
+            "snn/layer{}/spikes_per_step": np.mean([float(spike_counts(out, snn.steps)[i + 1]) for out in outputs]),
+        }
         if layer.plastic and layer.rule.modulated:
             m = [layer.rule.modulation(r).detach() for r in layer_rates]
             mean, square = np.mean([float(x.mean()) for x in m]), np.mean([float(x.pow(2).mean()) for x in m])
@@ -118,6 +138,7 @@ def test_rollout_energy_scalars_agree_with_rates():
         rate = v[f"snn/layer{i}/spike_rate"]
         assert v[f"snn/layer{i}/spikes_per_step"] == pytest.approx(rate * layer.n_out * net.steps, rel=1e-4)
     synops = [v["snn/input/spikes_per_step"] * net.sizes[1]] + [
-        v[f"snn/layer{i - 1}/spikes_per_step"] * net.sizes[i + 1] for i in range(1, len(net.layers))]
+        v[f"snn/layer{i - 1}/spikes_per_step"] * net.sizes[i + 1] for i in range(1, len(net.layers))
+    ]
     assert [v[f"snn/layer{i}/synops_per_step"] for i in range(len(net.layers))] == pytest.approx(synops, rel=1e-5)
     assert v["snn/synops_per_step"] == pytest.approx(sum(synops), rel=1e-5)

@@ -8,9 +8,8 @@ from __future__ import annotations
 import gymnasium as gym
 import pytest
 import torch
-from stable_baselines3.common.vec_env import DummyVecEnv
-
 from helpers import tmaze_model
+from stable_baselines3.common.vec_env import DummyVecEnv
 
 from sb3_spikeplastic import PPO
 from sb3_spikeplastic.sb3.cuda_graphs import GraphedRolloutStep, GraphedSequenceEvaluation, flatten_state
@@ -24,9 +23,18 @@ def cuda_tmaze_model(device, **kw):
 
 def pendulum_model(device, rule="dp-bcm", **kw):
     env = DummyVecEnv([lambda: gym.make("Pendulum-v1", max_episode_steps=20)] * 2)
-    return PPO("SpikePlasticPolicy", env, n_steps=32, batch_size=32, bptt_steps=16, n_epochs=2, seed=0,
-               device=device, policy_kwargs=dict(rule=rule, hidden_sizes=(16,), steps=10, encoder_pop_size=8,
-                                                 action_pop_size=4), **kw)
+    return PPO(
+        "SpikePlasticPolicy",
+        env,
+        n_steps=32,
+        batch_size=32,
+        bptt_steps=16,
+        n_epochs=2,
+        seed=0,
+        device=device,
+        policy_kwargs=dict(rule=rule, hidden_sizes=(16,), steps=10, encoder_pop_size=8, action_pop_size=4),
+        **kw,
+    )
 
 
 def first_batches(model, n=2):
@@ -119,8 +127,11 @@ def rollout_inputs(model, n_steps=6, seed=0):
     g = torch.Generator().manual_seed(seed)
     model.observation_space.seed(seed)
     n = model.n_envs
-    obs = [torch.as_tensor(model.observation_space.sample()).float().expand(n, *model.observation_space.shape).clone()
-           + 0.1 * torch.randn(n, *model.observation_space.shape, generator=g) for _ in range(n_steps)]
+    obs = [
+        torch.as_tensor(model.observation_space.sample()).float().expand(n, *model.observation_space.shape).clone()
+        + 0.1 * torch.randn(n, *model.observation_space.shape, generator=g)
+        for _ in range(n_steps)
+    ]
     starts = torch.zeros(n_steps, n)
     starts[0] = 1
     starts[3, 0] = 1
@@ -136,8 +147,12 @@ def run_steps(step, model, deterministic):
     device, state, results = model.device, model.policy.initial_state(model.n_envs), []
     for k in range(len(obs)):
         actions, values, log_prob, state, out = step(
-            obs[k].to(device), state, starts[k].to(device), deterministic,
-            None if masks is None else masks[k].to(device))
+            obs[k].to(device),
+            state,
+            starts[k].to(device),
+            deterministic,
+            None if masks is None else masks[k].to(device),
+        )
         results.append([actions, values, log_prob, *flatten_state(state)[0], out.action, *out.rates])
     return results
 
@@ -180,8 +195,9 @@ def test_graphed_rollout_step_samples_fresh_actions_and_respects_masks():
     graphed = GraphedRolloutStep(model.policy)
     obs, starts, masks = rollout_inputs(model)
     state = model.policy.initial_state(model.n_envs)
-    draws = torch.stack([graphed(obs[1].cuda(), state, starts[1].cuda(), False, masks[1].cuda())[0]
-                         for _ in range(40)]).cpu()
+    draws = torch.stack(
+        [graphed(obs[1].cuda(), state, starts[1].cuda(), False, masks[1].cuda())[0] for _ in range(40)]
+    ).cpu()
     assert (draws[:, 1:] == 0).all()  # closed actions are never taken
     assert 0 < draws[:, 0].float().mean() < 1  # the open env's action varies between replays
 

@@ -33,14 +33,14 @@ def test_features_are_the_spiking_policys_encoder_probabilities(cheetah_spaces, 
     torch.testing.assert_close(features(obs), expected, rtol=0, atol=0)
     # by hand: cell k of dimension 1, centre -3 + 6 k / 9, beta 0.5, floor 0.05
     k, x = 4, float(obs[1, 1])
-    assert float(features(obs)[1, 10 + k]) == pytest.approx(max(np.exp(-0.5 * (-3 + 6 * k / 9 - x) ** 2), 0.05),
-                                                            rel=1e-5)
+    assert float(features(obs)[1, 10 + k]) == pytest.approx(
+        max(np.exp(-0.5 * (-3 + 6 * k / 9 - x) ** 2), 0.05), rel=1e-5
+    )
     # the edge cell of the clipped value: 7.0 reads as 3.0, where the last cell (centre 3) fires with probability 1
     assert float(features(obs)[0, 9]) == pytest.approx(1.0)
 
 
-def test_spike_counts_replay_for_the_same_observation_and_average_to_the_probabilities(cheetah_spaces,
-                                                                                        spiking_policy):
+def test_spike_counts_replay_for_the_same_observation_and_average_to_the_probabilities(cheetah_spaces, spiking_policy):
     features = SpikeCountFeatures(cheetah_spaces[0])
     steps = spiking_policy.snn.steps  # the spiking policy's T for vector observations
     assert features.steps == steps

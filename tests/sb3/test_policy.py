@@ -31,8 +31,9 @@ def test_bare_policy_shapes_by_observation_kind():
     for rule in ("ndp-oja", "ndp-bcm"):
         snn = PPO("SpikePlasticPolicy", CHEETAH, policy_kwargs=dict(rule=rule)).policy.snn
         assert {layer.rule.modulation_form for layer in snn.layers} == {"tanh"}
-    paper_form = PPO("SpikePlasticPolicy", CHEETAH, policy_kwargs=dict(rule="ndp-oja",
-                                                                     rule_kwargs=dict(modulation="linear")))
+    paper_form = PPO(
+        "SpikePlasticPolicy", CHEETAH, policy_kwargs=dict(rule="ndp-oja", rule_kwargs=dict(modulation="linear"))
+    )
     assert {layer.rule.modulation_form for layer in paper_form.policy.snn.layers} == {"linear"}
     # Spike rasters: the raster length as T, the paper's neuron constants, the rules' positive alpha, the spiking
     # critic; nothing is standardised. Finite bounds (Pendulum) are not standardised either.
@@ -69,8 +70,14 @@ def test_observation_standardisation_is_saved_and_loaded_and_frozen_outside_trai
 def test_a_model_saved_under_the_previous_defaults_loads_as_it_was_built(tmp_path):
     env = make_vec_env(CHEETAH, n_envs=1, seed=0)
     given = {"rule": "ndp-oja", "hidden_sizes": (16,)}
-    old = PPO("SpikePlasticPolicy", env, n_steps=64, batch_size=64, seed=0,
-              policy_kwargs=previous_defaults_filled(given, env.observation_space, env.action_space))
+    old = PPO(
+        "SpikePlasticPolicy",
+        env,
+        n_steps=64,
+        batch_size=64,
+        seed=0,
+        policy_kwargs=previous_defaults_filled(given, env.observation_space, env.action_space),
+    )
     assert old.policy.snn.sizes == [17 * 50, 16, 6 * 100] and old.policy.snn.steps == 50
     assert old.policy.snn.layers[0].rule.modulation_form == "linear" and not old.policy.obs_standardizer.active
     old.policy_kwargs = dict(given)  # what the model recorded then: only its user's arguments
@@ -102,7 +109,7 @@ def last_action_gradient(policy, obs, steps):
         for k in range(8):
             _, state = snn(obs[k], state)
     snn.zero_grad()
-    outputs, _ = snn.forward_sequence(obs[8:8 + steps], torch.zeros(steps, obs.shape[1]), state)
+    outputs, _ = snn.forward_sequence(obs[8 : 8 + steps], torch.zeros(steps, obs.shape[1]), state)
     outputs[-1].action.sum().backward()
     return snn.layers[0].weight.grad.norm().item()
 
@@ -127,17 +134,32 @@ def test_positive_mean_alpha_makes_the_trace_loop_explode_and_the_shipped_init_d
     # loop E -> firing -> E gains ~7x per environment step, so the gradient grows geometrically with BPTT length.
     # With zero-mean alpha (the HalfCheetah entries) it stays at the static network's scale.
     space, action_space = gym.make(CHEETAH).observation_space, gym.make(CHEETAH).action_space
-    small = dict(hidden_sizes=(32, 32), steps=10, encoder_pop_size=10, action_pop_size=20, rule="dp-oja",
-                 encoder_beta=15.0, neuron=dict(tau_s=10.0))
+    small = dict(
+        hidden_sizes=(32, 32),
+        steps=10,
+        encoder_pop_size=10,
+        action_pop_size=20,
+        rule="dp-oja",
+        encoder_beta=15.0,
+        neuron=dict(tau_s=10.0),
+    )
     positive = [DPOjaRule.alpha_init_mean * ALPHA_REFERENCE_FAN_IN / n for n in (170, 32, 32)]  # the rule's scaling
     torch.manual_seed(0)
-    exploding = SpikePlasticPolicy(space, action_space, lambda _: 1e-3, alpha_init_mean=positive,
-                                   alpha_init_std=[0.1 * a for a in positive], **small)
+    exploding = SpikePlasticPolicy(
+        space,
+        action_space,
+        lambda _: 1e-3,
+        alpha_init_mean=positive,
+        alpha_init_std=[0.1 * a for a in positive],
+        **small,
+    )
     torch.manual_seed(0)
     bounded = SpikePlasticPolicy(space, action_space, lambda _: 1e-3, alpha_init_mean=0.0, alpha_init_std=1.0, **small)
     growth = last_action_gradient(exploding, cheetah_observations, 12) / last_action_gradient(
-        exploding, cheetah_observations, 4)
+        exploding, cheetah_observations, 4
+    )
     assert growth > 1e3
     bounded_growth = last_action_gradient(bounded, cheetah_observations, 12) / last_action_gradient(
-        bounded, cheetah_observations, 4)
+        bounded, cheetah_observations, 4
+    )
     assert bounded_growth < 10

@@ -1,16 +1,14 @@
 """SpikePlasticPolicy + recurrent PPO: replay exactness, state handling, SB3 integration, save/load, misuse."""
 
-
 import gymnasium as gym
 import numpy as np
 import pytest
 import stable_baselines3
 import torch
+from helpers import tmaze, tmaze_model, vec
 from stable_baselines3.common.callbacks import EvalCallback
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.vec_env import VecNormalize
-
-from helpers import tmaze, tmaze_model, vec
 
 from sb3_spikeplastic import PPO, SpikePlasticPolicy
 from sb3_spikeplastic.snn.network import tensor_leaves
@@ -25,7 +23,8 @@ def assert_replay_exact(model):
     with torch.no_grad():
         for batch in buf.get_chunks(model.batch_size // model.bptt_steps):
             values, log_prob, _, _ = policy.evaluate_actions_sequence(
-                batch.observations, batch.actions, batch.episode_starts, batch.states, batch.action_masks)
+                batch.observations, batch.actions, batch.episode_starts, batch.states, batch.action_masks
+            )
             ratio = torch.exp(log_prob - batch.old_log_prob.flatten())
             assert (ratio - 1).abs().max().item() <= 1e-5
             assert (values.flatten() - batch.old_values.flatten()).abs().max().item() <= 1e-5
@@ -35,8 +34,17 @@ def assert_replay_exact(model):
 
 @pytest.mark.parametrize("rule", ["dp-oja", "ndp-bcm", "static"])
 def test_replay_exactness_spike_raster_episodes_end_inside_chunks(rule):
-    model = PPO("SpikePlasticPolicy", tmaze(3), n_steps=48, batch_size=32, bptt_steps=16, n_epochs=1,
-                learning_rate=0.0, seed=1, policy_kwargs=dict(rule=rule, hidden_sizes=(16,)))
+    model = PPO(
+        "SpikePlasticPolicy",
+        tmaze(3),
+        n_steps=48,
+        batch_size=32,
+        bptt_steps=16,
+        n_epochs=1,
+        learning_rate=0.0,
+        seed=1,
+        policy_kwargs=dict(rule=rule, hidden_sizes=(16,)),
+    )
     model.learn(2 * 48 * 3)
     starts = model.rollout_buffer.episode_starts
     assert starts[1:].sum() > 0 and (starts[np.arange(48) % 16 != 0].sum() > 0)  # resets inside chunks
@@ -45,8 +53,17 @@ def test_replay_exactness_spike_raster_episodes_end_inside_chunks(rule):
 
 def test_replay_exactness_population_encoded_discrete_and_ratio_one_in_training():
     # CartPole: vector observations (stochastic place-cell encoding), short episodes ending inside chunks.
-    model = PPO("SpikePlasticPolicy", vec(lambda: gym.make("CartPole-v1"), 2), n_steps=64, batch_size=32,
-                bptt_steps=8, n_epochs=1, learning_rate=0.0, seed=0, policy_kwargs=dict(rule="ndp-oja", **SMALL))
+    model = PPO(
+        "SpikePlasticPolicy",
+        vec(lambda: gym.make("CartPole-v1"), 2),
+        n_steps=64,
+        batch_size=32,
+        bptt_steps=8,
+        n_epochs=1,
+        learning_rate=0.0,
+        seed=0,
+        policy_kwargs=dict(rule="ndp-oja", **SMALL),
+    )
     model.learn(128)
     assert model.logger.name_to_value.get("train/clip_fraction", 0.0) == 0.0
     assert_replay_exact(model)
@@ -54,16 +71,32 @@ def test_replay_exactness_population_encoded_discrete_and_ratio_one_in_training(
 
 def test_replay_exactness_continuous_with_time_limit_truncation():
     env = vec(lambda: gym.make("Pendulum-v1", max_episode_steps=20), 2)
-    model = PPO("SpikePlasticPolicy", env, n_steps=32, batch_size=16, bptt_steps=8, n_epochs=1,
-                learning_rate=0.0, seed=0, policy_kwargs=dict(rule="dp-bcm", **SMALL))
+    model = PPO(
+        "SpikePlasticPolicy",
+        env,
+        n_steps=32,
+        batch_size=16,
+        bptt_steps=8,
+        n_epochs=1,
+        learning_rate=0.0,
+        seed=0,
+        policy_kwargs=dict(rule="dp-bcm", **SMALL),
+    )
     model.learn(64)
     assert_replay_exact(model)
 
 
 def test_rollout_state_reset_exactly_at_episode_starts():
     policy_kwargs = dict(rule="dp-oja", **SMALL)
-    model = PPO("SpikePlasticPolicy", vec(lambda: gym.make("CartPole-v1"), 2), n_steps=16, batch_size=16,
-                bptt_steps=8, seed=0, policy_kwargs=policy_kwargs)
+    model = PPO(
+        "SpikePlasticPolicy",
+        vec(lambda: gym.make("CartPole-v1"), 2),
+        n_steps=16,
+        batch_size=16,
+        bptt_steps=8,
+        seed=0,
+        policy_kwargs=policy_kwargs,
+    )
     policy = model.policy
     obs = torch.zeros(2, 4, device=model.device)
     state = policy.initial_state(2)
@@ -78,8 +111,15 @@ def test_rollout_state_reset_exactly_at_episode_starts():
 
 
 def test_snapshots_only_at_chunk_starts_and_memory():
-    model = PPO("SpikePlasticPolicy", tmaze(2), n_steps=32, batch_size=32, bptt_steps=16, seed=0,
-                policy_kwargs=dict(rule="dp-oja", hidden_sizes=(16,)))
+    model = PPO(
+        "SpikePlasticPolicy",
+        tmaze(2),
+        n_steps=32,
+        batch_size=32,
+        bptt_steps=16,
+        seed=0,
+        policy_kwargs=dict(rule="dp-oja", hidden_sizes=(16,)),
+    )
     model.learn(64)
     buf = model.rollout_buffer
     assert len(buf.snapshots) == 32 // 16
@@ -88,9 +128,15 @@ def test_snapshots_only_at_chunk_starts_and_memory():
 
 
 def test_save_load_identical_deterministic_actions_and_learn_continues(tmp_path):
-    model = PPO("SpikePlasticPolicy", vec(lambda: gym.make("Pendulum-v1"), 1), n_steps=32, batch_size=32,
-                bptt_steps=8, seed=0, policy_kwargs=dict(rule="ndp-oja", rule_kwargs=dict(modulation="tanh"),
-                                                         neuron=dict(theta=8.0), **SMALL))
+    model = PPO(
+        "SpikePlasticPolicy",
+        vec(lambda: gym.make("Pendulum-v1"), 1),
+        n_steps=32,
+        batch_size=32,
+        bptt_steps=8,
+        seed=0,
+        policy_kwargs=dict(rule="ndp-oja", rule_kwargs=dict(modulation="tanh"), neuron=dict(theta=8.0), **SMALL),
+    )
     model.learn(32)
     model.save(tmp_path / "m.zip")
     loaded = PPO.load(tmp_path / "m.zip")
@@ -119,10 +165,18 @@ def test_evaluate_policy_eval_callback_and_vecnormalize(tmp_path):
 
     train_env = VecNormalize(vec(make, 2))
     eval_env = VecNormalize(vec(make, 1), training=False, norm_reward=False)
-    model = PPO("SpikePlasticPolicy", train_env, n_steps=16, batch_size=16, bptt_steps=8, seed=0,
-                policy_kwargs=dict(rule="dp-oja", **SMALL))
-    callback = EvalCallback(eval_env, eval_freq=8, n_eval_episodes=2, best_model_save_path=str(tmp_path),
-                            log_path=str(tmp_path), verbose=0)
+    model = PPO(
+        "SpikePlasticPolicy",
+        train_env,
+        n_steps=16,
+        batch_size=16,
+        bptt_steps=8,
+        seed=0,
+        policy_kwargs=dict(rule="dp-oja", **SMALL),
+    )
+    callback = EvalCallback(
+        eval_env, eval_freq=8, n_eval_episodes=2, best_model_save_path=str(tmp_path), log_path=str(tmp_path), verbose=0
+    )
     model.learn(64, callback=callback)
     assert (tmp_path / "best_model.zip").exists()
     # evaluated mid-rollout (every 8 of 16 rollout steps) without touching the rollout state
@@ -145,11 +199,14 @@ def test_drop_in_for_sb3_policies():
     assert model.num_timesteps == 64
 
 
-@pytest.mark.parametrize("kwargs, message", [
-    (dict(n_steps=30, bptt_steps=16, batch_size=16), "n_steps=30 must be a multiple of bptt_steps=16"),
-    (dict(n_steps=32, bptt_steps=16, batch_size=24), "batch_size=24"),
-    (dict(n_steps=32, bptt_steps=16, batch_size=128), "exceeds the rollout size"),
-])
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(n_steps=30, bptt_steps=16, batch_size=16), "n_steps=30 must be a multiple of bptt_steps=16"),
+        (dict(n_steps=32, bptt_steps=16, batch_size=24), "batch_size=24"),
+        (dict(n_steps=32, bptt_steps=16, batch_size=128), "exceeds the rollout size"),
+    ],
+)
 def test_bad_chunking_is_a_clear_error(kwargs, message):
     with pytest.raises(ValueError, match=message):
         PPO("SpikePlasticPolicy", tmaze(2), **kwargs)
@@ -157,16 +214,25 @@ def test_bad_chunking_is_a_clear_error(kwargs, message):
 
 def test_unknown_rule_is_a_clear_error():
     with pytest.raises(ValueError, match="unknown rule 'hebb'.*dp-oja"):
-        PPO("SpikePlasticPolicy", tmaze(1), n_steps=16, batch_size=16, bptt_steps=16,
-            policy_kwargs=dict(rule="hebb"))
+        PPO("SpikePlasticPolicy", tmaze(1), n_steps=16, batch_size=16, bptt_steps=16, policy_kwargs=dict(rule="hebb"))
 
 
 def test_action_masks_force_ignored_actions_and_remove_their_policy_gradient(tmp_path):
     """T-maze: only the decision frame's action counts; masked steps sample action 0 with log-prob 0, replay
     exactly from the snapshots, and contribute no gradient; the decision steps still do. The setting survives
     save/load."""
-    model = PPO("SpikePlasticPolicy", tmaze(3), n_steps=48, batch_size=48, bptt_steps=16, n_epochs=1,
-                learning_rate=0.0, seed=1, use_action_masks=True, policy_kwargs=dict(hidden_sizes=(16,)))
+    model = PPO(
+        "SpikePlasticPolicy",
+        tmaze(3),
+        n_steps=48,
+        batch_size=48,
+        bptt_steps=16,
+        n_epochs=1,
+        learning_rate=0.0,
+        seed=1,
+        use_action_masks=True,
+        policy_kwargs=dict(hidden_sizes=(16,)),
+    )
     model.learn(2 * 48 * 3)
     buf = model.rollout_buffer
     open_both = buf.action_masks[:, :, 1]
@@ -177,7 +243,8 @@ def test_action_masks_force_ignored_actions_and_remove_their_policy_gradient(tmp
     assert_replay_exact(model)
     batch = next(buf.get_chunks(3))
     _, log_prob, _, _ = model.policy.evaluate_actions_sequence(
-        batch.observations, batch.actions, batch.episode_starts, batch.states, batch.action_masks)
+        batch.observations, batch.actions, batch.episode_starts, batch.states, batch.action_masks
+    )
     opened = batch.action_masks[..., 1].flatten()
     weight = model.policy.snn.layers[0].weight
     (masked_grad,) = torch.autograd.grad(log_prob[~opened].sum(), weight, retain_graph=True)
@@ -190,8 +257,15 @@ def test_action_masks_force_ignored_actions_and_remove_their_policy_gradient(tmp
 def test_action_masks_need_an_env_that_provides_them():
     cartpole = vec(lambda: gym.make("CartPole-v1"), 1)
     with pytest.raises(ValueError, match="no action_masks\\(\\) method"):
-        PPO("SpikePlasticPolicy", cartpole, n_steps=16, batch_size=16, bptt_steps=16, use_action_masks=True,
-            policy_kwargs=SMALL)
+        PPO(
+            "SpikePlasticPolicy",
+            cartpole,
+            n_steps=16,
+            batch_size=16,
+            bptt_steps=16,
+            use_action_masks=True,
+            policy_kwargs=SMALL,
+        )
     with pytest.raises(ValueError, match="needs a recurrent SpikePlasticPolicy.*MaskablePPO"):
         PPO("MlpPolicy", tmaze(1), n_steps=16, batch_size=16, use_action_masks=True)
 
@@ -205,8 +279,16 @@ def test_unknown_grad_clip_is_a_clear_error():
 def test_grad_clip_modes(mode):
     """Global: one factor for all tensors (SB3). Per-parameter: each tensor's norm capped on its own, small
     gradients untouched. Both return the global pre-clip norm (logged as train/grad_norm)."""
-    model = PPO("SpikePlasticPolicy", tmaze(1), n_steps=16, batch_size=16, bptt_steps=16, max_grad_norm=1.0,
-                grad_clip=mode, policy_kwargs=dict(hidden_sizes=[8]))
+    model = PPO(
+        "SpikePlasticPolicy",
+        tmaze(1),
+        n_steps=16,
+        batch_size=16,
+        bptt_steps=16,
+        max_grad_norm=1.0,
+        grad_clip=mode,
+        policy_kwargs=dict(hidden_sizes=[8]),
+    )
     params = [p for p in model.policy.parameters()]
     g = torch.Generator().manual_seed(0)
     for i, p in enumerate(params):
@@ -227,8 +309,18 @@ def test_grad_clip_modes(mode):
 def test_target_kl_stops_before_the_step_that_would_exceed_it():
     """With a KL budget no step can meet, training takes the first minibatch's step (its KL is 0: nothing has
     changed yet) and stops at the second, before stepping (SB3's early-stop semantics)."""
-    model = PPO("SpikePlasticPolicy", tmaze(2), n_steps=16, batch_size=16, bptt_steps=8, n_epochs=3, seed=0,
-                target_kl=1e-12, learning_rate=0.05, policy_kwargs=dict(hidden_sizes=[8]))
+    model = PPO(
+        "SpikePlasticPolicy",
+        tmaze(2),
+        n_steps=16,
+        batch_size=16,
+        bptt_steps=8,
+        n_epochs=3,
+        seed=0,
+        target_kl=1e-12,
+        learning_rate=0.05,
+        policy_kwargs=dict(hidden_sizes=[8]),
+    )
     before = {k: v.clone() for k, v in model.policy.state_dict().items()}
     model.learn(32)  # one rollout, two minibatches per epoch
     after = model.policy.state_dict()
@@ -238,8 +330,15 @@ def test_target_kl_stops_before_the_step_that_would_exceed_it():
 
 
 def test_cuda_graphs_setting_survives_save_and_load(tmp_path):
-    model = PPO("SpikePlasticPolicy", tmaze(1), n_steps=16, batch_size=16, bptt_steps=16, cuda_graphs=False,
-                policy_kwargs=dict(hidden_sizes=(8,)))
+    model = PPO(
+        "SpikePlasticPolicy",
+        tmaze(1),
+        n_steps=16,
+        batch_size=16,
+        bptt_steps=16,
+        cuda_graphs=False,
+        policy_kwargs=dict(hidden_sizes=(8,)),
+    )
     model.save(tmp_path / "eager.zip")
     loaded = PPO.load(tmp_path / "eager.zip", env=tmaze(1))
     assert loaded.cuda_graphs is False and loaded._graphed_step is None and loaded._graphed_evaluation is None
@@ -249,9 +348,18 @@ def test_alpha_lr_scale_steps_alpha_at_its_own_rate_and_survives_schedules_and_s
     """Adam's first step moves every element by ~lr (its update is lr * g / |g|): with ``alpha_lr_scale=10`` the
     plasticity coefficients move 10x further than W, the ratio holds when the schedule changes the rate, and it is
     saved with the model."""
-    model = PPO("SpikePlasticPolicy", tmaze(1), n_steps=16, batch_size=16, bptt_steps=16, n_epochs=1, seed=0,
-                learning_rate=1e-3, max_grad_norm=1e9,
-                policy_kwargs=dict(hidden_sizes=[8], plastic_layers=[0], alpha_lr_scale=10.0))
+    model = PPO(
+        "SpikePlasticPolicy",
+        tmaze(1),
+        n_steps=16,
+        batch_size=16,
+        bptt_steps=16,
+        n_epochs=1,
+        seed=0,
+        learning_rate=1e-3,
+        max_grad_norm=1e9,
+        policy_kwargs=dict(hidden_sizes=[8], plastic_layers=[0], alpha_lr_scale=10.0),
+    )
     layer = model.policy.snn.layers[0]
     alpha, weight = layer.alpha.detach().clone(), layer.weight.detach().clone()
     model.learn(16)  # one rollout, one minibatch: one Adam step
@@ -268,16 +376,23 @@ def test_alpha_lr_scale_steps_alpha_at_its_own_rate_and_survives_schedules_and_s
 
 def test_alpha_lr_scale_default_keeps_one_parameter_group():
     """Scale 1 keeps the single group of models saved before the option existed (their optimizers still load)."""
-    model = PPO("SpikePlasticPolicy", tmaze(1), n_steps=16, batch_size=16, bptt_steps=16,
-                policy_kwargs=dict(hidden_sizes=[8]))
+    model = PPO(
+        "SpikePlasticPolicy", tmaze(1), n_steps=16, batch_size=16, bptt_steps=16, policy_kwargs=dict(hidden_sizes=[8])
+    )
     assert len(model.policy.optimizer.param_groups) == 1
 
 
 @pytest.mark.parametrize("bad", [0, -1.0, float("inf"), "10", True])
 def test_bad_alpha_lr_scale_is_a_clear_error(bad):
     with pytest.raises(ValueError, match=r"alpha_lr_scale=.* must be a positive finite number"):
-        PPO("SpikePlasticPolicy", tmaze(1), n_steps=16, batch_size=16, bptt_steps=16,
-            policy_kwargs=dict(hidden_sizes=[8], alpha_lr_scale=bad))
+        PPO(
+            "SpikePlasticPolicy",
+            tmaze(1),
+            n_steps=16,
+            batch_size=16,
+            bptt_steps=16,
+            policy_kwargs=dict(hidden_sizes=[8], alpha_lr_scale=bad),
+        )
 
 
 def test_chunks_per_pass_gives_the_whole_minibatchs_gradient_and_statistics(monkeypatch):
@@ -304,8 +419,11 @@ def test_chunks_per_pass_gives_the_whole_minibatchs_gradient_and_statistics(monk
 
 @pytest.mark.parametrize("value", [3, 0, "half"])
 def test_chunks_per_pass_must_divide_the_minibatch(value):
-    with pytest.raises(ValueError, match=rf"chunks_per_pass={value!r} must divide the chunks per minibatch, "
-                                         r"batch_size // bptt_steps = 4, or be None or 'auto'"):
+    with pytest.raises(
+        ValueError,
+        match=rf"chunks_per_pass={value!r} must divide the chunks per minibatch, "
+        r"batch_size // bptt_steps = 4, or be None or 'auto'",
+    ):
         tmaze_model(n_envs=2, n_steps=32, batch_size=64, bptt_steps=16, chunks_per_pass=value)
 
 

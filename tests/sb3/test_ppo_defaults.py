@@ -66,7 +66,9 @@ def test_spiking_defaults_differ_from_sb3_only_where_documented_and_mlp_keeps_sb
     ours = inspect.signature(PPO.__init__).parameters
     # Two of SB3's defaults depend on the policy (``None``, resolved when the model is built), as does grad_clip.
     assert {name for name, parameter in sb3.items() if ours[name].default != parameter.default} == {
-        "learning_rate", "batch_size"}
+        "learning_rate",
+        "batch_size",
+    }
     assert ours["learning_rate"].default is ours["batch_size"].default is ours["grad_clip"].default is None
     mlp = PPO("MlpPolicy", "CartPole-v1")
     reference = stable_baselines3.PPO("MlpPolicy", "CartPole-v1")
@@ -102,7 +104,8 @@ def test_bare_halfcheetah_line_beats_a_random_policy_in_100k_steps():
     torch.set_num_threads(1)
     model = PPO("SpikePlasticPolicy", CHEETAH, seed=0)
     model.learn(100_000)
-    trained, _ = evaluate_policy(model, make_vec_env(CHEETAH, n_envs=1, seed=1000), n_eval_episodes=10,
-                                 deterministic=True)
+    trained, _ = evaluate_policy(
+        model, make_vec_env(CHEETAH, n_envs=1, seed=1000), n_eval_episodes=10, deterministic=True
+    )
     random = random_policy_return(CHEETAH, 10, seed=1000)
     assert trained > random + 500, (trained, random)

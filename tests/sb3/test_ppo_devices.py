@@ -12,9 +12,18 @@ def test_ppo_learns_saves_and_loads_across_devices(device, tmp_path):
     """Two rollouts and updates on the device (action masks, plastic traces and the chunked buffer included);
     the saved model loads on the CPU with the same parameters and acts."""
     env = DummyVecEnv([lambda: TMazeCueEnv(neurons_per_population=4)] * 2)
-    model = PPO("SpikePlasticPolicy", env, n_steps=32, batch_size=32, bptt_steps=16, n_epochs=2, seed=0,
-                use_action_masks=True, device=device,
-                policy_kwargs=dict(rule="ndp-oja", hidden_sizes=(16,)))
+    model = PPO(
+        "SpikePlasticPolicy",
+        env,
+        n_steps=32,
+        batch_size=32,
+        bptt_steps=16,
+        n_epochs=2,
+        seed=0,
+        use_action_masks=True,
+        device=device,
+        policy_kwargs=dict(rule="ndp-oja", hidden_sizes=(16,)),
+    )
     before = {k: v.clone() for k, v in model.policy.state_dict().items()}
     model.learn(64)
     assert model.device.type == device
@@ -25,6 +34,10 @@ def test_ppo_learns_saves_and_loads_across_devices(device, tmp_path):
     for key, value in model.policy.state_dict().items():
         assert torch.equal(loaded.policy.state_dict()[key], value.cpu()), key
     obs = env.reset()
-    actions, state = loaded.predict(obs, episode_start=torch.ones(2).numpy().astype(bool), deterministic=True,
-                                    action_masks=env.env_method("action_masks"))
+    actions, state = loaded.predict(
+        obs,
+        episode_start=torch.ones(2).numpy().astype(bool),
+        deterministic=True,
+        action_masks=env.env_method("action_masks"),
+    )
     assert actions.shape == (2,) and state is not None

@@ -98,8 +98,14 @@ def test_short_run_of_the_shipped_entry_passes_a_return_of_1500():
 # has decayed to ~1 % of its peak (alpha kernel, tau_s = 10 ms), so only a memory that outlasts the delay (here the
 # plastic trace E) can tell the sides apart.
 CUE_DELAY = dict(n_cues=1, rest_choices_ms=(75, 105))
-CUE_DELAY_POLICY = dict(hidden_sizes=[32], plastic_layers=[0], w_init_gain=[3, 9], w_init_mean=[0, 0.2],
-                        action_pop_size=8, logit_scale_init=10)
+CUE_DELAY_POLICY = dict(
+    hidden_sizes=[32],
+    plastic_layers=[0],
+    w_init_gain=[3, 9],
+    w_init_mean=[0, 0.2],
+    action_pop_size=8,
+    logit_scale_init=10,
+)
 
 
 def cue_delay_env(n_envs, seed):
@@ -110,9 +116,18 @@ def cue_delay_env(n_envs, seed):
 
 def train_cue_delay(rule, timesteps=12_288):
     torch.manual_seed(0)
-    model = PPO("SpikePlasticPolicy", cue_delay_env(8, seed=0), n_steps=64, batch_size=256, bptt_steps=32,
-                n_epochs=4, learning_rate=3e-3, max_grad_norm=1.0, seed=0,
-                policy_kwargs=dict(rule=rule, **CUE_DELAY_POLICY))
+    model = PPO(
+        "SpikePlasticPolicy",
+        cue_delay_env(8, seed=0),
+        n_steps=64,
+        batch_size=256,
+        bptt_steps=32,
+        n_epochs=4,
+        learning_rate=3e-3,
+        max_grad_norm=1.0,
+        seed=0,
+        policy_kwargs=dict(rule=rule, **CUE_DELAY_POLICY),
+    )
     model.learn(timesteps)
     return model
 

@@ -19,7 +19,6 @@ from sb3_spikeplastic.snn.coding import (
     initial_keys,
 )
 
-
 LOW, HIGH = [-3.0, -1.0, 0.0], [3.0, 2.0, 5.0]
 
 
@@ -70,8 +69,9 @@ def test_encoder_indices_encode_the_chosen_dimensions_only():
     enc = PopulationEncoder(LOW, HIGH, pop_size=10, indices=[2, 0])
     assert enc.n_neurons == 20
     x = torch.tensor([[1.2, 99.0, 3.3], [-0.4, -99.0, 0.1]])  # dimension 1 is ignored whatever its value
-    expected = np.stack([place_cell_probabilities_np([xi[2], xi[0]], [LOW[2], LOW[0]], [HIGH[2], HIGH[0]], pop=10)
-                         for xi in x.numpy()])
+    expected = np.stack(
+        [place_cell_probabilities_np([xi[2], xi[0]], [LOW[2], LOW[0]], [HIGH[2], HIGH[0]], pop=10) for xi in x.numpy()]
+    )
     np.testing.assert_allclose(enc.probabilities(x).numpy(), expected, rtol=1e-5, atol=1e-6)
     for bad in ([3], [0, 0], []):
         with pytest.raises(ValueError, match="encoder indices"):
@@ -189,8 +189,9 @@ def test_continuous_decoder_matches_spike_count_formula():
     low, high = rng.uniform(-3, 0, n_act), rng.uniform(0.5, 3, n_act)
     S = (rng.random((B, T, n_act * N)) < 0.3).astype(np.float64)
     w = np.tile(np.r_[np.ones(N // 2), -np.ones(N // 2)], n_act)
-    A = np.stack([(2 / N) / T * (S[:, :, k * N:(k + 1) * N] * w[k * N:(k + 1) * N]).sum((1, 2))
-                  for k in range(n_act)], 1)
+    A = np.stack(
+        [(2 / N) / T * (S[:, :, k * N : (k + 1) * N] * w[k * N : (k + 1) * N]).sum((1, 2)) for k in range(n_act)], 1
+    )
     expected = low + (A + 1) / 2 * (high - low)
     got = ContinuousDecoder(low, high, pop_size=N).double()(torch.from_numpy(S.mean(1)))
     np.testing.assert_allclose(got.numpy(), expected, rtol=1e-6, atol=1e-6)

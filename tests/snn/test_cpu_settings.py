@@ -55,8 +55,9 @@ print(seen)
 
 def settings_seen(flags: str, start: str) -> dict:
     env = {k: v for k, v in os.environ.items() if k != _fast.NO_COMPILE_ENV}
-    result = subprocess.run([sys.executable, "-c", SETTINGS, flags, start], capture_output=True, text=True,
-                            timeout=300, env=env)
+    result = subprocess.run(
+        [sys.executable, "-c", SETTINGS, flags, start], capture_output=True, text=True, timeout=300, env=env
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     return ast.literal_eval(result.stdout.strip().splitlines()[-1])
 

@@ -22,22 +22,32 @@ from sb3_spikeplastic.snn.energy import (
 from sb3_spikeplastic.snn.network import NetworkOutput
 
 
-@pytest.mark.parametrize("rule, per_synapse, modulated", [
-    ("dp-linear", 3, False), ("dp-oja", 4, False), ("dp-bcm", 3, False), ("ndp-oja", 4, True), ("ndp-bcm", 3, True),
-])
+@pytest.mark.parametrize(
+    "rule, per_synapse, modulated",
+    [
+        ("dp-linear", 3, False),
+        ("dp-oja", 4, False),
+        ("dp-bcm", 3, False),
+        ("ndp-oja", 4, True),
+        ("ndp-bcm", 3, True),
+    ],
+)
 def test_plasticity_operations_count_every_synapse_and_the_modulation(rule, per_synapse, modulated):
     net = tmaze_model(rule).policy.snn
     sizes, updates = net.sizes, net.steps // net.interval
     assert updates == 1 and len(sizes) == 3  # one update per 25 ms frame; 16 inputs -> 16 -> output population
-    expected = [updates * (per_synapse * n_in * n_out + (n_out * n_out if modulated else 0))
-                for n_in, n_out in zip(sizes[:-1], sizes[1:])]
+    expected = [
+        updates * (per_synapse * n_in * n_out + (n_out * n_out if modulated else 0))
+        for n_in, n_out in zip(sizes[:-1], sizes[1:])
+    ]
     assert plasticity_operations(net) == expected
     assert trace_update_macs(net.layers[0].rule) == per_synapse
 
 
 def test_static_layers_do_no_plastic_work_and_several_updates_per_step_count():
-    net = tmaze_model("dp-oja", policy_kwargs=dict(rule="dp-oja", hidden_sizes=(16,), plastic_layers=[0],
-                                                   plasticity_interval=5)).policy.snn
+    net = tmaze_model(
+        "dp-oja", policy_kwargs=dict(rule="dp-oja", hidden_sizes=(16,), plastic_layers=[0], plasticity_interval=5)
+    ).policy.snn
     n_in, n_out = net.sizes[0], net.sizes[1]
     assert net.steps // net.interval == 5
     assert plasticity_operations(net) == [5 * 4 * n_in * n_out, 0.0]
@@ -81,9 +91,12 @@ def test_energy_meter_summary_adds_the_plasticity_and_the_estimate():
 
 def test_spike_counts_and_synops_by_hand():
     # batch of 2, T = 10: input 3 neurons, one hidden layer of 2, output of 4
-    out = NetworkOutput(torch.zeros(2, 1),
-                        (torch.tensor([[0.1, 0.3], [0.0, 0.2]]), torch.tensor([[0.1, 0.0, 0.0, 0.1], [0.0] * 4])),
-                        None, torch.tensor([[0.5, 0.0, 0.1], [0.2, 0.2, 0.2]]))
+    out = NetworkOutput(
+        torch.zeros(2, 1),
+        (torch.tensor([[0.1, 0.3], [0.0, 0.2]]), torch.tensor([[0.1, 0.0, 0.0, 0.1], [0.0] * 4])),
+        None,
+        torch.tensor([[0.5, 0.0, 0.1], [0.2, 0.2, 0.2]]),
+    )
     spikes = spike_counts(out, steps=10)
     # input: (6 + 6) / 2 = 6 spikes; hidden: (4 + 2) / 2 = 3; output: 2 / 2 = 1
     assert spikes.tolist() == pytest.approx([6.0, 3.0, 1.0])
@@ -94,8 +107,11 @@ def test_spike_counts_and_synops_by_hand():
 def test_energy_meter_counts_every_spike_of_an_evaluation():
     model = tmaze_model("ndp-oja")
     net = model.policy.snn
-    obs = torch.as_tensor(np.stack([TMazeCueEnv(neurons_per_population=4).observation_space.sample()
-                                    for _ in range(3)]), dtype=torch.float32, device=model.device)
+    obs = torch.as_tensor(
+        np.stack([TMazeCueEnv(neurons_per_population=4).observation_space.sample() for _ in range(3)]),
+        dtype=torch.float32,
+        device=model.device,
+    )
     state = net.initial_state(3)
     recorded = []
     with EnergyMeter(net) as meter:
@@ -110,6 +126,7 @@ def test_energy_meter_counts_every_spike_of_an_evaluation():
     summary = meter.summary()
     assert summary["spikes_per_step"] == pytest.approx(spikes, rel=1e-5)
     sizes = net.sizes
-    assert summary["synops_per_step"] == pytest.approx([spikes[i] * sizes[i + 1] for i in range(len(net.layers))],
-                                                       rel=1e-5)
+    assert summary["synops_per_step"] == pytest.approx(
+        [spikes[i] * sizes[i + 1] for i in range(len(net.layers))], rel=1e-5
+    )
     assert summary["total_spikes_per_step"] == pytest.approx(sum(spikes[1:]), rel=1e-5) and spikes[1] > 0

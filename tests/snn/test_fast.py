@@ -16,8 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from sb3_spikeplastic.snn import _fast
-from sb3_spikeplastic.snn import neurons
+from sb3_spikeplastic.snn import _fast, neurons
 from sb3_spikeplastic.snn.neurons import (
     AlphaFilterState,
     SRMParameters,

@@ -34,12 +34,14 @@ def make_layer(rule: str, n_in: int, n_out: int, dtype=torch.float64) -> Plastic
     if hasattr(layer_rule, "psi"):  # a nonzero BCM offset, so that its gradient path is exercised
         layer_rule.psi.data.normal_(0.0, 0.1)
     # Large weights and alpha: many spikes, and the trace changes the efficacy noticeably.
-    return PlasticSRMLayer(n_in, n_out, layer_rule, SRMParameters(tau_s=2.0), w_init_std=3.0,
-                           alpha_init_std=5.0).to(dtype)
+    return PlasticSRMLayer(n_in, n_out, layer_rule, SRMParameters(tau_s=2.0), w_init_std=3.0, alpha_init_std=5.0).to(
+        dtype
+    )
 
 
-def run_intervals(layer, fused: bool, monkeypatch, dtype=torch.float64, batch=4, length=6, intervals=3,
-                  rates_only=False, defer=False):
+def run_intervals(
+    layer, fused: bool, monkeypatch, dtype=torch.float64, batch=4, length=6, intervals=3, rates_only=False, defer=False
+):
     """Chain ``intervals`` intervals from the initial state (``defer``: with the trace updates deferred, the last one
     applied at the end); return every output, the final state and the
     gradients of a loss that reads the spikes, the carried PSP state and the trace, or (``rates_only``) only the
@@ -88,9 +90,12 @@ def test_alpha_filter_recurrence_equals_the_operator(dtype, length, states):
     g = float(op[0, length + 1])
     batch, width = 3, 130
     block = torch.randn(batch, length + 3, width, generator=generator, dtype=torch.float64)
-    z = block[:, 1:length + 1].to(dtype)  # a view: its batch stride is not length * width
-    a, b = (torch.randn(2, batch, width, generator=generator, dtype=torch.float64) if states
-            else torch.zeros(2, batch, width, dtype=torch.float64))
+    z = block[:, 1 : length + 1].to(dtype)  # a view: its batch stride is not length * width
+    a, b = (
+        torch.randn(2, batch, width, generator=generator, dtype=torch.float64)
+        if states
+        else torch.zeros(2, batch, width, dtype=torch.float64)
+    )
     psp, end = ops.alpha_filter_rows(z, a.to(dtype) if states else None, b.to(dtype) if states else None, d, g)
     op64 = op.double()
     expected = op64 @ torch.cat([z.double(), a.unsqueeze(1), b.unsqueeze(1)], 1)
@@ -125,7 +130,7 @@ def test_alpha_filter_end_state_and_mean_in_one_pass(dtype, length):
     a, b = torch.randn(2, batch, width, generator=generator, dtype=dtype)
     for binary in (True, False):
         block = torch.rand(batch, length + 3, width, generator=generator, dtype=dtype)
-        z = (block < 0.1).to(dtype)[:, 1:length + 1] if binary else block[:, 1:length + 1]
+        z = (block < 0.1).to(dtype)[:, 1 : length + 1] if binary else block[:, 1 : length + 1]
         end, mean = ops.alpha_filter_end_and_mean(z, a, b, d)
         assert torch.equal(end, ops.alpha_filter_rows(z, a, b, d, g)[1])
         if binary:
@@ -136,8 +141,10 @@ def test_alpha_filter_end_state_and_mean_in_one_pass(dtype, length):
     assert torch.equal(end, ops.alpha_filter_rows(z, None, None, d, g)[1])
 
 
-@pytest.mark.parametrize("rule", ["dp-linear", "dp-oja", "dp-bcm", "ndp-oja", "ndp-oja+tanh", "ndp-bcm",
-                                  "ndp-bcm+tanh", "static", "shifted-oja"])
+@pytest.mark.parametrize(
+    "rule",
+    ["dp-linear", "dp-oja", "dp-bcm", "ndp-oja", "ndp-oja+tanh", "ndp-bcm", "ndp-bcm+tanh", "static", "shifted-oja"],
+)
 @pytest.mark.parametrize("n_in, n_out", [(30, 20), (20, 30)], ids=["product-first", "filter-first"])
 @pytest.mark.parametrize("carry", [False, True], ids=["rows", "carried-state"])
 def test_fused_interval_equals_eager_layer(rule, n_in, n_out, carry, monkeypatch):
@@ -154,6 +161,7 @@ def test_fused_interval_equals_eager_layer(rule, n_in, n_out, carry, monkeypatch
     assert fused_update == (rule not in ("static", "shifted-oja"))
     assert type(eager_out[0].spikes.grad_fn).__name__ != "_FusedIntervalBackward"
     assert sum(float(o.spikes.detach().sum()) for o in eager_out) > 0
+
     # The op filters by the alpha filter's recurrence, the eager layer by its operator: equal to float rounding, and
     # the same spikes (no membrane lies within rounding of the threshold here).
     def close(a, b):
@@ -248,9 +256,13 @@ def test_float32_surrogate_within_two_ulp_of_slayer_surrogate():
     parameters = layer.interval_parameters(50, torch.float32, spikes_in.device)
     form = compiled_form(layer.rule)
     with torch.no_grad():
-        outputs, residuals = interval.forward(_fast.interval_ops(),
-                                              interval_inputs(spikes_in, layer.initial_state(4), parameters, form),
-                                              parameters.constants, form, need_surrogate=True)
+        outputs, residuals = interval.forward(
+            _fast.interval_ops(),
+            interval_inputs(spikes_in, layer.initial_state(4), parameters, form),
+            parameters.constants,
+            form,
+            need_surrogate=True,
+        )
     membrane, surrogate = outputs.membrane, residuals.surrogate
     assert torch.equal(outputs.r_post, outputs.spikes.mean(1))  # counted in the same loop
     width = layer.neuron.tau_rho * layer.neuron.theta
@@ -278,8 +290,9 @@ def test_deferred_trace_update_equals_immediate(rule, n_in, n_out, rates_only, i
     updates pending (the second passed its input trace on unwritten), three with one."""
     monkeypatch.setattr(layers, "CARRY_MIN_ROW_VALUES", 0 if carry else layers.CARRY_MIN_ROW_VALUES)
     layer = make_layer(rule, n_in, n_out)
-    deferred_out, deferred_state, deferred_grads = run_intervals(layer, True, monkeypatch, rates_only=rates_only,
-                                                                 defer=True, intervals=intervals)
+    deferred_out, deferred_state, deferred_grads = run_intervals(
+        layer, True, monkeypatch, rates_only=rates_only, defer=True, intervals=intervals
+    )
     out, state, grads = run_intervals(layer, True, monkeypatch, rates_only=rates_only, intervals=intervals)
     assert type(deferred_out[1].spikes.grad_fn).__name__ == "_DeferredIntervalBackward"
     assert deferred_state.plastic.pending is None

@@ -21,7 +21,6 @@ from sb3_spikeplastic.snn.plasticity import (
     register_rule,
 )
 
-
 BUILTIN_RULES = ["static", "dp-linear", "dp-oja", "dp-bcm", "ndp-oja", "ndp-bcm"]
 
 
@@ -30,14 +29,16 @@ def test_builtin_rules_registered():
 
 
 def paper_network(rule: str) -> SpikingPlasticNetwork:
-    return SpikingPlasticNetwork(PopulationEncoder([-3] * 12, [3] * 12), ContinuousDecoder([-1] * 6, [1] * 6),
-                                 (64, 64), steps=50, rule=rule)
+    return SpikingPlasticNetwork(
+        PopulationEncoder([-3] * 12, [3] * 12), ContinuousDecoder([-1] * 6, [1] * 6), (64, 64), steps=50, rule=rule
+    )
 
 
 def small_network(rule: str, **kw) -> SpikingPlasticNetwork:
     kw.setdefault("steps", 50)
-    return SpikingPlasticNetwork(PopulationEncoder([-3] * 4, [3] * 4),
-                                 ContinuousDecoder([-1] * 2, [1] * 2, pop_size=10), (32,), rule=rule, **kw)
+    return SpikingPlasticNetwork(
+        PopulationEncoder([-3] * 4, [3] * 4), ContinuousDecoder([-1] * 2, [1] * 2, pop_size=10), (32,), rule=rule, **kw
+    )
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -237,9 +238,15 @@ def test_five_trace_updates_per_step_in_order():
     recorded spikes, and layer 0's membrane recomputed by explicit convolution over two env steps)."""
     torch.manual_seed(8)
     T, L = 50, 10
-    net = SpikingPlasticNetwork(PopulationEncoder([-1] * 2, [1] * 2, pop_size=10), DiscreteDecoder(2, pop_size=4),
-                                (12,), steps=T, rule="dp-linear", plasticity_interval=L,
-                                rule_kwargs=dict(eta_init=0.3)).double()
+    net = SpikingPlasticNetwork(
+        PopulationEncoder([-1] * 2, [1] * 2, pop_size=10),
+        DiscreteDecoder(2, pop_size=4),
+        (12,),
+        steps=T,
+        rule="dp-linear",
+        plasticity_interval=L,
+        rule_kwargs=dict(eta_init=0.3),
+    ).double()
     B = 3
     state = net.initial_state(B, dtype=torch.float64)
     obs = torch.rand(2, B, 2, dtype=torch.float64) * 2 - 1
@@ -262,8 +269,8 @@ def test_five_trace_updates_per_step_in_order():
     for i in range(len(net.layers)):
         E = np.zeros((B, sizes[i + 1], sizes[i]))
         for j in range(10):  # 2 env steps x 5 intervals
-            pre = layer_in[i][:, j * L:(j + 1) * L].mean(1)
-            post = layer_out[i][:, j * L:(j + 1) * L].mean(1)
+            pre = layer_in[i][:, j * L : (j + 1) * L].mean(1)
+            post = layer_out[i][:, j * L : (j + 1) * L].mean(1)
             E_new = np.clip((1 - eta[i]) * E + eta[i] * np.einsum("bi,bj->bij", post, pre), -1, 1)
             np.testing.assert_allclose(traces[i][:, j], E_new, rtol=1e-9, atol=1e-12)
             if j >= 2:  # once the PSP has built up (the output layer is silent in the first ~10 ms)
@@ -309,8 +316,9 @@ def test_forward_sequence_equals_stepwise_forward_with_resets():
             assert torch.equal(a, b)
         # without the resets the outputs differ (so the resets were applied)
         outs_nr, _ = net.forward_sequence(obs, torch.zeros(Lseq, B), state0)
-    assert not torch.equal(outs_nr[4].action[0], outs[4].action[0]) or not torch.equal(outs_nr[3].action,
-                                                                                      outs[3].action)
+    assert not torch.equal(outs_nr[4].action[0], outs[4].action[0]) or not torch.equal(
+        outs_nr[3].action, outs[3].action
+    )
 
 
 @pytest.mark.skipif(_fast.interval_ops() is None, reason="the estimate describes the compiled CPU ops' graph")
@@ -321,9 +329,14 @@ def test_backward_bytes_per_step_estimates_what_backpropagation_keeps(rule, inte
     sequence's end keeps one trace more than its share: applying the last two deferred updates stores the one
     between.)"""
     torch.manual_seed(0)
-    net = SpikingPlasticNetwork(PopulationEncoder([-3] * 6, [3] * 6, pop_size=20),
-                                ContinuousDecoder([-1] * 2, [1] * 2, pop_size=40), (48,), steps=10, rule=rule,
-                                plasticity_interval=interval)
+    net = SpikingPlasticNetwork(
+        PopulationEncoder([-3] * 6, [3] * 6, pop_size=20),
+        ContinuousDecoder([-1] * 2, [1] * 2, pop_size=40),
+        (48,),
+        steps=10,
+        rule=rule,
+        plasticity_interval=interval,
+    )
     Lseq, B = 16, 6
     parameters = {p.untyped_storage().data_ptr() for p in net.parameters()}
     saved: dict[int, int] = {}
@@ -360,15 +373,24 @@ def run_network(net: SpikingPlasticNetwork, device: str):
     outputs, final = net.forward_sequence(obs, starts, net.initial_state(6, seed=4, dtype=torch.float64))
     loss = sum((o.action * w).sum() + sum(r.sum() for r in o.rates) for o, w in zip(outputs, weights))
     loss.backward()
-    return ([o.action.detach().cpu() for o in outputs], [r.detach().cpu() for o in outputs for r in o.rates],
-            [t.detach().cpu() for t in tensor_leaves(final)], {n: p.grad.cpu() for n, p in net.named_parameters()})
+    return (
+        [o.action.detach().cpu() for o in outputs],
+        [r.detach().cpu() for o in outputs for r in o.rates],
+        [t.detach().cpu() for t in tensor_leaves(final)],
+        {n: p.grad.cpu() for n, p in net.named_parameters()},
+    )
 
 
 @pytest.mark.parametrize("rule", BUILTIN_RULES)
 def test_network_on_device_matches_the_cpu_fallback(device, rule, monkeypatch):
     torch.manual_seed(3)
-    net = SpikingPlasticNetwork(PopulationEncoder([-3] * 4, [3] * 4), ContinuousDecoder([-1] * 2, [1] * 2, pop_size=10),
-                                (32, 24), steps=25, rule=rule).double()
+    net = SpikingPlasticNetwork(
+        PopulationEncoder([-3] * 4, [3] * 4),
+        ContinuousDecoder([-1] * 2, [1] * 2, pop_size=10),
+        (32, 24),
+        steps=25,
+        rule=rule,
+    ).double()
     candidate = copy.deepcopy(net).to(device)
     monkeypatch.setenv(_fast.NO_COMPILE_ENV, "1")
     actions, rates, state, grads = run_network(net, "cpu")

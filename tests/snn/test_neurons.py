@@ -25,7 +25,6 @@ from sb3_spikeplastic.snn.neurons import (
 )
 from sb3_spikeplastic.snn.plasticity import StaticRule
 
-
 # ---------------------------------------------------------------------------------------------------------------
 # Independent oracles
 
@@ -93,7 +92,7 @@ def test_alpha_filter_interval_with_carried_state_equals_explicit_convolution(ta
     pieces, start = [], 0
     for L in lengths:
         operator = alpha_filter_operator(L, tau, dt, dtype=torch.float64)
-        psp, state = alpha_filter_interval(torch.from_numpy(x[:, start:start + L]), state, operator)
+        psp, state = alpha_filter_interval(torch.from_numpy(x[:, start : start + L]), state, operator)
         pieces.append(psp.numpy())
         start += L
     np.testing.assert_allclose(np.concatenate(pieces, 1), expected, rtol=0, atol=1e-9)
@@ -136,6 +135,7 @@ def test_srm_spike_loop_refractory_equals_explicit_convolution(params):
 def single_neuron_oracle(w: float, input_times: list[int], T: int, p: SRMParameters) -> tuple[list[int], float]:
     """Output spike times of one SRM neuron with one input of weight w, in plain Python; also the smallest
     |u - theta| met (so the test can assert the case is not decided by rounding)."""
+
     def eps(k, tau):
         return (k / tau) * math.exp(1 - k / tau) if k > 0 else 0.0
 
@@ -160,7 +160,7 @@ def run_static_layer(w: float, input_times: list[int], T: int, interval: int) ->
     state = layer.initial_state(1, torch.float64)
     spikes = []
     for start in range(0, T, interval):
-        out, state = layer(x[:, start:start + interval], state)
+        out, state = layer(x[:, start : start + interval], state)
         spikes.append(out.spikes)
     return torch.cat(spikes, 1)[0, :, 0].nonzero().flatten().tolist()
 

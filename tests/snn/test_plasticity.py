@@ -15,7 +15,6 @@ from sb3_spikeplastic.snn.layers import PlasticSRMLayer
 from sb3_spikeplastic.snn.network import NetworkState, SpikingPlasticNetwork, map_tensors
 from sb3_spikeplastic.snn.plasticity import PlasticState, get_rule_class
 
-
 TRACE_RULES = ["dp-linear", "dp-oja", "dp-bcm", "ndp-oja", "ndp-bcm"]
 ALL_RULES = ["static", *TRACE_RULES]
 BCM_RULES = {"dp-bcm", "ndp-bcm"}
@@ -271,7 +270,7 @@ def test_gradients_reach_all_parameters_through_spiking_layer(name):
     x = (torch.rand(2, L * n_intervals, n_in, generator=g) < 0.3).float()
     state = layer.initial_state(2)
     for j in range(n_intervals):
-        out, state = layer(x[:, j * L:(j + 1) * L], state)
+        out, state = layer(x[:, j * L : (j + 1) * L], state)
     assert out.spikes.sum() > 0, "output silent: the test would be vacuous"
     weights = torch.randn(out.spikes.shape, generator=g)
     loss = (out.spikes * weights).sum()  # only the last interval's spikes: the rule acts via 4 trace updates
@@ -345,12 +344,20 @@ def test_tanh_modulation_is_bounded_and_linear_is_not(rule):
 def test_finite_gradients_over_20_steps_at_the_clip_bound(rule):
     torch.manual_seed(0)
     steps, n_in = 25, 40
-    net = SpikingPlasticNetwork(RasterInput(steps, n_in), DiscreteDecoder(2, 4), hidden_sizes=(32,), steps=steps,
-                                rule=rule, rule_kwargs=dict(modulation="tanh"))
+    net = SpikingPlasticNetwork(
+        RasterInput(steps, n_in),
+        DiscreteDecoder(2, 4),
+        hidden_sizes=(32,),
+        steps=steps,
+        rule=rule,
+        rule_kwargs=dict(modulation="tanh"),
+    )
     state = net.initial_state(4)
     # Start with every trace at ±E_max: the regime where the paper's unbounded rules overflowed.
-    layers = tuple(s._replace(plastic=PlasticState(torch.randint(0, 2, s.plastic.trace.shape).float() * 2 - 1,
-                                                   s.plastic.extra)) for s in state.layers)
+    layers = tuple(
+        s._replace(plastic=PlasticState(torch.randint(0, 2, s.plastic.trace.shape).float() * 2 - 1, s.plastic.extra))
+        for s in state.layers
+    )
     state = NetworkState(layers, state.noise_key)
     loss = 0.0
     for _ in range(20):

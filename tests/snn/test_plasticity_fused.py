@@ -31,13 +31,13 @@ from sb3_spikeplastic.snn.plasticity import (
 TOL = {torch.float32: dict(rtol=1e-5, atol=1e-6), torch.float64: dict(rtol=1e-12, atol=1e-12)}
 
 
-def case(dtype, B=3, O=5, I=9, seed=0, scale=3.0):
+def case(dtype, B=3, n_out=5, n_in=9, seed=0, scale=3.0):
     g = torch.Generator().manual_seed(seed)
-    E = (torch.rand(B, O, I, generator=g, dtype=dtype) * 1.6 - 0.8).requires_grad_()
-    post = (scale * torch.rand(B, O, generator=g, dtype=dtype) - 1).requires_grad_()
-    pre = (scale * torch.rand(B, I, generator=g, dtype=dtype)).requires_grad_()
+    E = (torch.rand(B, n_out, n_in, generator=g, dtype=dtype) * 1.6 - 0.8).requires_grad_()
+    post = (scale * torch.rand(B, n_out, generator=g, dtype=dtype) - 1).requires_grad_()
+    pre = (scale * torch.rand(B, n_in, generator=g, dtype=dtype)).requires_grad_()
     eta = torch.tensor(0.3, dtype=dtype).requires_grad_()
-    upstream = torch.randn(B, O, I, generator=g, dtype=dtype)
+    upstream = torch.randn(B, n_out, n_in, generator=g, dtype=dtype)
     return E, post, pre, eta, upstream
 
 
@@ -109,8 +109,9 @@ def test_hebbian_trace_step_falls_back_when_disabled(monkeypatch):
     E, post, pre, eta, _ = case(torch.float32)
     assert _fast.trace_step(E, post, pre, eta, 0.5, True) is None
     out = hebbian_trace_step(E, eta, HebbianTerms(post, pre, True), 0.5)
-    torch.testing.assert_close(out, hebbian_update(E, eta, HebbianTerms(post, pre, True)).clamp(-0.5, 0.5),
-                               rtol=0, atol=0)
+    torch.testing.assert_close(
+        out, hebbian_update(E, eta, HebbianTerms(post, pre, True)).clamp(-0.5, 0.5), rtol=0, atol=0
+    )
 
 
 def test_unsupported_inputs_are_left_to_eager(compiled_ops):
@@ -135,8 +136,9 @@ def test_fused_plastic_linear_equals_eager(compiled_ops, dtype, x_grad):
     out, ref = _fast.plastic_linear(x, W, alpha, E), x @ torch.addcmul(W, alpha, E).transpose(1, 2)
     torch.testing.assert_close(out, ref, **TOL[dtype])
     inputs = (x, W, alpha, E) if x_grad else (W, alpha, E)
-    for a, b in zip(torch.autograd.grad((out * upstream).sum(), inputs),
-                    torch.autograd.grad((ref * upstream).sum(), inputs)):
+    for a, b in zip(
+        torch.autograd.grad((out * upstream).sum(), inputs), torch.autograd.grad((ref * upstream).sum(), inputs)
+    ):
         torch.testing.assert_close(a, b, **TOL[dtype])
     if dtype is torch.float64 and x_grad:
         assert torch.autograd.gradcheck(_fast.plastic_linear, (x, W, alpha, E))
@@ -159,8 +161,10 @@ def test_fused_plastic_linear_one_environment_per_block(compiled_ops, dtype):
         upstream = torch.randn(3, 11, n_out, generator=g, dtype=dtype)
         out, ref = _fast.plastic_linear(x, W, alpha, E), x @ torch.addcmul(W, alpha, E).transpose(1, 2)
         torch.testing.assert_close(out, ref, **TOL[dtype])
-        grads = zip(torch.autograd.grad((out * upstream).sum(), (x, W, alpha, E)),
-                    torch.autograd.grad((ref * upstream).sum(), (x, W, alpha, E)))
+        grads = zip(
+            torch.autograd.grad((out * upstream).sum(), (x, W, alpha, E)),
+            torch.autograd.grad((ref * upstream).sum(), (x, W, alpha, E)),
+        )
         for k, (a, b) in enumerate(grads):
             tol = dict(TOL[dtype])
             if k == 0 and dtype is torch.float32:
@@ -214,14 +218,16 @@ def test_fused_plastic_linear_with_carried_rows(compiled_ops, dtype, rows_grad, 
 
     assert_close(out, ref)
     inputs = (x, carried, W, alpha, E) if rows_grad else (W, alpha, E)
-    for a, b in zip(torch.autograd.grad((out * upstream).sum(), inputs),
-                    torch.autograd.grad((ref * upstream).sum(), inputs)):
+    for a, b in zip(
+        torch.autograd.grad((out * upstream).sum(), inputs), torch.autograd.grad((ref * upstream).sum(), inputs)
+    ):
         assert_close(a, b)
     out = _fast.plastic_linear(x, W, alpha, E, carried)
     ref = torch.cat([x, carried], 1) @ torch.addcmul(W, alpha, E).transpose(1, 2)
     spikes_only = (out[:, :7] * upstream[:, :7]).sum()  # the carried rows' products get no gradient
-    for a, b in zip(torch.autograd.grad(spikes_only, inputs),
-                    torch.autograd.grad((ref[:, :7] * upstream[:, :7]).sum(), inputs)):
+    for a, b in zip(
+        torch.autograd.grad(spikes_only, inputs), torch.autograd.grad((ref[:, :7] * upstream[:, :7]).sum(), inputs)
+    ):
         assert_close(a, b)
     if dtype is torch.float64 and rows_grad and n_in < 100:
         assert torch.autograd.gradcheck(lambda *t: _fast.plastic_linear(*t), (x, W, alpha, E, carried))
@@ -259,8 +265,14 @@ def test_network_gradients_with_and_without_compiled_ops(compiled_ops, monkeypat
 
     torch.manual_seed(0)
     steps, n_in = 20, 30
-    net = SpikingPlasticNetwork(RasterInput(steps, n_in), DiscreteDecoder(2, 4), hidden_sizes=(16,), steps=steps,
-                                rule=rule, plastic_layers=(0, 1)).double()
+    net = SpikingPlasticNetwork(
+        RasterInput(steps, n_in),
+        DiscreteDecoder(2, 4),
+        hidden_sizes=(16,),
+        steps=steps,
+        rule=rule,
+        plastic_layers=(0, 1),
+    ).double()
     g = torch.Generator().manual_seed(2)
     raster = (torch.rand(4, 3, steps, n_in, generator=g) < 0.3).double()
 
@@ -304,10 +316,15 @@ def test_user_rule_with_hebbian_terms_runs_the_fused_update(compiled_ops, monkey
     monkeypatch.setattr(_fast, "TRACE_STEP", kernel._replace(run=lambda *a: calls.append(1) or kernel.run(*a)))
     g = torch.Generator().manual_seed(5)
     state = PlasticState(0.4 * torch.rand(2, 3, 6, generator=g, dtype=torch.float64) - 0.2)
-    r_pre, r_post = torch.rand(2, 6, generator=g, dtype=torch.float64), torch.rand(2, 3, generator=g, dtype=torch.float64)
+    r_pre, r_post = (
+        torch.rand(2, 6, generator=g, dtype=torch.float64),
+        torch.rand(2, 3, generator=g, dtype=torch.float64),
+    )
     stepped = rule.step(r_pre, r_post, state).trace
     assert calls == [1]
-    torch.testing.assert_close(stepped, rule.update(r_pre, r_post, state).trace.clamp(-0.2, 0.2), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(
+        stepped, rule.update(r_pre, r_post, state).trace.clamp(-0.2, 0.2), rtol=1e-12, atol=1e-12
+    )
 
 
 def test_pool_threads_follow_the_callers_flush_denormal_mode(compiled_ops):
@@ -337,8 +354,9 @@ def spike_limit(compiled_ops):
     _fast.spike_density_limit(before)
 
 
-@pytest.mark.parametrize("n_in, n_out, length", [(600, 64, 50), (603, 72, 3), (2000, 40, 1)],
-                         ids=["paper-input-layer", "ragged", "narrow"])
+@pytest.mark.parametrize(
+    "n_in, n_out, length", [(600, 64, 50), (603, 72, 3), (2000, 40, 1)], ids=["paper-input-layer", "ragged", "narrow"]
+)
 @pytest.mark.parametrize("density", [0.0, 0.05, 0.15])
 @pytest.mark.parametrize("carry", [False, True], ids=["spikes", "carried-rows"])
 def test_spike_products_equal_dense_products(spike_limit, n_in, n_out, length, density, carry):

@@ -33,13 +33,23 @@ TINY_CARTPOLE = """CartPole-v1:
 """
 #: A study of two variants, two seeds and two budgets of ``cartpole.yml`` (TINY_CARTPOLE), with evaluations during
 #: training, a final evaluation, a robustness evaluation and a comparison in its report.
-TINY_STUDY = {"conf": "cartpole.yml", "envs": ["CartPole-v1"], "seeds": [0, 1], "budgets": [128, 256],
-              "eval_freq": 64, "eval_episodes": 2,
-              "variants": {"small": {"hyperparams": ["policy_kwargs.net_arch=[8]"]},
-                           "large": {"hyperparams": ["policy_kwargs.net_arch=[16]"]}},
-              "evaluations": {"final": {"episodes": 4, "seed": 100},
-                              "robustness": {"noises": ["obs"], "sigmas": [0, 0.5], "episodes": 3, "n_envs": 3}},
-              "report": {"learned_threshold": 0, "compare": [{"variants": ["large"], "against": "small"}]}}
+TINY_STUDY = {
+    "conf": "cartpole.yml",
+    "envs": ["CartPole-v1"],
+    "seeds": [0, 1],
+    "budgets": [128, 256],
+    "eval_freq": 64,
+    "eval_episodes": 2,
+    "variants": {
+        "small": {"hyperparams": ["policy_kwargs.net_arch=[8]"]},
+        "large": {"hyperparams": ["policy_kwargs.net_arch=[16]"]},
+    },
+    "evaluations": {
+        "final": {"episodes": 4, "seed": 100},
+        "robustness": {"noises": ["obs"], "sigmas": [0, 0.5], "episodes": 3, "n_envs": 3},
+    },
+    "report": {"learned_threshold": 0, "compare": [{"variants": ["large"], "against": "small"}]},
+}
 
 #: Seconds the server may take to start (pg_ctl's wait); each command is stopped 15 s after that.
 TIMEOUT = 60
@@ -85,8 +95,12 @@ def _postgres_user() -> pwd.struct_passwd:
     try:
         return pwd.getpwnam(USER)
     except KeyError:
-        subprocess.run(["useradd", "--system", "--user-group", "--no-create-home", "--shell", "/bin/sh", USER],
-                       check=True, capture_output=True, timeout=TIMEOUT)
+        subprocess.run(
+            ["useradd", "--system", "--user-group", "--no-create-home", "--shell", "/bin/sh", USER],
+            check=True,
+            capture_output=True,
+            timeout=TIMEOUT,
+        )
         return pwd.getpwnam(USER)
 
 
@@ -122,12 +136,46 @@ def postgres_server(tmp_path: Path) -> Iterator[str]:
         if os.geteuid() == 0:
             user = _postgres_user()
             os.chown(root, user.pw_uid, user.pw_gid)
-        _run(_as_postgres([str(bin_dir / "initdb"), "-D", str(data), "-A", "trust", "-U", USER, "-E", "UTF8",
-                           "--locale=C", "--no-sync"]), root, "initdb")
+        _run(
+            _as_postgres(
+                [
+                    str(bin_dir / "initdb"),
+                    "-D",
+                    str(data),
+                    "-A",
+                    "trust",
+                    "-U",
+                    USER,
+                    "-E",
+                    "UTF8",
+                    "--locale=C",
+                    "--no-sync",
+                ]
+            ),
+            root,
+            "initdb",
+        )
         options = f"-c listen_addresses=127.0.0.1 -p {port} -k {root} -c fsync=off"
         try:
-            _run(_as_postgres([str(bin_dir / "pg_ctl"), "-D", str(data), "-l", str(log), "-o", options, "-w",
-                               "-t", str(TIMEOUT), "start"]), root, "pg_ctl start")
+            _run(
+                _as_postgres(
+                    [
+                        str(bin_dir / "pg_ctl"),
+                        "-D",
+                        str(data),
+                        "-l",
+                        str(log),
+                        "-o",
+                        options,
+                        "-w",
+                        "-t",
+                        str(TIMEOUT),
+                        "start",
+                    ]
+                ),
+                root,
+                "pg_ctl start",
+            )
         except RuntimeError as exc:
             raise RuntimeError(f"{exc}\nserver log:\n{log.read_text() if log.exists() else '(none)'}") from None
         _run([str(bin_dir / "createdb"), "-h", "127.0.0.1", "-p", str(port), "-U", USER, DATABASE], root, "createdb")
@@ -135,8 +183,11 @@ def postgres_server(tmp_path: Path) -> Iterator[str]:
     finally:
         if (data / "postmaster.pid").exists():  # also after a start that failed or timed out
             with contextlib.suppress(RuntimeError):
-                _run(_as_postgres([str(bin_dir / "pg_ctl"), "-D", str(data), "-m", "immediate", "-w", "stop"]),
-                     root, "pg_ctl stop")
+                _run(
+                    _as_postgres([str(bin_dir / "pg_ctl"), "-D", str(data), "-m", "immediate", "-w", "stop"]),
+                    root,
+                    "pg_ctl stop",
+                )
         if log.exists():
             with contextlib.suppress(OSError):
                 shutil.copyfile(log, Path(tmp_path) / "postgres.log")

@@ -20,8 +20,12 @@ def changed(tiny_study, change):
 
 def test_the_tiny_study_reads(files, tiny_study):
     study = study_from_dict(tiny_study, "tiny.yml", files)
-    assert study.cells() == [("CartPole-v1", "small", 0), ("CartPole-v1", "large", 0),
-                             ("CartPole-v1", "small", 1), ("CartPole-v1", "large", 1)]
+    assert study.cells() == [
+        ("CartPole-v1", "small", 0),
+        ("CartPole-v1", "large", 0),
+        ("CartPole-v1", "small", 1),
+        ("CartPole-v1", "large", 1),
+    ]
     assert study.conf == str(files / "cartpole.yml")  # a relative conf is read from the study file's folder
     robustness = study.evaluations["robustness"]
     assert robustness.protocol.sigmas == (0.0, 0.5) and robustness.files("robustness") == ["robustness_obs.csv"]
@@ -30,31 +34,44 @@ def test_the_tiny_study_reads(files, tiny_study):
     assert study.config("CartPole-v1", "large")["n_timesteps"] == 256  # trained to the largest budget
 
 
-@pytest.mark.parametrize("change, message", [
-    (lambda d: d.update(budget=[1]), "unknown study key 'budget' in tiny.yml (did you mean 'budgets'?)"),
-    (lambda d: d["variants"]["small"].update(hyperparameters=[]),
-     "unknown key of variant 'small' 'hyperparameters' in tiny.yml (did you mean 'hyperparams'?)"),
-    (lambda d: d["variants"]["small"].update(rule="dp-ojaa"), "unknown rule 'dp-ojaa'"),
-    (lambda d: d.update(conf="nope.yml"), "nope.yml"),
-    (lambda d: d["variants"]["large"].update(conf="nope.yml"), "nope.yml"),
-    (lambda d: d["evaluations"]["robustness"].update(noises=["wind"]),
-     "unknown noise of evaluation 'robustness' 'wind' in tiny.yml"),
-    (lambda d: d["evaluations"]["robustness"].update(sigmas=[0.1, 0.5]), "starting with 0"),
-    (lambda d: d["evaluations"]["robustness"].update(sigmas=[0, 0.5, 0.2]), "increasing"),
-    (lambda d: d["report"]["compare"].append({"variants": ["medium"], "against": "small"}),
-     "unknown variant in report.compare.variants 'medium'"),
-    (lambda d: d["report"]["compare"].append({"variants": ["large"], "against": "smal"}),
-     "'smal' in tiny.yml (did you mean 'small'?)"),
-    (lambda d: d["evaluations"].update(held={"kind": "finall"}),
-     "unknown kind of evaluation 'held' 'finall' in tiny.yml (did you mean 'final'?)"),
-    (lambda d: d["evaluations"].update(held={}), "unknown kind of evaluation 'held' 'held'"),
-    (lambda d: d["evaluations"]["final"].update(noises=["obs"]), "unknown key of evaluation 'final' 'noises'"),
-    (lambda d: d["evaluations"]["final"].update(model="last"), "unknown model of evaluation 'final' 'last'"),
-    (lambda d: d.update(seeds=[0, 0]), "must not repeat a value"),
-    (lambda d: d.update(budgets=[0]), "budgets=0 must be an integer >= 1"),
-    (lambda d: d["variants"].update({"a@b": {}}), "variant name 'a@b'"),
-    (lambda d: d.pop("envs"), "needs 'envs'"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (lambda d: d.update(budget=[1]), "unknown study key 'budget' in tiny.yml (did you mean 'budgets'?)"),
+        (
+            lambda d: d["variants"]["small"].update(hyperparameters=[]),
+            "unknown key of variant 'small' 'hyperparameters' in tiny.yml (did you mean 'hyperparams'?)",
+        ),
+        (lambda d: d["variants"]["small"].update(rule="dp-ojaa"), "unknown rule 'dp-ojaa'"),
+        (lambda d: d.update(conf="nope.yml"), "nope.yml"),
+        (lambda d: d["variants"]["large"].update(conf="nope.yml"), "nope.yml"),
+        (
+            lambda d: d["evaluations"]["robustness"].update(noises=["wind"]),
+            "unknown noise of evaluation 'robustness' 'wind' in tiny.yml",
+        ),
+        (lambda d: d["evaluations"]["robustness"].update(sigmas=[0.1, 0.5]), "starting with 0"),
+        (lambda d: d["evaluations"]["robustness"].update(sigmas=[0, 0.5, 0.2]), "increasing"),
+        (
+            lambda d: d["report"]["compare"].append({"variants": ["medium"], "against": "small"}),
+            "unknown variant in report.compare.variants 'medium'",
+        ),
+        (
+            lambda d: d["report"]["compare"].append({"variants": ["large"], "against": "smal"}),
+            "'smal' in tiny.yml (did you mean 'small'?)",
+        ),
+        (
+            lambda d: d["evaluations"].update(held={"kind": "finall"}),
+            "unknown kind of evaluation 'held' 'finall' in tiny.yml (did you mean 'final'?)",
+        ),
+        (lambda d: d["evaluations"].update(held={}), "unknown kind of evaluation 'held' 'held'"),
+        (lambda d: d["evaluations"]["final"].update(noises=["obs"]), "unknown key of evaluation 'final' 'noises'"),
+        (lambda d: d["evaluations"]["final"].update(model="last"), "unknown model of evaluation 'final' 'last'"),
+        (lambda d: d.update(seeds=[0, 0]), "must not repeat a value"),
+        (lambda d: d.update(budgets=[0]), "budgets=0 must be an integer >= 1"),
+        (lambda d: d["variants"].update({"a@b": {}}), "variant name 'a@b'"),
+        (lambda d: d.pop("envs"), "needs 'envs'"),
+    ],
+)
 def test_bad_study_files_are_one_line(files, change, message, tiny_study):
     with pytest.raises(ValueError) as error:
         study_from_dict(changed(tiny_study, change), "tiny.yml", files)
@@ -66,16 +83,25 @@ def write(files, data, name="bad.yml"):
     return files / name
 
 
-@pytest.mark.parametrize("change, message", [
-    (lambda d: d.update(budgets=[128, 257]), "budget 257 of variant 'small' on CartPole-v1 is not a multiple of its "
-                                             "n_envs=2"),
-    (lambda d: d["evaluations"]["robustness"].update(noises=["obs", "action"]),
-     "evaluation 'robustness': action noise cannot be applied to CartPole-v1"),
-    (lambda d: d["evaluations"]["robustness"].update(noises=["friction"]), "friction noise cannot be applied"),
-    (lambda d: d["variants"]["small"].update(hyperparams=["policy_kwargs.net_arc=[8]"]),
-     "variant 'small' on CartPole-v1"),
-    (lambda d: d.update(envs=["CartPol-v1"]), "'CartPol-v1'"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (
+            lambda d: d.update(budgets=[128, 257]),
+            "budget 257 of variant 'small' on CartPole-v1 is not a multiple of its n_envs=2",
+        ),
+        (
+            lambda d: d["evaluations"]["robustness"].update(noises=["obs", "action"]),
+            "evaluation 'robustness': action noise cannot be applied to CartPole-v1",
+        ),
+        (lambda d: d["evaluations"]["robustness"].update(noises=["friction"]), "friction noise cannot be applied"),
+        (
+            lambda d: d["variants"]["small"].update(hyperparams=["policy_kwargs.net_arc=[8]"]),
+            "variant 'small' on CartPole-v1",
+        ),
+        (lambda d: d.update(envs=["CartPol-v1"]), "'CartPol-v1'"),
+    ],
+)
 def test_studies_that_cannot_run_are_refused_before_anything_is_written(files, run_cli, change, message, tiny_study):
     data = changed(tiny_study, change)
     with pytest.raises(ValueError, match="^[^\n]*$") as error:
@@ -87,15 +113,20 @@ def test_studies_that_cannot_run_are_refused_before_anything_is_written(files, r
 
 
 def test_bad_files_and_options_through_the_cli(files, run_cli, tiny_study):
-    for text, message in (("- a list\n", "must be a mapping"), ("a: [\n", "is not valid YAML"),
-                          (yaml.safe_dump({**tiny_study, "budget": 1}), "did you mean 'budgets'")):
+    for text, message in (
+        ("- a list\n", "must be a mapping"),
+        ("a: [\n", "is not valid YAML"),
+        (yaml.safe_dump({**tiny_study, "budget": 1}), "did you mean 'budgets'"),
+    ):
         (files / "bad.yml").write_text(text)
         code, out, err = run_cli("study", files / "bad.yml", "-f", files / "logs")
         assert code == 2 and err.count("\n") == 1 and message in err, err
     good = write(files, tiny_study, "tiny.yml")
-    for argv, message in (([good, "--workers", "0"], "--workers=0"),
-                          ([good, "--variants", "medium"], "unknown variant 'medium'"),
-                          (["no-such-study"], "no study file 'no-such-study'")):
+    for argv, message in (
+        ([good, "--workers", "0"], "--workers=0"),
+        ([good, "--variants", "medium"], "unknown variant 'medium'"),
+        (["no-such-study"], "no study file 'no-such-study'"),
+    ):
         code, out, err = run_cli("study", *argv, "-f", files / "logs")
         assert code == 2 and err.count("\n") == 1 and message in err, err
     assert not (files / "logs").exists()
@@ -114,8 +145,19 @@ def test_report_of_a_folder_without_study_data(files, run_cli, tiny_study):
 
 
 #: The variants of the paper's Fig. 4 E-H in the packaged fig4 study (which may hold controls besides).
-PAPER = ["dp-bcm", "dp-linear", "dp-oja", "mlp", "mlp_zoo", "ndp-bcm+tanh", "ndp-bcm", "ndp-oja+tanh", "ppo_lstm",
-         "ppo_lstm_zoo", "static"]
+PAPER = [
+    "dp-bcm",
+    "dp-linear",
+    "dp-oja",
+    "mlp",
+    "mlp_zoo",
+    "ndp-bcm+tanh",
+    "ndp-bcm",
+    "ndp-oja+tanh",
+    "ppo_lstm",
+    "ppo_lstm_zoo",
+    "static",
+]
 
 
 def test_the_packaged_studies():
@@ -126,8 +168,10 @@ def test_the_packaged_studies():
     assert fig4.seeds_of("static") == (0, 1, 2, 3, 4) and fig4.budgets_of("dp-bcm") == (300000,)
     assert fig4.budgets_of("mlp") == (300000, 1000000)
     assert fig4.evaluations["robustness"].protocol == FIG4 and fig4.learned_threshold == FIG4.learned_threshold
-    assert fig4.variants["ndp-oja+tanh"].hyperparams == ("policy_kwargs.rule_kwargs.modulation=tanh",
-                                                         "policy_kwargs.rule_kwargs.wm_init_gain=5")
+    assert fig4.variants["ndp-oja+tanh"].hyperparams == (
+        "policy_kwargs.rule_kwargs.modulation=tanh",
+        "policy_kwargs.rule_kwargs.wm_init_gain=5",
+    )
     tmaze, _ = load_study_file("tmaze")
     assert len(tmaze.variants) == 8 and tmaze.envs == ("TMazeCue-v0", "TMazeCueNoisy-v0")
     assert len(tmaze.cells()) == 48
@@ -156,8 +200,18 @@ def test_select():
         fig4.select(["nope"])
 
 
-@pytest.mark.parametrize("steps, label", [(128, "128"), (1000, "1k"), (300000, "300k"), (1000000, "1M"),
-                                          (2000000, "2M"), (2500000, "2500k"), (1500, "1500")])
+@pytest.mark.parametrize(
+    "steps, label",
+    [
+        (128, "128"),
+        (1000, "1k"),
+        (300000, "300k"),
+        (1000000, "1M"),
+        (2000000, "2M"),
+        (2500000, "2500k"),
+        (1500, "1500"),
+    ],
+)
 def test_budget_label(steps, label):
     assert budget_label(steps) == label
 

@@ -23,10 +23,17 @@ from sb3_spikeplastic.study.layout import StudyFolder, read_final, read_robustne
 ENV = "CartPole-v1"
 CELLS = [(v, s) for v in ("small", "large") for s in (0, 1)]
 #: A study of one short run per cell and one evaluation: what the queue tests need, in a second or two per cell.
-MINI = {"conf": "cartpole.yml", "envs": [ENV], "seeds": [0], "budgets": [64],
-        "variants": {"small": {"hyperparams": ["policy_kwargs.net_arch=[8]"]},
-                     "large": {"hyperparams": ["policy_kwargs.net_arch=[16]"]}},
-        "evaluations": {"final": {"episodes": 2, "seed": 100}}}
+MINI = {
+    "conf": "cartpole.yml",
+    "envs": [ENV],
+    "seeds": [0],
+    "budgets": [64],
+    "variants": {
+        "small": {"hyperparams": ["policy_kwargs.net_arch=[8]"]},
+        "large": {"hyperparams": ["policy_kwargs.net_arch=[16]"]},
+    },
+    "evaluations": {"final": {"episodes": 2, "seed": 100}},
+}
 
 
 def load(folder, name="tiny", storage=None):
@@ -131,8 +138,9 @@ def test_a_raised_budget_continues_each_run_and_writes_only_its_files(copy_of, r
         assert (copy_of / args["trained_agent"]).resolve() == (first / f"{ENV}.zip").resolve()
         assert args["start_timesteps"] == 256
         # the first run's models are untouched (TensorBoard may append to its event files)
-        assert {p: t for p, t in files_of(first).items() if "tfevents" not in p.name} == \
-            {p: t for p, t in old_runs[(variant, seed)].items() if "tfevents" not in p.name}
+        assert {p: t for p, t in files_of(first).items() if "tfevents" not in p.name} == {
+            p: t for p, t in old_runs[(variant, seed)].items() if "tfevents" not in p.name
+        }
         assert layout.model_at(ENV, variant, seed, 384) == second / "rl_model_384_steps.zip"
         assert layout.model_at(ENV, variant, seed, 256) == first / "rl_model_256_steps.zip"
         steps, _ = read_training(layout.training_file(ENV, variant, seed))
@@ -153,6 +161,7 @@ def mini(files, **changes):
 @contextlib.contextmanager
 def deadline(seconds):
     """``TimeoutError`` in the block after ``seconds``."""
+
     def expire(signum, frame):
         raise TimeoutError(f"still running after {seconds} s")
 
@@ -209,12 +218,17 @@ def test_a_cell_queued_twice_runs_once(files):
     assert any(f"(trial {later.number}): skipped, taken by trial {earlier.number}" in line for line in lines), lines
 
 
-@pytest.mark.parametrize("changes, what", [
-    ({"variants": {**MINI["variants"], "small": {"hyperparams": ["policy_kwargs.net_arch=[12]"]}}},
-     "variant 'CartPole-v1 small'"),
-    ({"evaluations": {"final": {"episodes": 3, "seed": 100}}}, "evaluation 'final'"),
-    ({"eval_freq": 64}, "other evaluations during training"),
-])
+@pytest.mark.parametrize(
+    "changes, what",
+    [
+        (
+            {"variants": {**MINI["variants"], "small": {"hyperparams": ["policy_kwargs.net_arch=[12]"]}}},
+            "variant 'CartPole-v1 small'",
+        ),
+        ({"evaluations": {"final": {"episodes": 3, "seed": 100}}}, "evaluation 'final'"),
+        ({"eval_freq": 64}, "other evaluations during training"),
+    ],
+)
 def test_a_study_declared_otherwise_is_refused(files, run_cli, changes, what):
     folder = files / "logs" / "study" / "mini"
     job = engine.prepare(mini(files), folder, "mini")
@@ -327,5 +341,12 @@ def test_four_processes_never_take_the_same_waiting_trial_from_sqlite(tmp_path):
             if worker.is_alive():
                 worker.kill()
     assert taken is not None and len(taken) == len(set(taken))
-    assert {t.number for t in optuna.load_study(study_name="race", storage=open_storage(None, tmp_path)).trials
-            if t.state.name == "COMPLETE"} == set(taken) >= set(range(40))
+    assert (
+        {
+            t.number
+            for t in optuna.load_study(study_name="race", storage=open_storage(None, tmp_path)).trials
+            if t.state.name == "COMPLETE"
+        }
+        == set(taken)
+        >= set(range(40))
+    )

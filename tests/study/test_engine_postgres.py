@@ -32,10 +32,24 @@ CELLS = {f"CartPole-v1 {v} {s}" for v in ("small", "large") for s in (0, 1)}
 
 def worker(files, url):
     """One ``sb3-spikeplastic study`` process, as a user starts it on a machine of their own."""
-    command = [sys.executable, "-m", "sb3_spikeplastic.cli", "study", str(files / "pg.yml"), "--storage", url,
-               "--folder", str(files / "shared"), "--heartbeat-interval", "1", "--grace-period", "4"]
-    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            env={**os.environ, "OMP_NUM_THREADS": "1"})
+    command = [
+        sys.executable,
+        "-m",
+        "sb3_spikeplastic.cli",
+        "study",
+        str(files / "pg.yml"),
+        "--storage",
+        url,
+        "--folder",
+        str(files / "shared"),
+        "--heartbeat-interval",
+        "1",
+        "--grace-period",
+        "4",
+    ]
+    return subprocess.Popen(
+        command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"}
+    )
 
 
 @pytest.mark.slow
@@ -53,8 +67,11 @@ def test_a_killed_workers_cell_is_taken_over(tmp_path, postgres_url, tiny_cartpo
             except KeyError:  # not created yet
                 trials = []
             for t in trials:
-                if t.state.name == "RUNNING" and t.user_attrs.get("worker", "").endswith(f":{victim.pid}") \
-                        and "run_dir" in t.user_attrs:
+                if (
+                    t.state.name == "RUNNING"
+                    and t.user_attrs.get("worker", "").endswith(f":{victim.pid}")
+                    and "run_dir" in t.user_attrs
+                ):
                     victim.send_signal(signal.SIGKILL)
                     killed = t
                     break

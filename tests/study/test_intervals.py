@@ -75,12 +75,15 @@ def test_a_constant_has_a_degenerate_interval():
     assert bootstrap_interval([np.full(10, 2.5), np.full(4, 2.5)], grand_mean) == Interval(2.5, 2.5, 2.5)
 
 
-@pytest.mark.parametrize("kwargs, bad", [
-    ({"level": 1.0}, "level=1.0"),
-    ({"n_resamples": 0}, "n_resamples=0"),
-    ({"groups": []}, "no seeds"),
-    ({"groups": [np.ones(3), np.ones(0)]}, "(0,)"),
-])
+@pytest.mark.parametrize(
+    "kwargs, bad",
+    [
+        ({"level": 1.0}, "level=1.0"),
+        ({"n_resamples": 0}, "n_resamples=0"),
+        ({"groups": []}, "no seeds"),
+        ({"groups": [np.ones(3), np.ones(0)]}, "(0,)"),
+    ],
+)
 def test_bad_arguments_name_the_value(kwargs, bad):
     arguments = {"groups": [np.ones(3)], "statistic": grand_mean, **kwargs}
     with pytest.raises(ValueError, match=bad.replace("(", r"\(").replace(")", r"\)")):
@@ -94,21 +97,31 @@ SIGMAS = np.array([0.0, 0.1, 0.2, 0.4, 0.6])
 
 
 def vectorised(j):
-    return [lambda m: m[..., j].mean(axis=-1),
-            lambda m: (1.0 + (m[..., j] - m[..., 0]) / np.abs(m[..., 0])).mean(axis=-1),
-            lambda m: (np.trapezoid(1.0 + (m - m[..., :1]) / np.abs(m[..., :1]), SIGMAS, axis=-1)
-                       / (SIGMAS[-1] - SIGMAS[0])).mean(axis=-1)]
+    return [
+        lambda m: m[..., j].mean(axis=-1),
+        lambda m: (1.0 + (m[..., j] - m[..., 0]) / np.abs(m[..., 0])).mean(axis=-1),
+        lambda m: (
+            np.trapezoid(1.0 + (m - m[..., :1]) / np.abs(m[..., :1]), SIGMAS, axis=-1) / (SIGMAS[-1] - SIGMAS[0])
+        ).mean(axis=-1),
+    ]
 
 
 def per_replicate(j):
     """The same statistics as functions of one resample (a list of seeds, each (sigmas, episodes))."""
+
     def means(seeds):
         return np.array([s.mean(axis=-1) for s in seeds])
 
-    return [lambda s: float(means(s)[:, j].mean()),
-            lambda s: float((1.0 + (means(s)[:, j] - means(s)[:, 0]) / np.abs(means(s)[:, 0])).mean()),
-            lambda s: float((np.trapezoid(1.0 + (means(s) - means(s)[:, :1]) / np.abs(means(s)[:, :1]), SIGMAS,
-                                          axis=-1) / (SIGMAS[-1] - SIGMAS[0])).mean())]
+    return [
+        lambda s: float(means(s)[:, j].mean()),
+        lambda s: float((1.0 + (means(s)[:, j] - means(s)[:, 0]) / np.abs(means(s)[:, 0])).mean()),
+        lambda s: float(
+            (
+                np.trapezoid(1.0 + (means(s) - means(s)[:, :1]) / np.abs(means(s)[:, :1]), SIGMAS, axis=-1)
+                / (SIGMAS[-1] - SIGMAS[0])
+            ).mean()
+        ),
+    ]
 
 
 def seeds(rng, k, episodes=50, loc=100.0):
@@ -140,11 +153,13 @@ def test_mean_differences_are_those_of_bootstrap_difference(k_a, k_b, j):
 def test_seeds_with_different_episode_counts_take_the_same_intervals():
     rng = np.random.default_rng(7)
     ragged, even = seeds(rng, 4, episodes=[50, 40, 50, 30]), seeds(rng, 3)
-    assert bootstrap_mean_intervals(ragged, vectorised(3), n_resamples=200) == \
-        [bootstrap_interval(ragged, f, n_resamples=200) for f in per_replicate(3)]
+    assert bootstrap_mean_intervals(ragged, vectorised(3), n_resamples=200) == [
+        bootstrap_interval(ragged, f, n_resamples=200) for f in per_replicate(3)
+    ]
     for a, b in ((ragged, even), (even, ragged)):
-        assert bootstrap_mean_differences(a, b, vectorised(2), n_resamples=200) == \
-            [bootstrap_difference(a, b, f, n_resamples=200) for f in per_replicate(2)]
+        assert bootstrap_mean_differences(a, b, vectorised(2), n_resamples=200) == [
+            bootstrap_difference(a, b, f, n_resamples=200) for f in per_replicate(2)
+        ]
 
 
 def test_one_sigma_row_and_a_single_seed():
@@ -152,7 +167,9 @@ def test_one_sigma_row_and_a_single_seed():
     rng = np.random.default_rng(8)
     flat = [rng.normal(5, 1, size=50) for _ in range(3)]
     mean = lambda m: m.mean(axis=-1)  # noqa: E731
-    assert bootstrap_mean_intervals(flat, [mean], n_resamples=200) == \
-        [bootstrap_interval(flat, grand_mean, n_resamples=200)]
-    assert bootstrap_mean_intervals(flat[:1], [mean], n_resamples=200) == \
-        [bootstrap_interval(flat[:1], grand_mean, n_resamples=200)]
+    assert bootstrap_mean_intervals(flat, [mean], n_resamples=200) == [
+        bootstrap_interval(flat, grand_mean, n_resamples=200)
+    ]
+    assert bootstrap_mean_intervals(flat[:1], [mean], n_resamples=200) == [
+        bootstrap_interval(flat[:1], grand_mean, n_resamples=200)
+    ]

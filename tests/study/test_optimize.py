@@ -25,9 +25,26 @@ def files(files):
 
 
 def tiny_search(files, **kwargs):
-    return ["optimize", "--env", "CartPole-v1", "--conf", files / "cartpole.yml", "--search-space",
-            files / "space.yml", "-n", "128", "--n-evaluations", "2", "--eval-episodes", "2", "--seed", "0",
-            "-f", files / "logs", *[str(x) for kv in kwargs.items() for x in kv]]
+    return [
+        "optimize",
+        "--env",
+        "CartPole-v1",
+        "--conf",
+        files / "cartpole.yml",
+        "--search-space",
+        files / "space.yml",
+        "-n",
+        "128",
+        "--n-evaluations",
+        "2",
+        "--eval-episodes",
+        "2",
+        "--seed",
+        "0",
+        "-f",
+        files / "logs",
+        *[str(x) for kv in kwargs.items() for x in kv],
+    ]
 
 
 def test_optimize_writes_a_best_entry_that_train_reads(files, run_cli):
@@ -48,14 +65,30 @@ def test_optimize_writes_a_best_entry_that_train_reads(files, run_cli):
     for override in study.best_trial.user_attrs["overrides"]:
         (key,), value = cfg.parse_override(override)
         assert best[key] == value
-    code, out, err = run_cli("train", "--env", "CartPole-v1", "--conf", best_file, "-n", "64", "--seed", "0",
-                             "-f", files / "train", "-v", "0", "--no-progress")
+    code, out, err = run_cli(
+        "train",
+        "--env",
+        "CartPole-v1",
+        "--conf",
+        best_file,
+        "-n",
+        "64",
+        "--seed",
+        "0",
+        "-f",
+        files / "train",
+        "-v",
+        "0",
+        "--no-progress",
+    )
     assert code == 0, err
     run = cfg.load_hyperparams_file(files / "train" / "ppo" / "CartPole-v1_1" / "CartPole-v1" / "config.yml")
     # The run's config.yml is the best entry (-n aside), resolved: every key of it as it was, and more.
     resolved = run["CartPole-v1"]
     assert {k: resolved[k] for k in best if k != "policy_kwargs"} == {
-        **{k: v for k, v in best.items() if k != "policy_kwargs"}, "n_timesteps": 64}
+        **{k: v for k, v in best.items() if k != "policy_kwargs"},
+        "n_timesteps": 64,
+    }
     assert (best.get("policy_kwargs") or {}).items() <= (resolved.get("policy_kwargs") or {}).items()
 
     # The same study with trials of another length: refused before anything runs.
@@ -70,9 +103,16 @@ class _AlwaysPrune(optuna.pruners.BasePruner):
 
 
 def test_a_pruned_trial_stops_training(files):
-    settings = OptimizeSettings("CartPole-v1", conf=str(files / "cartpole.yml"), n_timesteps=256, n_evaluations=4,
-                                eval_episodes=1, log_folder=files / "logs", search_space=files / "space.yml",
-                                seeds_per_trial=2)
+    settings = OptimizeSettings(
+        "CartPole-v1",
+        conf=str(files / "cartpole.yml"),
+        n_timesteps=256,
+        n_evaluations=4,
+        eval_episodes=1,
+        log_folder=files / "logs",
+        search_space=files / "space.yml",
+        seeds_per_trial=2,
+    )
     search = prepare(settings)
     study = optuna.create_study(direction="maximize", pruner=_AlwaysPrune())
     study.optimize(search.objective, n_trials=1)
@@ -84,11 +124,22 @@ def test_a_pruned_trial_stops_training(files):
 
 def test_an_invalid_sampled_configuration_fails_its_trial_only(files):
     (files / "space.yml").write_text(SMALL_SPACE + "  n_epochs: {choices: [0, 1]}\n")
-    settings = OptimizeSettings("CartPole-v1", conf=str(files / "cartpole.yml"), n_timesteps=64, n_evaluations=1,
-                                eval_episodes=1, log_folder=files / "logs", search_space=files / "space.yml")
+    settings = OptimizeSettings(
+        "CartPole-v1",
+        conf=str(files / "cartpole.yml"),
+        n_timesteps=64,
+        n_evaluations=1,
+        eval_episodes=1,
+        log_folder=files / "logs",
+        search_space=files / "space.yml",
+    )
     search = prepare(settings)
-    study = optuna.create_study(direction="maximize", sampler=optuna.samplers.GridSampler(
-        {"learning_rate": [1e-3], "n_steps": [32], "batch_size": [32], "gamma": [0.99], "n_epochs": [0, 1]}))
+    study = optuna.create_study(
+        direction="maximize",
+        sampler=optuna.samplers.GridSampler(
+            {"learning_rate": [1e-3], "n_steps": [32], "batch_size": [32], "gamma": [0.99], "n_epochs": [0, 1]}
+        ),
+    )
     study.optimize(search.objective, n_trials=2, catch=(Exception,))
     states = {t.params["n_epochs"]: t for t in study.trials}
     assert states[1].state == optuna.trial.TrialState.COMPLETE
@@ -109,9 +160,21 @@ def sampled_entries(env_id, conf=None, rule=None, fixed=(), n=25):
 def test_the_packaged_space_samples_consistent_spiking_entries():
     rules = set()
     for space, overrides, entry in sampled_entries("TMazeCue-v0"):
-        assert {"policy_kwargs.alpha_lr_scale", "policy_kwargs.alpha_init_mean", "policy_kwargs.rule_kwargs.eta_init",
-                "bptt_steps", "policy_kwargs.rule", "learning_rate", "n_steps", "batch_size", "gamma", "gae_lambda",
-                "ent_coef", "clip_range", "max_grad_norm"} <= set(space)
+        assert {
+            "policy_kwargs.alpha_lr_scale",
+            "policy_kwargs.alpha_init_mean",
+            "policy_kwargs.rule_kwargs.eta_init",
+            "bptt_steps",
+            "policy_kwargs.rule",
+            "learning_rate",
+            "n_steps",
+            "batch_size",
+            "gamma",
+            "gae_lambda",
+            "ent_coef",
+            "clip_range",
+            "max_grad_norm",
+        } <= set(space)
         bptt, n_steps, batch = entry["bptt_steps"], entry["n_steps"], entry["batch_size"]
         assert n_steps % bptt == 0 and batch % bptt == 0 and batch <= n_steps * entry["n_envs"]
         assert 0 < entry["policy_kwargs"]["rule_kwargs"]["eta_init"] < 1
@@ -121,8 +184,9 @@ def test_the_packaged_space_samples_consistent_spiking_entries():
     for space, overrides, entry in sampled_entries("TMazeCue-v0", rule="static", n=3):
         assert "policy_kwargs.rule" not in space
         assert not any(o.startswith(("policy_kwargs.alpha", "policy_kwargs.rule_kwargs")) for o in overrides)
-    for space, overrides, entry in sampled_entries("HalfCheetah-v5", fixed=["policy_kwargs.rule_kwargs.eta_init=0.1"],
-                                                   n=5):
+    for space, overrides, entry in sampled_entries(
+        "HalfCheetah-v5", fixed=["policy_kwargs.rule_kwargs.eta_init=0.1"], n=5
+    ):
         assert entry["policy_kwargs"]["rule_kwargs"]["eta_init"] == 0.1
         assert -0.5 <= entry["policy_kwargs"]["alpha_init_mean"] <= 0.5
     for space, overrides, entry in sampled_entries("HalfCheetah-v5", conf="mlp", n=3):  # no spiking keys for an MLP

@@ -20,18 +20,37 @@ SIGMAS = [0.0, 0.2, 0.4]
 OFFSETS = np.array([-2.0, -1.0, 1.0, 2.0])
 #: Mean return at each sigma of each model. ``good`` loses almost nothing; ``ref`` loses 25-40 %; ``weak`` seed 0
 #: lies between ref's seeds, and weak seed 1 did not learn (R0 30 < the threshold 50).
-MEANS = {("ref", 0): [100.0, 80.0, 60.0], ("ref", 1): [120.0, 110.0, 90.0],
-         ("good", 0): [200.0, 198.0, 196.0], ("good", 1): [220.0, 218.0, 216.0],
-         ("weak", 0): [110.0, 95.0, 75.0], ("weak", 1): [30.0, 30.0, 30.0]}
+MEANS = {
+    ("ref", 0): [100.0, 80.0, 60.0],
+    ("ref", 1): [120.0, 110.0, 90.0],
+    ("good", 0): [200.0, 198.0, 196.0],
+    ("good", 1): [220.0, 218.0, 216.0],
+    ("weak", 0): [110.0, 95.0, 75.0],
+    ("weak", 1): [30.0, 30.0, 30.0],
+}
 #: Mean noise-free return of the final evaluation (4 episodes), and successes.
-FINAL = {("ref", 0): 100.0, ("ref", 1): 110.0, ("good", 0): 300.0, ("good", 1): 320.0, ("weak", 0): 105.0,
-         ("weak", 1): 20.0}
+FINAL = {
+    ("ref", 0): 100.0,
+    ("ref", 1): 110.0,
+    ("good", 0): 300.0,
+    ("good", 1): 320.0,
+    ("weak", 0): 105.0,
+    ("weak", 1): 20.0,
+}
 SUCCESS = [1, 0, 1, 1]
-STUDY = {"conf": "cartpole.yml", "envs": [ENV], "seeds": [0, 1], "budgets": [1000],
-         "variants": {"ref": {}, "good": {}, "weak": {}},
-         "evaluations": {"final": {"episodes": 4}, "robustness": {"noises": ["obs"], "sigmas": SIGMAS, "episodes": 4}},
-         "report": {"learned_threshold": 50, "resamples": 500,
-                    "compare": [{"variants": ["good", "weak"], "against": "ref", "pooled": True}]}}
+STUDY = {
+    "conf": "cartpole.yml",
+    "envs": [ENV],
+    "seeds": [0, 1],
+    "budgets": [1000],
+    "variants": {"ref": {}, "good": {}, "weak": {}},
+    "evaluations": {"final": {"episodes": 4}, "robustness": {"noises": ["obs"], "sigmas": SIGMAS, "episodes": 4}},
+    "report": {
+        "learned_threshold": 50,
+        "resamples": 500,
+        "compare": [{"variants": ["good", "weak"], "against": "ref", "pooled": True}],
+    },
+}
 
 
 def write_study(root: Path) -> None:
@@ -69,6 +88,7 @@ def rows(path):
 # The independent computation: per seed, the mean return at each sigma; the ratio 1 + (R - R0) / |R0|; the AUC as
 # the trapezoid sum over the sigma range; a group's value the mean over its seeds.
 
+
 def ratios(means):
     return [1 + (m - means[0]) / abs(means[0]) for m in means]
 
@@ -101,11 +121,14 @@ def test_r0_ratio_and_auc_of_each_group(report):
             point = points[(f"{variant}@1k", sigma)]
             assert int(point["seeds"]) == len(seeds)
             assert float(point["return_estimate"]) == pytest.approx(group(variant, lambda m: m[j], seeds), abs=0.05)
-            assert float(point["ratio_estimate"]) == pytest.approx(group(variant, lambda m: ratios(m)[j], seeds),
-                                                                   abs=5e-5)
+            assert float(point["ratio_estimate"]) == pytest.approx(
+                group(variant, lambda m: ratios(m)[j], seeds), abs=5e-5
+            )
             assert float(point["return_low"]) <= float(point["return_estimate"]) <= float(point["return_high"])
-        returns = " | ".join(f"{group(variant, lambda m: m[j], seeds):.0f} "
-                             f"({group(variant, lambda m: ratios(m)[j], seeds):.2f})" for j in range(len(SIGMAS)))
+        returns = " | ".join(
+            f"{group(variant, lambda m: m[j], seeds):.0f} ({group(variant, lambda m: ratios(m)[j], seeds):.2f})"
+            for j in range(len(SIGMAS))
+        )
         assert f"| {variant}@1k | {len(seeds)} | {returns} | {group(variant, area, seeds):.2f} [" in table
     # the model that did not learn is left out of its group's ratios (with it, weak's R0 would be 70)
     assert float(points[("weak@1k", 0.4)]["return_estimate"]) == 75.0
@@ -121,11 +144,13 @@ def test_comparisons_and_verdicts(report):
     assert good["reference"] == weak["reference"] == both["reference"] == "ref@1k"
     assert (good["seeds"], weak["seeds"], both["seeds"], both["reference_seeds"]) == ("2", "1", "3", "2")
     for row, variant, seeds in ((good, "good", (0, 1)), (weak, "weak", (0,))):
-        assert float(row["auc_difference_estimate"]) == pytest.approx(group(variant, area, seeds) - group("ref", area),
-                                                                      abs=5e-5)
+        assert float(row["auc_difference_estimate"]) == pytest.approx(
+            group(variant, area, seeds) - group("ref", area), abs=5e-5
+        )
         assert float(row["r0_difference_estimate"]) == pytest.approx(group(variant, lambda m: m[0], seeds) - 110)
         assert float(row["return_at_sigma_0.4_difference_estimate"]) == pytest.approx(
-            group(variant, lambda m: m[-1], seeds) - 75)
+            group(variant, lambda m: m[-1], seeds) - 75
+        )
     pooled_auc = (area(MEANS[("good", 0)]) + area(MEANS[("good", 1)]) + area(MEANS[("weak", 0)])) / 3
     assert float(both["auc_difference_estimate"]) == pytest.approx(pooled_auc - group("ref", area), abs=5e-5)
     # good loses clearly less and keeps a higher return; weak lies within ref's spread: no verdict
@@ -139,8 +164,12 @@ def test_comparisons_and_verdicts(report):
     assert verdicts[("final", "weak@1k")]["seeds"] == "2"  # the final evaluation keeps every model
     # a verdict exactly where the interval excludes 0
     for row in verdicts.values():
-        for prefix, key in (("auc_difference", "auc_verdict"), ("return_at_sigma_0.4_difference", "return_verdict"),
-                            ("return_difference", "return_verdict"), ("success_difference", "success_verdict")):
+        for prefix, key in (
+            ("auc_difference", "auc_verdict"),
+            ("return_at_sigma_0.4_difference", "return_verdict"),
+            ("return_difference", "return_verdict"),
+            ("success_difference", "success_verdict"),
+        ):
             if row.get(f"{prefix}_low"):
                 low, high = float(row[f"{prefix}_low"]), float(row[f"{prefix}_high"])
                 assert (row[key] == "not resolved") == (low <= 0 <= high), (row["model"], prefix)
@@ -153,8 +182,10 @@ def test_final_evaluation_table(report):
     table = (folder / "table.md").read_text()
     assert table.startswith(f"# {ENV}: evaluation 'final'")
     section = table.split("\n# ")[0]  # up to the robustness evaluation's heading
-    final = {cells[0]: cells[1:] for cells in (line.strip("| ").split(" | ") for line in section.splitlines()
-                                               if "@1k" in line)}
+    final = {
+        cells[0]: cells[1:]
+        for cells in (line.strip("| ").split(" | ") for line in section.splitlines() if "@1k" in line)
+    }
     assert list(final) == ["ref@1k", "good@1k", "weak@1k"]
     assert final["ref@1k"][:2] == ["2", "100 / 110"] and final["ref@1k"][2].startswith("105.000 [")
     assert final["weak@1k"][:2] == ["2", "105 / 20"] and final["weak@1k"][2].startswith("62.500 [")
@@ -167,7 +198,7 @@ def test_a_missing_file_is_listed(report):
     (StudyFolder(folder).episodes_dir(ENV, "good", 1000, 1) / "final.csv").unlink()
     write_report(study, folder, log=None)
     table = (folder / "table.md").read_text()
-    missing = table[table.index("## Missing"):]
+    missing = table[table.index("## Missing") :]
     assert "1 raw file(s) not there yet" in missing and f"* {ENV} good@1k_s1: final.csv" in missing
     assert "| good@1k | 1 | 300 | 300.000 [" in table  # the final table has the seed that is there
     assert "| good@1k | 2 of 2 | 200 / 220 |" in table  # its robustness file is still read
@@ -175,8 +206,9 @@ def test_a_missing_file_is_listed(report):
 
 def test_ratio_to_r0_and_auc():
     """A loss is a ratio below 1 whatever R0's sign (a negative R0 that falls further is worse, not better)."""
-    np.testing.assert_allclose(ratio_to_r0(np.array([[100.0, 80.0, 50.0], [-100.0, -150.0, -50.0]])),
-                               [[1.0, 0.8, 0.5], [1.0, 0.5, 1.5]])
+    np.testing.assert_allclose(
+        ratio_to_r0(np.array([[100.0, 80.0, 50.0], [-100.0, -150.0, -50.0]])), [[1.0, 0.8, 0.5], [1.0, 0.5, 1.5]]
+    )
     assert np.isnan(ratio_to_r0(np.array([0.0, 10.0]))).all()  # no ratio to a zero return
     # trapezoids over unequal steps, divided by the sigma range: (0.1 * 0.9 + 0.3 * 0.65) / 0.4
     assert auc(np.array([1.0, 0.8, 0.5]), [0.0, 0.1, 0.4]) == pytest.approx(0.7125)

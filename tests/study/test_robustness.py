@@ -81,7 +81,13 @@ def test_end_to_end_with_ppo(tmp_path):
 def test_recurrent_state_is_threaded_and_reset_at_episode_starts(noise_type):
     stub = RecurrentStub()
     rows = evaluate_robustness(
-        {"stub": stub}, "HalfCheetah-v5", noise_type, [1.0], n_episodes=4, n_envs=2, progress_bar=False,
+        {"stub": stub},
+        "HalfCheetah-v5",
+        noise_type,
+        [1.0],
+        n_episodes=4,
+        n_envs=2,
+        progress_bar=False,
         env_kwargs=SHORT,
     )
     counts = np.array(stub.states)
@@ -92,8 +98,16 @@ def test_recurrent_state_is_threaded_and_reset_at_episode_starts(noise_type):
 
 def test_obs_indices_limit_the_observation_noise_to_those_elements():
     stub = RecurrentStub()  # constant actions: the trajectory is the same at every sigma
-    evaluate_robustness({"stub": stub}, "HalfCheetah-v5", "obs", [1.0], n_episodes=1, progress_bar=False,
-                        env_kwargs=SHORT, obs_indices=[2, 5])
+    evaluate_robustness(
+        {"stub": stub},
+        "HalfCheetah-v5",
+        "obs",
+        [1.0],
+        n_episodes=1,
+        progress_bar=False,
+        env_kwargs=SHORT,
+        obs_indices=[2, 5],
+    )
     clean, noisy = np.split(np.concatenate(stub.observations), 2)
     changed = np.flatnonzero((clean != noisy).any(axis=0))
     assert changed.tolist() == [2, 5]
@@ -105,7 +119,13 @@ def test_vec_normalize_statistics_are_used_frozen(tmp_path):
     venv.save(tmp_path / "stats.pkl")
     stub = RecurrentStub()
     evaluate_robustness(
-        {"stub": stub}, "HalfCheetah-v5", "obs", [0.1], n_episodes=2, progress_bar=False, env_kwargs=SHORT,
+        {"stub": stub},
+        "HalfCheetah-v5",
+        "obs",
+        [0.1],
+        n_episodes=2,
+        progress_bar=False,
+        env_kwargs=SHORT,
         vec_normalize_stats={"stub": tmp_path / "stats.pkl"},
     )
     assert np.all(np.concatenate(stub.observations) == -10.0)
@@ -149,8 +169,10 @@ def test_report_is_written_as_csv_markdown_and_figure(tmp_path):
     assert table == format_table(rows) and stem.with_suffix(".md").read_text() == table + "\n"
     with stem.with_suffix(".csv").open() as f:
         read = list(csv.DictReader(f))
-    assert [(r["sigma"], r["mean_return"], r["ratio"]) for r in read] == [("0.0", "10.0", "1.0"),
-                                                                          ("0.2", "7.5", "0.75")]
+    assert [(r["sigma"], r["mean_return"], r["ratio"]) for r in read] == [
+        ("0.0", "10.0", "1.0"),
+        ("0.2", "7.5", "0.75"),
+    ]
     assert stem.with_suffix(".png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
@@ -159,12 +181,30 @@ def test_every_episode_is_kept_in_environment_order_and_written(tmp_path):
     two episodes, exactly what an evaluation of environment 0 alone (seeded alike) returns."""
     from sb3_spikeplastic.study.robustness import write_episodes_csv
 
-    rows = evaluate_robustness({"stub": RecurrentStub()}, "HalfCheetah-v5", "friction", [0.3], n_episodes=4,
-                               n_envs=2, seed=7, progress_bar=False, env_kwargs=SHORT)
+    rows = evaluate_robustness(
+        {"stub": RecurrentStub()},
+        "HalfCheetah-v5",
+        "friction",
+        [0.3],
+        n_episodes=4,
+        n_envs=2,
+        seed=7,
+        progress_bar=False,
+        env_kwargs=SHORT,
+    )
     assert [len(r.returns) for r in rows] == [4, 4]
     assert all(r.mean_return == pytest.approx(np.mean(r.returns)) for r in rows)
-    alone = evaluate_robustness({"stub": RecurrentStub()}, "HalfCheetah-v5", "friction", [0.3], n_episodes=2,
-                                n_envs=1, seed=7, progress_bar=False, env_kwargs=SHORT)
+    alone = evaluate_robustness(
+        {"stub": RecurrentStub()},
+        "HalfCheetah-v5",
+        "friction",
+        [0.3],
+        n_episodes=2,
+        n_envs=1,
+        seed=7,
+        progress_bar=False,
+        env_kwargs=SHORT,
+    )
     for together, single in zip(rows, alone):
         assert together.returns[0::2] == pytest.approx(single.returns)
     assert rows[1].returns[0] != rows[1].returns[1]  # the two environments differ: the order is not trivially right

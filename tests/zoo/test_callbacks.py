@@ -27,15 +27,36 @@ def test_train_lines_count_updates_rounding_and_evaluations(tmp_path, run_cli, t
         update(self)
 
     monkeypatch.setattr(PPO, "train", slow_update)
-    code, out, err = run_cli("train", "--env", "TMazeCue-v0", "-n", "100", "--seed", "0", "-f", tmp_path,
-                             "--hyperparams", *tiny_tmaze, "--eval-freq", "64", "--eval-episodes", "2")
+    code, out, err = run_cli(
+        "train",
+        "--env",
+        "TMazeCue-v0",
+        "-n",
+        "100",
+        "--seed",
+        "0",
+        "-f",
+        tmp_path,
+        "--hyperparams",
+        *tiny_tmaze,
+        "--eval-freq",
+        "64",
+        "--eval-episodes",
+        "2",
+    )
     assert code == 0, err
     lines = out.splitlines()
     assert "trains 128 steps: -n is rounded up to whole rollouts of n_steps x n_envs = 64" in lines
     evaluations = [line for line in lines if "| evaluation:" in line]
     assert [int(line.split()[0].replace(",", "")) for line in evaluations] == [64, 128], out
-    assert all(re.fullmatch(r"\s+[\d,]+ steps \| evaluation: return -?[\d.]+ ± [\d.]+ over 2 episodes \| "
-                            r"success [\d.]+", line) for line in evaluations), evaluations
+    assert all(
+        re.fullmatch(
+            r"\s+[\d,]+ steps \| evaluation: return -?[\d.]+ ± [\d.]+ over 2 episodes \| "
+            r"success [\d.]+",
+            line,
+        )
+        for line in evaluations
+    ), evaluations
     summaries = [re.fullmatch(r"\s+([\d,]+) steps \| .* \| ([\d,]+) steps/s", line) for line in lines]
     (steps, rate), *_ = [(int(m[1].replace(",", "")), int(m[2].replace(",", ""))) for m in summaries if m]
     assert steps == 64 and rate <= 64 / UPDATE_SECONDS  # written after the first update, whose time it counts
@@ -53,8 +74,9 @@ def test_summary_says_when_no_episode_has_finished():
 
 def test_rounding_note():
     model = SimpleNamespace(num_timesteps=0, n_steps=2048, n_envs=1)
-    assert rounding_note(model, 1000) == ("trains 2,048 steps: -n is rounded up to whole rollouts of n_steps x "
-                                          "n_envs = 2,048")
+    assert rounding_note(model, 1000) == (
+        "trains 2,048 steps: -n is rounded up to whole rollouts of n_steps x n_envs = 2,048"
+    )
     assert rounding_note(model, 4096) is None
     model = SimpleNamespace(num_timesteps=500, n_steps=64, n_envs=8)  # continuing a run
     assert rounding_note(model, 1000).startswith("trains 512 steps (to 1,012): ")

@@ -86,8 +86,9 @@ def _env_for(env_id, n_envs):
     return DummyVecEnv([make for _ in range(n_envs)])
 
 
-@pytest.mark.parametrize("env_id, conf", [("default", None), *[(e, None) for e in ENTRIES],
-                                          ("HalfCheetah-v5", "paper")])
+@pytest.mark.parametrize(
+    "env_id, conf", [("default", None), *[(e, None) for e in ENTRIES], ("HalfCheetah-v5", "paper")]
+)
 def test_every_entry_constructs_a_model(env_id, conf):
     """Construction only (no learning); the paper file's HalfCheetah network encodes 12 x 50 inputs."""
     resolved = resolve_hyperparams("CartPole-v1" if env_id == "default" else env_id, conf)
@@ -111,10 +112,21 @@ def test_yaml_floats_without_a_dot():
 def test_overrides_nested_and_precedence():
     resolved = resolve_hyperparams(
         "TMazeCue-v0",
-        overrides=["n_steps=32", "policy_kwargs.hidden_sizes=[16]", "policy_kwargs.rule=dp-bcm", "learning_rate=1e-4",
-                   "policy_kwargs.rule_kwargs.eta_init=0.1", "policy_kwargs.neuron.theta=12", "normalize=true",
-                   "normalize.norm_reward=false", "env_kwargs.noise=high"],
-        rule="static", n_timesteps=1000, n_envs=2)
+        overrides=[
+            "n_steps=32",
+            "policy_kwargs.hidden_sizes=[16]",
+            "policy_kwargs.rule=dp-bcm",
+            "learning_rate=1e-4",
+            "policy_kwargs.rule_kwargs.eta_init=0.1",
+            "policy_kwargs.neuron.theta=12",
+            "normalize=true",
+            "normalize.norm_reward=false",
+            "env_kwargs.noise=high",
+        ],
+        rule="static",
+        n_timesteps=1000,
+        n_envs=2,
+    )
     assert resolved["n_steps"] == 32 and resolved["learning_rate"] == 1e-4
     assert resolved["policy_kwargs"]["hidden_sizes"] == [16]
     assert resolved["policy_kwargs"]["rule"] == "static"  # --rule wins over the override
@@ -128,8 +140,10 @@ def test_overrides_nested_and_precedence():
 
 def test_default_is_merged_under_the_entry(tmp_path):
     conf = tmp_path / "my.yml"
-    conf.write_text("default:\n  n_epochs: 3\n  policy_kwargs: {rule: dp-bcm, steps: 20}\n"
-                    "CartPole-v1:\n  n_steps: 64\n  policy_kwargs: {hidden_sizes: [8]}\n")
+    conf.write_text(
+        "default:\n  n_epochs: 3\n  policy_kwargs: {rule: dp-bcm, steps: 20}\n"
+        "CartPole-v1:\n  n_steps: 64\n  policy_kwargs: {hidden_sizes: [8]}\n"
+    )
     resolved = resolve_hyperparams("CartPole-v1", conf=conf)
     assert resolved["n_epochs"] == 3 and resolved["n_steps"] == 64
     assert resolved["policy_kwargs"] == {"rule": "dp-bcm", "steps": 20, "hidden_sizes": [8]}
@@ -144,27 +158,41 @@ def test_parse_override():
             parse_override(bad)
 
 
-@pytest.mark.parametrize("override, message", [
-    ("n_stepz=3", r"unknown hyperparameter 'n_stepz' \(did you mean 'n_steps'\?\); accepted: .*bptt_steps.*n_steps"),
-    ("n_steps=abc", r"n_steps='abc' must be an integer"),
-    ("gamma=high", r"gamma='high' must be a number"),
-    ("n_timesteps=1.5", r"n_timesteps=1.5 must be an integer"),
-    ("policy_kwargs.hidden_sizez=[3]",
-     r"unknown policy_kwargs key 'hidden_sizez' \(did you mean 'hidden_sizes'\?\); accepted: .*hidden_sizes"),
-    ("policy_kwargs.hidden_sizes=16", r"policy_kwargs.hidden_sizes=16 must be a list of integers"),
-    ("policy_kwargs.rule=hebb", r"unknown rule 'hebb'; accepted: static, .*dp-oja"),
-    ("policy_kwargs.rule_kwargs.foo=1",
-     r"unknown policy_kwargs.rule_kwargs key 'foo' for rule 'dp-oja'; accepted: eta_init"),
-    ("policy_kwargs.neuron.thet=1",
-     r"unknown policy_kwargs.neuron key 'thet' \(did you mean 'theta'\?\); accepted: .*theta"),
-    ("normalize.clip_obs=5", r"normalize is False, not a mapping \(set normalize=true first\)"),
-    ("normalize={clip_obz: 5}",
-     r"unknown normalize \(VecNormalize\) key 'clip_obz' \(did you mean 'clip_obs'\?\); accepted: clip_obs"),
-    ("learning_rate=lin_x", r"learning_rate='lin_x' must be a number or lin_<number>"),
-    ("grad_clip=layer", r"grad_clip='layer' is not accepted; accepted: global, per-parameter"),
-    ("policy=TransformerPolicy", r"unknown policy 'TransformerPolicy'; accepted: .*SpikePlasticPolicy"),
-    ("policy_kwargs.optimizer_class=os.system", r"'os.system' is not a class of torch.optim; accepted: .*Adam"),
-])
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        (
+            "n_stepz=3",
+            r"unknown hyperparameter 'n_stepz' \(did you mean 'n_steps'\?\); accepted: .*bptt_steps.*n_steps",
+        ),
+        ("n_steps=abc", r"n_steps='abc' must be an integer"),
+        ("gamma=high", r"gamma='high' must be a number"),
+        ("n_timesteps=1.5", r"n_timesteps=1.5 must be an integer"),
+        (
+            "policy_kwargs.hidden_sizez=[3]",
+            r"unknown policy_kwargs key 'hidden_sizez' \(did you mean 'hidden_sizes'\?\); accepted: .*hidden_sizes",
+        ),
+        ("policy_kwargs.hidden_sizes=16", r"policy_kwargs.hidden_sizes=16 must be a list of integers"),
+        ("policy_kwargs.rule=hebb", r"unknown rule 'hebb'; accepted: static, .*dp-oja"),
+        (
+            "policy_kwargs.rule_kwargs.foo=1",
+            r"unknown policy_kwargs.rule_kwargs key 'foo' for rule 'dp-oja'; accepted: eta_init",
+        ),
+        (
+            "policy_kwargs.neuron.thet=1",
+            r"unknown policy_kwargs.neuron key 'thet' \(did you mean 'theta'\?\); accepted: .*theta",
+        ),
+        ("normalize.clip_obs=5", r"normalize is False, not a mapping \(set normalize=true first\)"),
+        (
+            "normalize={clip_obz: 5}",
+            r"unknown normalize \(VecNormalize\) key 'clip_obz' \(did you mean 'clip_obs'\?\); accepted: clip_obs",
+        ),
+        ("learning_rate=lin_x", r"learning_rate='lin_x' must be a number or lin_<number>"),
+        ("grad_clip=layer", r"grad_clip='layer' is not accepted; accepted: global, per-parameter"),
+        ("policy=TransformerPolicy", r"unknown policy 'TransformerPolicy'; accepted: .*SpikePlasticPolicy"),
+        ("policy_kwargs.optimizer_class=os.system", r"'os.system' is not a class of torch.optim; accepted: .*Adam"),
+    ],
+)
 def test_bad_values_name_the_key_and_the_accepted_ones(override, message):
     with pytest.raises(ValueError, match=message):
         resolve_hyperparams("TMazeCue-v0", overrides=[override])
@@ -178,9 +206,15 @@ def test_rule_flag_is_validated():
 
 
 def test_lin_schedules_and_class_names():
-    resolved = resolve_hyperparams("TMazeCue-v0", overrides=["learning_rate=lin_1e-3", "clip_range=lin_0.2",
-                                                             "policy_kwargs.optimizer_class=th.optim.AdamW",
-                                                             "policy_kwargs.optimizer_kwargs={eps: 1.0e-5}"])
+    resolved = resolve_hyperparams(
+        "TMazeCue-v0",
+        overrides=[
+            "learning_rate=lin_1e-3",
+            "clip_range=lin_0.2",
+            "policy_kwargs.optimizer_class=th.optim.AdamW",
+            "policy_kwargs.optimizer_kwargs={eps: 1.0e-5}",
+        ],
+    )
     policy, ppo_kwargs, policy_kwargs = model_arguments(resolved)
     assert ppo_kwargs["learning_rate"](1.0) == pytest.approx(1e-3)
     assert ppo_kwargs["learning_rate"](0.5) == pytest.approx(5e-4)
@@ -192,19 +226,32 @@ def test_lin_schedules_and_class_names():
 def test_safe_policy_kwargs_string():
     assert parse_python_literal("dict(rule='dp-oja', hidden_sizes=[64])") == {"rule": "dp-oja", "hidden_sizes": [64]}
     assert parse_python_literal("dict(log_std_init=-2, net_arch=dict(pi=[64], vf=[64]), activation_fn=nn.ReLU)") == {
-        "log_std_init": -2, "net_arch": {"pi": [64], "vf": [64]}, "activation_fn": "nn.ReLU"}
+        "log_std_init": -2,
+        "net_arch": {"pi": [64], "vf": [64]},
+        "activation_fn": "nn.ReLU",
+    }
     assert parse_python_literal("{'a': (1, 2.5), 'b': None, 'c': True}") == {"a": (1, 2.5), "b": None, "c": True}
-    for evil in ("__import__('os').system('x')", "open('/etc/passwd')", "dict(**x)", "[x for x in ()]",
-                 "os.system", "1 + 1", "lambda: 0", "dict(a=print(1))"):
+    for evil in (
+        "__import__('os').system('x')",
+        "open('/etc/passwd')",
+        "dict(**x)",
+        "[x for x in ()]",
+        "os.system",
+        "1 + 1",
+        "lambda: 0",
+        "dict(a=print(1))",
+    ):
         with pytest.raises(ValueError, match="unsafe or unsupported expression|not a valid Python expression"):
             parse_python_literal(evil, "policy_kwargs")
 
 
 def test_rl_zoo_string_form_in_a_file_and_an_override(tmp_path):
     conf = tmp_path / "zoo.yml"
-    conf.write_text("TMazeCue-v0:\n  n_steps: 32\n  batch_size: 32\n  bptt_steps: 16\n"
-                    "  policy_kwargs: \"dict(rule='dp-bcm', hidden_sizes=[8])\"\n"
-                    "  normalize: \"dict(norm_obs=False, norm_reward=True)\"\n")
+    conf.write_text(
+        "TMazeCue-v0:\n  n_steps: 32\n  batch_size: 32\n  bptt_steps: 16\n"
+        "  policy_kwargs: \"dict(rule='dp-bcm', hidden_sizes=[8])\"\n"
+        '  normalize: "dict(norm_obs=False, norm_reward=True)"\n'
+    )
     resolved = resolve_hyperparams("TMazeCue-v0", conf=conf, overrides=["policy_kwargs.hidden_sizes=[4]"])
     assert resolved["policy_kwargs"] == {"rule": "dp-bcm", "hidden_sizes": [4]}
     assert resolved["normalize"] == {"norm_obs": False, "norm_reward": True}
@@ -228,8 +275,9 @@ def test_bad_files(tmp_path):
 
 def test_accepted_keys_follow_the_signatures():
     keys = config.accepted_keys()
-    assert {"bptt_steps", "n_steps", "batch_size", "learning_rate", "n_timesteps", "policy_kwargs",
-            "normalize"} <= set(keys)
+    assert {"bptt_steps", "n_steps", "batch_size", "learning_rate", "n_timesteps", "policy_kwargs", "normalize"} <= set(
+        keys
+    )
     assert "tensorboard_log" not in keys and "seed" not in keys
     assert {"rule", "hidden_sizes", "steps", "encoder_pop_size", "action_pop_size"} <= set(config.policy_kwarg_hints())
 
@@ -271,14 +319,23 @@ def test_load_hyperparams_rule_and_other_files():
     assert load_hyperparams("TMazeCue-v0").model_kwargs["policy_kwargs"]["hidden_sizes"] == [64]
 
 
-@pytest.mark.parametrize("args, message", [
-    (("TMazeCu-v0",),
-     r"^unknown environment id 'TMazeCu-v0'; did you mean TMazeCue-v0.*accepted: an entry of the file \(TMazeCue-v0, "),
-    (("TMazeCue-v0", "ppo2"),
-     r"^cannot read hyperparameter file 'ppo2'.*packaged files: ppo, paper, mlp, ppo_lstm, mlp_zoo, ppo_lstm_zoo"),
-    (("TMazeCue-v0", "ppo", "hebb"), r"^unknown rule 'hebb'; accepted: static, "),
-    (("HalfCheetah-v5", "mlp", "dp-oja"), r"^rule='dp-oja' needs policy SpikePlasticPolicy, not 'MlpPolicy'"),
-])
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (
+            ("TMazeCu-v0",),
+            r"^unknown environment id 'TMazeCu-v0'; did you mean TMazeCue-v0"
+            r".*accepted: an entry of the file \(TMazeCue-v0, ",
+        ),
+        (
+            ("TMazeCue-v0", "ppo2"),
+            r"^cannot read hyperparameter file 'ppo2'"
+            r".*packaged files: ppo, paper, mlp, ppo_lstm, mlp_zoo, ppo_lstm_zoo",
+        ),
+        (("TMazeCue-v0", "ppo", "hebb"), r"^unknown rule 'hebb'; accepted: static, "),
+        (("HalfCheetah-v5", "mlp", "dp-oja"), r"^rule='dp-oja' needs policy SpikePlasticPolicy, not 'MlpPolicy'"),
+    ],
+)
 def test_load_hyperparams_bad_input_is_one_line(args, message):
     with pytest.raises(ValueError, match=message) as info:
         load_hyperparams(*args)
@@ -288,8 +345,13 @@ def test_load_hyperparams_bad_input_is_one_line(args, message):
 def test_load_hyperparams_builds_and_trains_a_model():
     h = load_hyperparams("TMazeCue-v0", rule="dp-linear")
     env = DummyVecEnv([lambda: gym.make("TMazeCue-v0") for _ in range(2)])
-    model = PPO(h.policy, env, **{**h.model_kwargs, "n_steps": 16, "batch_size": 16, "bptt_steps": 8,
-                                  "n_epochs": 1}, device="cpu", seed=0)
+    model = PPO(
+        h.policy,
+        env,
+        **{**h.model_kwargs, "n_steps": 16, "batch_size": 16, "bptt_steps": 8, "n_epochs": 1},
+        device="cpu",
+        seed=0,
+    )
     assert model.policy.snn.rule_name == "dp-linear" and model.policy.snn_config["alpha_lr_scale"] == 30
     assert model.use_action_masks is True and model.bptt_steps == 8
     model.learn(32)
@@ -309,20 +371,32 @@ def test_packaged_paper_configuration():
 
 def test_whole_mapping_override_names_the_keys_it_drops(tmp_path, capsys):
     lines = replaced_mappings("TMazeCue-v0", None, ["policy_kwargs=dict(hidden_sizes=[32], alpha_lr_scale=2)"])
-    assert len(lines) == 1 and lines[0].startswith("--hyperparams policy_kwargs=dict(hidden_sizes=[32], "
-                                                   "alpha_lr_scale=2) replaces the entry's whole policy_kwargs, ")
+    assert len(lines) == 1 and lines[0].startswith(
+        "--hyperparams policy_kwargs=dict(hidden_sizes=[32], "
+        "alpha_lr_scale=2) replaces the entry's whole policy_kwargs, "
+    )
     dropped = lines[0].split("dropping its ")[1].split(" (")[0].split(", ")
     assert "alpha_init_mean" in dropped and "alpha_lr_scale" not in dropped  # the entry's, less those given
     # a dotted key keeps the others; a key set again by a later override is not dropped
     assert replaced_mappings("TMazeCue-v0", None, ["policy_kwargs.hidden_sizes=[32]"]) == []
-    again = replaced_mappings("TMazeCue-v0", None, ["policy_kwargs:{hidden_sizes: [32]}",
-                                                    "policy_kwargs.alpha_init_mean=0"])
+    again = replaced_mappings(
+        "TMazeCue-v0", None, ["policy_kwargs:{hidden_sizes: [32]}", "policy_kwargs.alpha_init_mean=0"]
+    )
     assert "alpha_init_mean" not in again[0].split("dropping its ")[1]
     # the command line prints it once the command is checked and its model built, before the run
-    argv = ["train", "--env", "HalfCheetah-v5", "-f", str(tmp_path), "--hyperparams",
-            "policy_kwargs=dict(hidden_sizes=[16], steps=5)"]
+    argv = [
+        "train",
+        "--env",
+        "HalfCheetah-v5",
+        "-f",
+        str(tmp_path),
+        "--hyperparams",
+        "policy_kwargs=dict(hidden_sizes=[16], steps=5)",
+    ]
     cli.prepare(cli.build_parser().parse_args(argv), argv)
     out = capsys.readouterr().out
-    assert "sb3-spikeplastic: --hyperparams policy_kwargs=dict(hidden_sizes=[16], steps=5) replaces the entry's " \
-           "whole policy_kwargs, dropping its " in out
+    assert (
+        "sb3-spikeplastic: --hyperparams policy_kwargs=dict(hidden_sizes=[16], steps=5) replaces the entry's "
+        "whole policy_kwargs, dropping its " in out
+    )
     assert list(tmp_path.iterdir()) == []

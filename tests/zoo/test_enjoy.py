@@ -15,18 +15,32 @@ from sb3_spikeplastic import cli
 from sb3_spikeplastic.envs.tmaze import TMazeCueEnv
 from sb3_spikeplastic.zoo import enjoy
 
-
 #: .mp4 videos need the ffmpeg binary of imageio-ffmpeg (the test extras install it; a GIF needs only Pillow)
-needs_ffmpeg = pytest.mark.skipif(importlib.util.find_spec("imageio_ffmpeg") is None,
-                                  reason="imageio-ffmpeg is not installed")
+needs_ffmpeg = pytest.mark.skipif(
+    importlib.util.find_spec("imageio_ffmpeg") is None, reason="imageio-ffmpeg is not installed"
+)
 
 
 @pytest.fixture(scope="module")
 def tmaze_run(tmp_path_factory, tiny_tmaze):
     """A run folder of a spiking plastic PPO trained for 64 steps on the T-maze."""
     logs = tmp_path_factory.mktemp("enjoy") / "logs"
-    argv = ["train", "--env", "TMazeCue-v0", "-n", "64", "--seed", "0", "-f", logs, "--hyperparams", *tiny_tmaze,
-            "-v", "0", "--no-progress"]
+    argv = [
+        "train",
+        "--env",
+        "TMazeCue-v0",
+        "-n",
+        "64",
+        "--seed",
+        "0",
+        "-f",
+        logs,
+        "--hyperparams",
+        *tiny_tmaze,
+        "-v",
+        "0",
+        "--no-progress",
+    ]
     assert cli.main([str(a) for a in argv]) == 0
     return logs / "ppo" / "TMazeCue-v0_1"
 
@@ -38,8 +52,7 @@ def episode_lengths(out: str) -> list[int]:
 @needs_ffmpeg
 def test_tmaze_video_has_one_frame_per_reset_and_per_step(tmaze_run, tmp_path, run_cli):
     video = tmp_path / "videos" / "tmaze.mp4"
-    code, out, err = run_cli("enjoy", "--run", tmaze_run, "--n-episodes", "2", "--video", video,
-                             "--no-progress")
+    code, out, err = run_cli("enjoy", "--run", tmaze_run, "--n-episodes", "2", "--video", video, "--no-progress")
     assert code == 0, err
     lengths = episode_lengths(out)
     assert len(lengths) == 2 and all(16 <= n <= 19 for n in lengths)  # the T-maze's 16, 17 or 19 frames
@@ -54,8 +67,22 @@ def test_tmaze_video_has_one_frame_per_reset_and_per_step(tmaze_run, tmp_path, r
 
 def test_tmaze_gif_with_fps_and_size(tmaze_run, tmp_path, run_cli):
     video = tmp_path / "tmaze.gif"
-    code, out, err = run_cli("enjoy", "--run", tmaze_run, "--video", video, "--fps", "5", "--size", "80",
-                             "50", "--seed", "3", "--stochastic", "--no-progress")
+    code, out, err = run_cli(
+        "enjoy",
+        "--run",
+        tmaze_run,
+        "--video",
+        video,
+        "--fps",
+        "5",
+        "--size",
+        "80",
+        "50",
+        "--seed",
+        "3",
+        "--stochastic",
+        "--no-progress",
+    )
     assert code == 0, err
     frames = imageio.v3.imread(video, index=None)
     # random spike rasters are never identical from one frame to the next, so the GIF keeps every frame
@@ -70,7 +97,7 @@ def test_raster_beside_the_frames_while_the_network_records(tmaze_run, tmp_path,
     model = PPO.load(tmaze_run / "TMazeCue-v0.zip")
     snn = model.policy.snn
     player = enjoy.Player(model, "TMazeCue-v0", video=tmp_path / "raster.mp4", raster=True)
-    episode, = player.run(progress=False)
+    (episode,) = player.run(progress=False)
     assert not snn._forward_hooks and not snn._forward_pre_hooks  # detached afterwards
     with imageio.get_reader(tmp_path / "raster.mp4") as reader:
         frames = np.stack(list(reader.iter_data()))
@@ -80,8 +107,9 @@ def test_raster_beside_the_frames_while_the_network_records(tmaze_run, tmp_path,
 
     mlp = PPO("MlpPolicy", "TMazeCue-v0", n_steps=16, batch_size=16)
     mlp.save(tmp_path / "mlp.zip")
-    code, _, err = run_cli("enjoy", "--model", tmp_path / "mlp.zip", "--env", "TMazeCue-v0", "--video",
-                           tmp_path / "mlp.mp4", "--raster")
+    code, _, err = run_cli(
+        "enjoy", "--model", tmp_path / "mlp.zip", "--env", "TMazeCue-v0", "--video", tmp_path / "mlp.mp4", "--raster"
+    )
     assert code == 2 and "--raster needs a SpikePlasticPolicy model, not ActorCriticPolicy" in err
     assert not (tmp_path / "mlp.mp4").exists()
 
@@ -89,6 +117,7 @@ def test_raster_beside_the_frames_while_the_network_records(tmaze_run, tmp_path,
 def test_play_carries_the_recurrent_state_and_restarts_it_each_episode():
     class Recorder:
         """A stand-in model: counts its calls in the state and records what it is given."""
+
         use_action_masks = True
 
         def __init__(self):
@@ -123,7 +152,7 @@ def test_tmaze_video_frames_are_captioned_with_the_populations(tmaze_run):
     strip = frame[:18]
     assert frame.shape == (218, 320, 3) and strip.max() > 200  # text drawn
     for quarter in range(4):  # each population's caption sits over its own columns
-        assert strip[:, quarter * 80 + 20:quarter * 80 + 60].max() > 200
+        assert strip[:, quarter * 80 + 20 : quarter * 80 + 60].max() > 200
     assert (frame[18:] == player.env.render()).all()
     player.size = (160, 100)
     assert player._frame(player.env.render()).shape == (100, 160, 3)
@@ -212,8 +241,9 @@ BAD_ENJOY = [
 
 
 @pytest.mark.parametrize("argv, message", BAD_ENJOY)
-def test_bad_enjoy_input_exits_2_with_one_line_and_writes_nothing(argv, message, tmaze_run, tmp_path, run_cli,
-                                                                 monkeypatch):
+def test_bad_enjoy_input_exits_2_with_one_line_and_writes_nothing(
+    argv, message, tmaze_run, tmp_path, run_cli, monkeypatch
+):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "afile").write_text("")
     (tmp_path / "videos").mkdir()
@@ -228,8 +258,10 @@ def test_bad_enjoy_input_exits_2_with_one_line_and_writes_nothing(argv, message,
 def test_missing_video_packages_name_the_extra(tmaze_run, tmp_path, run_cli, monkeypatch):
     monkeypatch.setitem(__import__("sys").modules, "imageio_ffmpeg", None)  # as if it were not installed
     code, _, err = run_cli("enjoy", "--run", tmaze_run, "--video", tmp_path / "x.mp4")
-    assert code == 2 and err.strip() == ('sb3-spikeplastic: error: --video .mp4 needs imageio_ffmpeg (not installed): '
-                                         'pip install "sb3-spikeplastic[video]"')
+    assert code == 2 and err.strip() == (
+        "sb3-spikeplastic: error: --video .mp4 needs imageio_ffmpeg (not installed): "
+        'pip install "sb3-spikeplastic[video]"'
+    )
     assert not list(tmp_path.iterdir())
 
 
@@ -245,13 +277,32 @@ def test_halfcheetah_video(tmp_path, run_cli, monkeypatch):
     except RuntimeError as exc:
         pytest.skip(str(exc))
     env = DummyVecEnv([lambda: gymnasium.make("HalfCheetah-v5")])
-    model = PPO("SpikePlasticPolicy", env, n_steps=16, batch_size=16, bptt_steps=16,
-                policy_kwargs=dict(hidden_sizes=[8], steps=5, encoder_pop_size=4, action_pop_size=2))
+    model = PPO(
+        "SpikePlasticPolicy",
+        env,
+        n_steps=16,
+        batch_size=16,
+        bptt_steps=16,
+        policy_kwargs=dict(hidden_sizes=[8], steps=5, encoder_pop_size=4, action_pop_size=2),
+    )
     model.save(tmp_path / "cheetah.zip")
     VecNormalize(env).save(tmp_path / "vecnormalize.pkl")  # found beside the model
     video = tmp_path / "cheetah.mp4"
-    code, out, err = run_cli("enjoy", "--model", tmp_path / "cheetah.zip", "--env", "HalfCheetah-v5",
-                             "--max-steps", "4", "--video", video, "--size", "64", "48", "--no-progress")
+    code, out, err = run_cli(
+        "enjoy",
+        "--model",
+        tmp_path / "cheetah.zip",
+        "--env",
+        "HalfCheetah-v5",
+        "--max-steps",
+        "4",
+        "--video",
+        video,
+        "--size",
+        "64",
+        "48",
+        "--no-progress",
+    )
     assert code == 0, err
     assert "VecNormalize: " in out and "episode 1: return" in out and "4 steps (cut by --max-steps)" in out
     with imageio.get_reader(video) as reader:
@@ -266,4 +317,5 @@ def test_default_first_episode_ends_as_most_episodes_do(tmaze_run, run_cli):
     assert chosen, out
     majority_succeeded = int(chosen.group(2)) * 2 >= 10
     assert re.search(r"episode 1: return \S+, \d+ steps, (success|failure)", out).group(1) == (
-        "success" if majority_succeeded else "failure"), out
+        "success" if majority_succeeded else "failure"
+    ), out

@@ -14,13 +14,21 @@ from sb3_spikeplastic.zoo.train import continued_run, train_command, training_th
 ROLLOUT_64 = ["n_envs=2", "n_steps=32", "bptt_steps=16", "batch_size=32", "n_epochs=1"]
 
 
-@pytest.mark.parametrize("options, message", [
-    ({"env": "TMazeCue-v0", "eval_freq": -1}, r"^--eval-freq=-1 must be >= 0$"),
-    ({"env": "TMazeCue-v0", "rule": "hebb"}, "unknown rule 'hebb'"),
-    ({"env": "TMazeCue-v0", "hyperparams": ["policy_kwargs.hidden_sizes=[16]", "bptt_steps=32", "batch_size=48"]},
-     r"^invalid configuration for TMazeCue-v0: batch_size=48"),
-    ({"env": "HalfCheetah-v5", "conf": "mlp", "figure_freq": 1}, "--figure-freq needs policy SpikePlasticPolicy"),
-])
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        ({"env": "TMazeCue-v0", "eval_freq": -1}, r"^--eval-freq=-1 must be >= 0$"),
+        ({"env": "TMazeCue-v0", "rule": "hebb"}, "unknown rule 'hebb'"),
+        (
+            {
+                "env": "TMazeCue-v0",
+                "hyperparams": ["policy_kwargs.hidden_sizes=[16]", "bptt_steps=32", "batch_size=48"],
+            },
+            r"^invalid configuration for TMazeCue-v0: batch_size=48",
+        ),
+        ({"env": "HalfCheetah-v5", "conf": "mlp", "figure_freq": 1}, "--figure-freq needs policy SpikePlasticPolicy"),
+    ],
+)
 def test_bad_options_raise_before_anything_is_written(options, message, tmp_path):
     with pytest.raises(ValueError, match=message):
         train_command(log_folder=str(tmp_path / "logs"), tensorboard_log=str(tmp_path / "tb"), **options)
@@ -65,10 +73,13 @@ def after_first_update(model):
     return parameters(model)
 
 
-@pytest.mark.parametrize("env, conf, rule, overrides", [
-    ("TMazeCue-v0", None, "ndp-oja", ROLLOUT_64),
-    ("HalfCheetah-v5", "mlp", None, ["n_envs=2", "n_steps=32", "batch_size=32", "n_epochs=1"]),
-])
+@pytest.mark.parametrize(
+    "env, conf, rule, overrides",
+    [
+        ("TMazeCue-v0", None, "ndp-oja", ROLLOUT_64),
+        ("HalfCheetah-v5", "mlp", None, ["n_envs=2", "n_steps=32", "batch_size=32", "n_epochs=1"]),
+    ],
+)
 def test_config_yml_rebuilds_the_model_and_its_first_update(tmp_path, env, conf, rule, overrides):
     config = cfg.resolve_hyperparams(env, conf, overrides, rule=rule, n_timesteps=64)
     model = build(env, config, tmp_path)

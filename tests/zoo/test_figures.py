@@ -19,15 +19,16 @@ from sb3_spikeplastic.zoo.recording import record_episode
 def monitor_file(path, episodes, t_start=1000.0):
     """An SB3 Monitor file of ``(return, length, seconds, is_success)`` episodes."""
     lines = ["#" + json.dumps({"t_start": t_start, "env_id": "X"}), "r,l,t,is_success"]
-    lines += [f"{r},{l},{t},{s}" for r, l, t, s in episodes]
+    lines += [f"{r},{length},{t},{s}" for r, length, t, s in episodes]
     path.write_text("\n".join(lines) + "\n")
 
 
 def test_runs_are_read_labelled_and_summed_up(tmp_path):
     run = tmp_path / "TMazeCue-v0_1"
     (run / "TMazeCue-v0").mkdir(parents=True)
-    (run / "TMazeCue-v0" / "config.yml").write_text("TMazeCue-v0:\n  policy: SpikePlasticPolicy\n"
-                                                     "  policy_kwargs: {rule: dp-bcm}\n")
+    (run / "TMazeCue-v0" / "config.yml").write_text(
+        "TMazeCue-v0:\n  policy: SpikePlasticPolicy\n  policy_kwargs: {rule: dp-bcm}\n"
+    )
     monitor_file(run / "0.monitor.csv", [(1.0, 10, 1.0, "True"), (0.0, 10, 3.0, "False")])
     monitor_file(run / "1.monitor.csv", [(-1.0, 20, 2.0, "True")])
     other = tmp_path / "other" / "TMazeCue-v0_1"  # the same folder name: labelled by its path
@@ -41,7 +42,8 @@ def test_runs_are_read_labelled_and_summed_up(tmp_path):
     assert curve_summaries(runs, last=2) == [
         "TMazeCue-v0_1 (dp-bcm): 3 episodes, 40 steps, mean return of the last 2: -0.500, "
         "success rate of the last 2: 0.500",
-        "TMazeCue-v0_1: 3 episodes, 12 steps, mean return of the last 2: 5.000"]
+        "TMazeCue-v0_1: 3 episodes, 12 steps, mean return of the last 2: 5.000",
+    ]
     assert np.isnan(runs["TMazeCue-v0_1"]["is_success"]).all()
 
 
@@ -50,9 +52,13 @@ def test_plot_checks_its_runs_before_writing(tmp_path):
     unfinished = tmp_path / "unfinished"
     unfinished.mkdir()
     monitor_file(unfinished / "0.monitor.csv", [])
-    cases = [([tmp_path / "nowhere"], {}, "no run folder"), ([tmp_path / "empty"], {}, "no Monitor files"),
-             ([unfinished], {}, "no finished episodes"), ([unfinished], {"x": "hours"}, "unknown --x 'hours'"),
-             ([unfinished], {"smooth": 0}, "--smooth=0 must be >= 1")]
+    cases = [
+        ([tmp_path / "nowhere"], {}, "no run folder"),
+        ([tmp_path / "empty"], {}, "no Monitor files"),
+        ([unfinished], {}, "no finished episodes"),
+        ([unfinished], {"x": "hours"}, "unknown --x 'hours'"),
+        ([unfinished], {"smooth": 0}, "--smooth=0 must be >= 1"),
+    ]
     for runs, options, message in cases:
         with pytest.raises(ValueError, match=message):
             plot_command(runs, output=tmp_path / "out" / "curves.png", **options)
@@ -69,9 +75,14 @@ def test_activity_figure_png(tmp_path, assert_png):
     assert_png(buffer.getvalue())
     # continuous actions, several hidden layers, cut episode
     env = gym.make("Pendulum-v1")
-    model = PPO("SpikePlasticPolicy", DummyVecEnv([lambda: gym.make("Pendulum-v1")]), n_steps=16, batch_size=16,
-                bptt_steps=8, policy_kwargs=dict(rule="ndp-bcm", hidden_sizes=(8, 8), steps=10, encoder_pop_size=8,
-                                                 action_pop_size=4))
+    model = PPO(
+        "SpikePlasticPolicy",
+        DummyVecEnv([lambda: gym.make("Pendulum-v1")]),
+        n_steps=16,
+        batch_size=16,
+        bptt_steps=8,
+        policy_kwargs=dict(rule="ndp-bcm", hidden_sizes=(8, 8), steps=10, encoder_pop_size=8, action_pop_size=4),
+    )
     activity = record_episode(model.policy, env, max_steps=7)
     assert activity.n_steps == 7 and not activity.done and len(activity.spikes) == 3
     fig = activity_figure(activity)

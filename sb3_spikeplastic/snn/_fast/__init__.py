@@ -43,7 +43,8 @@ and whether the build succeeded:
 * Small ops that read or set a kernel's state or describe an interface: ``spike_density_limit`` and
   ``spike_product_counts`` (``plastic_linear.cpp``) for the functions of the same names here,
   ``cpu_block_cache_bytes`` and ``cpu_block_cache_active`` (``block_cache.cpp``) for the allocator's state,
-  ``srm_interval_fields`` for the test that holds the interval's NamedTuples to the C++ structs; the alpha filter's ``alpha_filter_*`` are registered on
+  ``srm_interval_fields`` for the test that holds the interval's NamedTuples to the C++ structs; the alpha
+  filter's ``alpha_filter_*`` are registered on
   their own too, for their tests.
 
 On CUDA, ``srm_loop`` runs ``srm_loop_cuda.cu`` instead: one thread per neuron walks the interval's steps, one
@@ -92,10 +93,29 @@ from .kernels import (
     cpu_float_operands,
 )
 
-__all__ = ["BERNOULLI_SPIKES", "Kernel", "NO_COMPILE_ENV", "PLASTIC_LINEAR", "SRM_LOOP", "TRACE_STEP",
-           "bernoulli_spikes", "build_directory", "compiled", "compiled_disabled", "compiled_ops", "cpu_float_operands",
-           "dispatch", "interval_ops", "load_cuda_ops", "load_ops", "plastic_linear", "spike_density_limit",
-           "spike_product_counts", "srm_loop", "trace_step"]
+__all__ = [
+    "BERNOULLI_SPIKES",
+    "Kernel",
+    "NO_COMPILE_ENV",
+    "PLASTIC_LINEAR",
+    "SRM_LOOP",
+    "TRACE_STEP",
+    "bernoulli_spikes",
+    "build_directory",
+    "compiled",
+    "compiled_disabled",
+    "compiled_ops",
+    "cpu_float_operands",
+    "dispatch",
+    "interval_ops",
+    "load_cuda_ops",
+    "load_ops",
+    "plastic_linear",
+    "spike_density_limit",
+    "spike_product_counts",
+    "srm_loop",
+    "trace_step",
+]
 
 T = TypeVar("T")
 
@@ -104,15 +124,33 @@ BUILD_DIR_ENV = "SB3_SPIKEPLASTIC_BUILD_DIR"
 #: where the first build's time is measured, as said while compiling
 COMPILE_TIME = 'docs/install.md, "First use compiles the kernels"'
 _EXTENSION = "sb3_spikeplastic_fast"
-_SOURCES = [Path(__file__).with_name(name)
-            for name in ("srm_loop.cpp", "trace_step.cpp", "plastic_linear.cpp", "srm_interval.cpp",
-                         "alpha_filter.cpp", "bernoulli.cpp", "block_cache.cpp")]
+_SOURCES = [
+    Path(__file__).with_name(name)
+    for name in (
+        "srm_loop.cpp",
+        "trace_step.cpp",
+        "plastic_linear.cpp",
+        "srm_interval.cpp",
+        "alpha_filter.cpp",
+        "bernoulli.cpp",
+        "block_cache.cpp",
+    )
+]
 
 _CUDA_EXTENSION = "sb3_spikeplastic_fast_cuda"
 _CUDA_SOURCES = [Path(__file__).with_name("srm_loop_cuda.cu")]
-_HEADERS = [Path(__file__).with_name(name)
-            for name in ("srm_loop_checks.h", "denormal_mode.h", "kernels.h", "lanes.h", "op_fields.h", "small_gemm.h",
-                          "spike_product.h")]
+_HEADERS = [
+    Path(__file__).with_name(name)
+    for name in (
+        "srm_loop_checks.h",
+        "denormal_mode.h",
+        "kernels.h",
+        "lanes.h",
+        "op_fields.h",
+        "small_gemm.h",
+        "spike_product.h",
+    )
+]
 
 _lock = threading.Lock()
 _tried = False
@@ -231,23 +269,33 @@ def _compile(name: str, sources: list[Path], directory: Path, **options: Any) ->
     _clear_stale_lock(directory)
     sources = _sources_in(directory, sources)
     if not (directory / f"{name}.so").exists():
-        print(f"sb3_spikeplastic: compiling {name} once into {directory} (build time: {COMPILE_TIME}) ...",
-              file=sys.stderr, flush=True)
+        print(
+            f"sb3_spikeplastic: compiling {name} once into {directory} (build time: {COMPILE_TIME}) ...",
+            file=sys.stderr,
+            flush=True,
+        )
     path = os.environ.get("PATH", "")
     extra = None if shutil.which("ninja") else _ninja_directory()
     if extra:  # torch runs `ninja` from PATH
         os.environ["PATH"] = extra + os.pathsep + path
     try:
-        cpp_extension.load(name=name, sources=[str(source) for source in sources], build_directory=str(directory),
-                           is_python_module=False, verbose=False, **options)
+        cpp_extension.load(
+            name=name,
+            sources=[str(source) for source in sources],
+            build_directory=str(directory),
+            is_python_module=False,
+            verbose=False,
+            **options,
+        )
     finally:
         if extra:
             os.environ["PATH"] = path
 
 
 def _build() -> Any:
-    _compile(_EXTENSION, _SOURCES, build_directory(), extra_cflags=_cflags(), extra_ldflags=["-fopenmp"],
-             with_cuda=False)
+    _compile(
+        _EXTENSION, _SOURCES, build_directory(), extra_cflags=_cflags(), extra_ldflags=["-fopenmp"], with_cuda=False
+    )
     return torch.ops.sb3_spikeplastic_fast
 
 
@@ -255,8 +303,14 @@ def _build_cuda() -> Any:
     major, minor = torch.cuda.get_device_capability()
     # One build per CUDA version and GPU architecture: a cache shared between machines cannot mix them.
     directory = build_directory() / f"cuda{torch.version.cuda}_sm{major}{minor}"
-    _compile(_CUDA_EXTENSION, _CUDA_SOURCES, directory, extra_cflags=["-O3"],
-             extra_cuda_cflags=["-O3", "-fmad=false"], with_cuda=True)
+    _compile(
+        _CUDA_EXTENSION,
+        _CUDA_SOURCES,
+        directory,
+        extra_cflags=["-O3"],
+        extra_cuda_cflags=["-O3", "-fmad=false"],
+        with_cuda=True,
+    )
     return torch.ops.sb3_spikeplastic_cuda
 
 
@@ -276,9 +330,12 @@ def _try_build(build, what: str, record: Optional[Path] = None) -> tuple[Optiona
     if record is not None and record.is_file():
         compiler, _, error = record.read_text().partition("\n")
         if compiler == _compiler():
-            warnings.warn(f"sb3_spikeplastic: the compiled {what} failed to build on this machine before ({record}; "
-                          "delete it to try again); using pure PyTorch, which gives the same results but is slower.",
-                          RuntimeWarning, stacklevel=4)
+            warnings.warn(
+                f"sb3_spikeplastic: the compiled {what} failed to build on this machine before ({record}; "
+                "delete it to try again); using pure PyTorch, which gives the same results but is slower.",
+                RuntimeWarning,
+                stacklevel=4,
+            )
             return None, error.strip()
     try:
         return build(), None
@@ -289,8 +346,12 @@ def _try_build(build, what: str, record: Optional[Path] = None) -> tuple[Optiona
         reason = next((line.strip() for line in str(exc).splitlines()[1:] if "error" in line.lower()), None)
         if reason:
             error += f" [{reason[:300]}]"
-        warnings.warn(f"sb3_spikeplastic: could not build the compiled {what} ({error}); using pure PyTorch, "
-                      "which gives the same results but is slower.", RuntimeWarning, stacklevel=4)
+        warnings.warn(
+            f"sb3_spikeplastic: could not build the compiled {what} ({error}); using pure PyTorch, "
+            "which gives the same results but is slower.",
+            RuntimeWarning,
+            stacklevel=4,
+        )
         if record is not None:
             try:
                 record.parent.mkdir(parents=True, exist_ok=True)
@@ -369,8 +430,9 @@ def compiled(kernel: Kernel, *operands) -> Optional[Any]:
     return None if ops is None else kernel.run(ops, *operands)
 
 
-def srm_loop(synaptic: Tensor, h1: Tensor, h2: Tensor, d: float, kappa: float,
-             theta: float) -> Optional[SpikeLoopOutputs]:
+def srm_loop(
+    synaptic: Tensor, h1: Tensor, h2: Tensor, d: float, kappa: float, theta: float
+) -> Optional[SpikeLoopOutputs]:
     """:data:`SRM_LOOP` alone (see :func:`compiled`): float32/float64 ``synaptic (batch, L, n)`` and ``h1, h2
     (batch, n)`` of one dtype, all on the CPU (``srm_loop.cpp``) or all on one CUDA device (``srm_loop_cuda.cu``).
     Its outputs never carry autograd history."""
@@ -384,8 +446,9 @@ def trace_step(E: Tensor, post: Tensor, pre: Tensor, eta: Tensor, e_max: float, 
     return compiled(TRACE_STEP, E, post, pre, eta, e_max, oja)
 
 
-def plastic_linear(x: Tensor, weight: Tensor, alpha: Tensor, E: Tensor,
-                   carried: Optional[Tensor] = None) -> Optional[Tensor]:
+def plastic_linear(
+    x: Tensor, weight: Tensor, alpha: Tensor, E: Tensor, carried: Optional[Tensor] = None
+) -> Optional[Tensor]:
     """:data:`PLASTIC_LINEAR` alone (see :func:`compiled`): ``x[b] @ (W + alpha * E[b]).T`` for CPU float32/float64
     ``x (B, L, n_in)``, ``W, alpha (n_out, n_in)`` and ``E (B, n_out, n_in)`` of one dtype. With ``carried
     (B, 2, n_in)``, the product of the rows ``[x; carried]`` ``(B, L + 2, n_out)``, without copying them into one

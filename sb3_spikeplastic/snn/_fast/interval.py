@@ -15,8 +15,17 @@ from typing import Any, NamedTuple, Optional
 
 from torch import Tensor
 
-__all__ = ["IntervalConstants", "IntervalGradients", "IntervalInputs", "IntervalOutputs", "IntervalResiduals",
-           "NO_RULE", "RuleForm", "backward", "forward"]
+__all__ = [
+    "IntervalConstants",
+    "IntervalGradients",
+    "IntervalInputs",
+    "IntervalOutputs",
+    "IntervalResiduals",
+    "NO_RULE",
+    "RuleForm",
+    "backward",
+    "forward",
+]
 
 
 class RuleForm(NamedTuple):
@@ -170,8 +179,14 @@ class IntervalResiduals(NamedTuple):
     r_post: Tensor
 
 
-def forward(ops: Any, inputs: IntervalInputs, constants: IntervalConstants, form: RuleForm, need_surrogate: bool,
-            write_trace: Optional[bool] = None) -> tuple[IntervalOutputs, IntervalResiduals]:
+def forward(
+    ops: Any,
+    inputs: IntervalInputs,
+    constants: IntervalConstants,
+    form: RuleForm,
+    need_surrogate: bool,
+    write_trace: Optional[bool] = None,
+) -> tuple[IntervalOutputs, IntervalResiduals]:
     """One interval: ``srm_interval_forward``, or with ``write_trace`` given ``srm_interval_deferred_forward`` (the
     pending updates in ``inputs`` applied in the product's pass, the interval's own returned as ``p_next, q_next``,
     the trace it used written out only with ``write_trace``). ``need_surrogate``: compute the surrogate gradient
@@ -179,21 +194,31 @@ def forward(ops: Any, inputs: IntervalInputs, constants: IntervalConstants, form
     if write_trace is None:
         outputs, residuals = ops.srm_interval_forward(list(inputs), *constants, *form, need_surrogate)
     else:
-        outputs, residuals = ops.srm_interval_deferred_forward(list(inputs), *constants, *form, need_surrogate,
-                                                               write_trace)
+        outputs, residuals = ops.srm_interval_deferred_forward(
+            list(inputs), *constants, *form, need_surrogate, write_trace
+        )
     return IntervalOutputs._make(outputs), IntervalResiduals._make(residuals)
 
 
-def backward(ops: Any, grad_outputs: IntervalOutputs, residuals: IntervalResiduals, inputs: IntervalInputs,
-             constants: IntervalConstants, form: RuleForm, need_rows: bool,
-             write_trace: Optional[bool] = None) -> IntervalGradients:
+def backward(
+    ops: Any,
+    grad_outputs: IntervalOutputs,
+    residuals: IntervalResiduals,
+    inputs: IntervalInputs,
+    constants: IntervalConstants,
+    form: RuleForm,
+    need_rows: bool,
+    write_trace: Optional[bool] = None,
+) -> IntervalGradients:
     """The gradients of :func:`forward`'s inputs from those of its outputs (``None`` read as zero); ``inputs`` need
     only the parameters, the trace, the BCM threshold and the pending updates. ``need_rows``: also the gradients of
     ``x``, ``h1`` and ``h2``."""
     if write_trace is None:
-        gradients = ops.srm_interval_backward(list(grad_outputs), list(residuals), list(inputs), *constants, *form,
-                                              need_rows)
+        gradients = ops.srm_interval_backward(
+            list(grad_outputs), list(residuals), list(inputs), *constants, *form, need_rows
+        )
     else:
-        gradients = ops.srm_interval_deferred_backward(list(grad_outputs), list(residuals), list(inputs), *constants,
-                                                       *form, need_rows, write_trace)
+        gradients = ops.srm_interval_deferred_backward(
+            list(grad_outputs), list(residuals), list(inputs), *constants, *form, need_rows, write_trace
+        )
     return IntervalGradients._make(gradients)

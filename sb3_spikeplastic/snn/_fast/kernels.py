@@ -12,8 +12,19 @@ from typing import Any, Callable, NamedTuple, Optional
 import torch
 from torch import Tensor
 
-__all__ = ["BERNOULLI_SPIKES", "Kernel", "PLASTIC_LINEAR", "ProductGradients", "ProductOutputs", "SRM_LOOP",
-           "SpikeLoopOutputs", "TRACE_STEP", "TraceStepGradients", "TraceStepOutputs", "cpu_float_operands"]
+__all__ = [
+    "BERNOULLI_SPIKES",
+    "Kernel",
+    "PLASTIC_LINEAR",
+    "ProductGradients",
+    "ProductOutputs",
+    "SRM_LOOP",
+    "SpikeLoopOutputs",
+    "TRACE_STEP",
+    "TraceStepGradients",
+    "TraceStepOutputs",
+    "cpu_float_operands",
+]
 
 
 class Kernel(NamedTuple):
@@ -59,13 +70,15 @@ def _srm_loop_applies(synaptic: Tensor, h1: Tensor, h2: Tensor, d: float, kappa:
     if not (synaptic.dim() == 3 and h1.shape == h2.shape == (synaptic.shape[0], synaptic.shape[2])):
         return False
     if synaptic.is_cuda:
-        return (synaptic.dtype in (torch.float32, torch.float64)
-                and all(t.dtype is synaptic.dtype and t.device == synaptic.device for t in (h1, h2)))
+        return synaptic.dtype in (torch.float32, torch.float64) and all(
+            t.dtype is synaptic.dtype and t.device == synaptic.device for t in (h1, h2)
+        )
     return cpu_float_operands(synaptic, h1, h2)
 
 
-def _run_srm_loop(ops: Any, synaptic: Tensor, h1: Tensor, h2: Tensor, d: float, kappa: float,
-                  theta: float) -> SpikeLoopOutputs:
+def _run_srm_loop(
+    ops: Any, synaptic: Tensor, h1: Tensor, h2: Tensor, d: float, kappa: float, theta: float
+) -> SpikeLoopOutputs:
     with torch.no_grad():
         return SpikeLoopOutputs._make(ops.srm_loop(synaptic, h1, h2, d, kappa, theta))
 
@@ -120,8 +133,14 @@ class _TraceStep(torch.autograd.Function):
 def _trace_step_applies(E: Tensor, post: Tensor, pre: Tensor, eta: Tensor, e_max: float, oja: bool) -> bool:
     """CPU float32/float64 ``E (B, n_out, n_in)``, ``post (B, n_out)``, ``pre (B, n_in)`` and a one-element ``eta``
     of one dtype."""
-    return (cpu_float_operands(E, post, pre) and eta.dtype is E.dtype and eta.numel() == 1 and E.dim() == 3
-            and post.shape == E.shape[:2] and pre.shape == (E.shape[0], E.shape[2]))
+    return (
+        cpu_float_operands(E, post, pre)
+        and eta.dtype is E.dtype
+        and eta.numel() == 1
+        and E.dim() == 3
+        and post.shape == E.shape[:2]
+        and pre.shape == (E.shape[0], E.shape[2])
+    )
 
 
 def _run_trace_step(ops: Any, E: Tensor, post: Tensor, pre: Tensor, eta: Tensor, e_max: float, oja: bool) -> Tensor:
@@ -174,25 +193,32 @@ class _PlasticLinear(torch.autograd.Function):
         _, need_x, _, _, _, need_carried = ctx.needs_input_grad
         if grad is None:
             grad = x.new_zeros(x.shape[0], x.shape[1], weight.shape[0])
-        d = ProductGradients._make(ctx.ops.plastic_linear_backward(grad, grad_carried, x, weight, alpha, E, carried,
-                                                                    need_x or need_carried))
+        d = ProductGradients._make(
+            ctx.ops.plastic_linear_backward(grad, grad_carried, x, weight, alpha, E, carried, need_x or need_carried)
+        )
         return None, d.X if need_x else None, d.W, d.alpha, d.E, d.carried if need_carried else None
 
 
-def _plastic_linear_applies(x: Tensor, weight: Tensor, alpha: Optional[Tensor], E: Tensor,
-                            carried: Optional[Tensor] = None) -> bool:
+def _plastic_linear_applies(
+    x: Tensor, weight: Tensor, alpha: Optional[Tensor], E: Tensor, carried: Optional[Tensor] = None
+) -> bool:
     """CPU float32/float64 ``x (B, L, n_in)``, ``W, alpha (n_out, n_in)``, ``E (B, n_out, n_in)`` and
     ``carried (B, 2, n_in)`` (when given) of one dtype."""
-    return (alpha is not None
-            and cpu_float_operands(E, x, weight, alpha, *([] if carried is None else [carried]))
-            and E.dim() == 3 and x.dim() == 3
-            and weight.shape == alpha.shape == E.shape[1:]
-            and x.shape[0] == E.shape[0] and x.shape[2] == E.shape[2]
-            and (carried is None or carried.shape == (x.shape[0], 2, x.shape[2])))
+    return (
+        alpha is not None
+        and cpu_float_operands(E, x, weight, alpha, *([] if carried is None else [carried]))
+        and E.dim() == 3
+        and x.dim() == 3
+        and weight.shape == alpha.shape == E.shape[1:]
+        and x.shape[0] == E.shape[0]
+        and x.shape[2] == E.shape[2]
+        and (carried is None or carried.shape == (x.shape[0], 2, x.shape[2]))
+    )
 
 
-def _run_plastic_linear(ops: Any, x: Tensor, weight: Tensor, alpha: Tensor, E: Tensor,
-                        carried: Optional[Tensor] = None) -> Tensor:
+def _run_plastic_linear(
+    ops: Any, x: Tensor, weight: Tensor, alpha: Tensor, E: Tensor, carried: Optional[Tensor] = None
+) -> Tensor:
     out = ProductOutputs._make(_PlasticLinear.apply(ops, x, weight, alpha, E, carried))
     return out.Y if carried is None else torch.cat([out.Y, out.Y_carried], 1)
 
@@ -207,8 +233,14 @@ PLASTIC_LINEAR = Kernel("plastic_linear", _plastic_linear_applies, _run_plastic_
 
 def _bernoulli_applies(p: Tensor, keys: Tensor, index_hash: Tensor) -> bool:
     """CPU float32/float64 ``p (B, n)``, int32 ``keys (B,)`` and ``index_hash (T, n)``."""
-    return (cpu_float_operands(p) and keys.is_cpu and p.dim() == 2 and keys.dtype is torch.int32
-            and keys.shape == p.shape[:1] and index_hash.shape[1:] == p.shape[1:])
+    return (
+        cpu_float_operands(p)
+        and keys.is_cpu
+        and p.dim() == 2
+        and keys.dtype is torch.int32
+        and keys.shape == p.shape[:1]
+        and index_hash.shape[1:] == p.shape[1:]
+    )
 
 
 def _run_bernoulli(ops: Any, p: Tensor, keys: Tensor, index_hash: Tensor) -> Tensor:
