@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 
 from . import _fast
-from ._fast.interval import IntervalConstants
+from ._fast.interval import IntervalConstants, RuleForm
 from .neurons import AlphaFilterState, SRMParameters, srm_spikes
 from .plasticity import PlasticityRule, PlasticState
 
@@ -71,6 +71,8 @@ class IntervalParameters(NamedTuple):
         (:func:`~sb3_spikeplastic.snn.neurons.alpha_filter_operator`).
     :param constants: its PSP and end-state rows, the spike loop's constants, the trace bound and the product's
         form for this length (the compiled op's constants too).
+    :param form: the rule's :func:`~sb3_spikeplastic.snn.plasticity.compiled_form` (``None`` for a static layer and
+        for rules the compiled op does not update; the eager step does not read it).
     """
 
     weight: Tensor
@@ -79,6 +81,7 @@ class IntervalParameters(NamedTuple):
     neuron: SRMParameters
     operator: Tensor
     constants: IntervalConstants
+    form: Optional[RuleForm]
 
 
 def efficacy(weight: Tensor, alpha: Optional[Tensor], trace: Tensor) -> Tensor:

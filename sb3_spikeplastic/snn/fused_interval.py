@@ -16,10 +16,10 @@ from torch import Tensor
 
 from . import _fast
 from ._fast import interval
-from ._fast.interval import NO_RULE, IntervalConstants, IntervalInputs, IntervalOutputs, IntervalResiduals, RuleForm
+from ._fast.interval import NO_RULE, IntervalConstants, IntervalInputs, IntervalOutputs, RuleForm
 from .functional import IntervalParameters, LayerOutput, LayerState, interval_result
 from .neurons import AlphaFilterState
-from .plasticity import PlasticState, compiled_form
+from .plasticity import PlasticState
 
 __all__ = ["FUSED_INTERVAL", "IntervalCall", "fused_interval_step", "interval_inputs"]
 
@@ -100,40 +100,39 @@ class _FusedInterval(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, call: IntervalCall, *tensors: Optional[Tensor]):
-        inputs = IntervalInputs._make(tensors)
-        outputs, residuals = interval.forward(
-            call.ops, inputs, call.constants, call.form, need_surrogate=True, write_trace=call.write_trace
-        )
-        outputs = _passed_on(outputs, inputs, call)
+        inputs = interval.named(IntervalInputs, tensors)
+        outputs, residuals = interval.run_forward(call.ops, inputs, call.constants, call.form, True, call.write_trace)
+        if call.write_trace is False:  # the deferred op passes the input trace on (see _DeferredInterval)
+            outputs = outputs._replace(trace=inputs.trace)
         # The backward op reads the parameters, the trace, the threshold and the pending updates of the inputs.
-        saved = inputs._replace(x=None, h1=None, h2=None, ref_h1=None, ref_h2=None)
-        ctx.save_for_backward(*saved, *residuals)
-        ctx.call = call
-        ctx.mark_non_differentiable(*_constant_outputs(ctx, outputs))
+        ctx.save_for_backward(*interval.saved(inputs, residuals))
+        # The rows' gradients only where the input spikes or the carried PSP state have one (not the input layer).
+        need_rows = inputs.x.requires_grad or inputs.h1.requires_grad or inputs.h2.requires_grad
+        ctx.call, ctx.need_rows = call, need_rows
+        # The membrane and the refractory state carry no gradient (as in
+        # :class:`~sb3_spikeplastic.snn.neurons.SRMSpikeRecursion`), nor, without the rows' gradients, the PSP state
+        # and r_pre, which depend on those only.
+        if need_rows:
+            ctx.mark_non_differentiable(outputs.membrane, outputs.ref_h1, outputs.ref_h2)
+        else:
+            ctx.mark_non_differentiable(
+                outputs.membrane, outputs.ref_h1, outputs.ref_h2, outputs.h1, outputs.h2, outputs.r_pre
+            )
         # Outputs the loss does not reach (the membrane, the output layer's spikes, unused rates, the final trace)
         # get None, which the op reads as zero, instead of a zero-filled tensor of their size.
         ctx.set_materialize_grads(False)
-        return tuple(outputs)
+        return outputs
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, *grad_outputs: Optional[Tensor]):
-        saved, call = ctx.saved_tensors, ctx.call
-        inputs = IntervalInputs._make(saved[: len(IntervalInputs._fields)])
-        residuals = IntervalResiduals._make(saved[len(IntervalInputs._fields) :])
-        needs = IntervalInputs._make(ctx.needs_input_grad[1:])
-        gradients = interval.backward(
-            call.ops,
-            IntervalOutputs._make(grad_outputs),
-            residuals,
-            inputs,
-            call.constants,
-            call.form,
-            need_rows=needs.x or needs.h1 or needs.h2,
-            write_trace=call.write_trace,
+        call = ctx.call
+        # The op's gradients in the inputs' order, None for those not given; autograd drops those of inputs that
+        # need none.
+        gradients = interval.backward_saved(
+            call.ops, grad_outputs, ctx.saved_tensors, call.constants, call.form, ctx.need_rows, call.write_trace
         )
-        # autograd takes a gradient only for the inputs that need one (None for those not given)
-        return (None, *(g if need else None for g, need in zip(gradients, needs)))
+        return (None, *gradients)
 
 
 class _DeferredInterval(_FusedInterval):
@@ -148,35 +147,15 @@ class _DeferredInterval(_FusedInterval):
     """
 
 
-def _passed_on(outputs: IntervalOutputs, inputs: IntervalInputs, call: IntervalCall) -> IntervalOutputs:
-    """The deferred op's outputs with the trace it passes on: the one it wrote, else the input trace (a trace passed
-    on unwritten is the input itself: autograd returns it as a view with this node's history, so that its gradient
-    comes back here and is added in the row pass, not in a pass of its own)."""
-    if call.write_trace is None or outputs.trace is not None:
-        return outputs
-    return outputs._replace(trace=inputs.trace)
-
-
-def _constant_outputs(ctx, outputs: IntervalOutputs) -> list[Tensor]:
-    """The outputs that carry no gradient: the membrane and the refractory state (as in
-    :class:`~sb3_spikeplastic.snn.neurons.SRMSpikeRecursion`), and, when the input spikes and the carried PSP state have
-    no gradient (the input layer), the PSP state and ``r_pre``, which depend on those only."""
-    constant = [outputs.membrane, outputs.ref_h1, outputs.ref_h2]
-    needs = IntervalInputs._make(ctx.needs_input_grad[1:])
-    if not (needs.x or needs.h1 or needs.h2):
-        constant += [outputs.h1, outputs.h2, outputs.r_pre]
-    return constant
-
-
 def run_interval(function: type[_FusedInterval], call: IntervalCall, inputs: IntervalInputs) -> IntervalOutputs:
     """The op's outputs: one autograd node of ``function`` when training, the op alone without autograd (rollouts,
     no surrogate)."""
     if torch.is_grad_enabled():
-        return IntervalOutputs._make(function.apply(call, *inputs))
-    outputs, _ = interval.forward(
-        call.ops, inputs, call.constants, call.form, need_surrogate=False, write_trace=call.write_trace
-    )
-    return _passed_on(outputs, inputs, call)
+        return interval.named(IntervalOutputs, function.apply(call, *inputs))
+    outputs, _ = interval.run_forward(call.ops, inputs, call.constants, call.form, False, call.write_trace)
+    if call.write_trace is False:  # the deferred op passes the input trace on
+        return outputs._replace(trace=inputs.trace)
+    return outputs
 
 
 def fused_interval_step(
@@ -196,8 +175,7 @@ def fused_interval_step(
     other such interval leaves the update before it pending too and passes its input trace on unchanged, so that a
     sequence stores half of its traces. Pending updates in ``state`` are always applied first.
     """
-    rule, plastic = parameters.rule, parameters.alpha is not None
-    form = compiled_form(rule) if plastic else None
+    rule, plastic, form = parameters.rule, parameters.alpha is not None, parameters.form
     pending = state.plastic.pending if plastic else None
     if form is not None and (defer_update or pending is not None) and not monitor:
         # Every other trace is stored: an interval with one update pending leaves it pending with its own and

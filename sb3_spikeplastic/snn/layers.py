@@ -9,16 +9,17 @@ picks for the call.
 from __future__ import annotations
 
 import math
+from typing import Optional
 
 import torch
 from torch import Tensor, nn
 
 from . import _fast
-from ._fast.interval import IntervalConstants
+from ._fast.interval import IntervalConstants, RuleForm
 from .functional import IntervalParameters, LayerOutput, LayerState, efficacy, interval_step
 from .fused_interval import FUSED_INTERVAL
 from .neurons import AlphaFilterState, SRMParameters, alpha_filter_operator, alpha_kernel_sum, spike_constants
-from .plasticity import PlasticityRule
+from .plasticity import PlasticityRule, compiled_form
 
 __all__ = ["CARRY_MIN_ROW_VALUES", "LayerOutput", "LayerState", "PlasticSRMLayer", "fan_in_std"]
 
@@ -65,7 +66,7 @@ class PlasticSRMLayer(nn.Module):
         self.alpha = (
             nn.Parameter(alpha_init_mean + alpha_init_std * torch.randn(n_out, n_in)) if rule.has_trace else None
         )
-        self._intervals: dict[tuple, tuple[Tensor, IntervalConstants]] = {}
+        self._intervals: dict[tuple, tuple[Tensor, IntervalConstants, Optional[RuleForm]]] = {}
 
     @property
     def plastic(self) -> bool:
@@ -105,12 +106,12 @@ class PlasticSRMLayer(nn.Module):
     def interval_parameters(self, length: int, dtype, device) -> IntervalParameters:
         """What an interval of ``length`` steps reads besides its input and state: the parameters, and the filter's
         operator and constants for this length (cached)."""
-        operator, constants = self._interval(length, dtype, device)
-        return IntervalParameters(self.weight, self.alpha, self.rule, self.neuron, operator, constants)
+        operator, constants, form = self._interval(length, dtype, device)
+        return IntervalParameters(self.weight, self.alpha, self.rule, self.neuron, operator, constants, form)
 
-    def _interval(self, length: int, dtype, device) -> tuple[Tensor, IntervalConstants]:
-        """:func:`~sb3_spikeplastic.snn.neurons.alpha_filter_operator` for ``length`` steps, and the interval's
-        constants with its PSP rows and end-state rows as contiguous blocks (cached)."""
+    def _interval(self, length: int, dtype, device) -> tuple[Tensor, IntervalConstants, Optional[RuleForm]]:
+        """:func:`~sb3_spikeplastic.snn.neurons.alpha_filter_operator` for ``length`` steps, the interval's
+        constants with its PSP rows and end-state rows as contiguous blocks, and the rule's compiled form (cached)."""
         key = (length, dtype, device)
         if key not in self._intervals:
             op = alpha_filter_operator(length, self.neuron.tau_s, self.neuron.dt, dtype, device)
@@ -122,7 +123,8 @@ class PlasticSRMLayer(nn.Module):
                 self.rule.e_max,
                 self.carries_state(length),
             )
-            self._intervals[key] = (op, constants)
+            form = compiled_form(self.rule) if self.plastic else None
+            self._intervals[key] = (op, constants, form)
         return self._intervals[key]
 
     def _interval_constants(self, length: int, dtype, device) -> IntervalConstants:

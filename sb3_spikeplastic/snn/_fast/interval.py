@@ -1,12 +1,15 @@
 """The compiled layer interval's interface (``srm_interval.cpp``): NamedTuples mirroring the op's C++ structs, and
-the two functions that call the ops.
+the functions that call the ops.
 
 The op schemas are positional underneath (``TORCH_LIBRARY`` needs that): each struct of tensors travels as one
 ``Tensor?[]`` / ``Tensor[]``, ordered by its fields, and the constants and the rule's form as the schema's named
-scalars. On this side :func:`forward` and :func:`backward` are the only code that knows an order: they flatten the
-NamedTuples into the op's arguments and rebuild them from its results with ``_make``; the C++ side orders each struct
-in its ``fields()`` (``op_fields.h``). ``srm_interval_fields`` returns those field names, so that a test holds the
-two sides to the same order.
+scalars. On this side the functions below are the only code that knows an order: they flatten the NamedTuples into
+the op's arguments and rebuild them from its results (:func:`forward`, :func:`backward`). The training path keeps
+what autograd only passes on in the op's order, never indexed: :func:`run_forward` returns the residuals as the op's
+list for :func:`saved`, and :func:`backward_saved` takes the gradients of the outputs as autograd hands them to a node
+and returns the op's gradients as autograd takes them back. The C++ side orders each struct in its ``fields()``
+(``op_fields.h``). ``srm_interval_fields`` returns those field names, so that a test holds the two sides to the same
+order.
 """
 
 from __future__ import annotations
@@ -24,7 +27,11 @@ __all__ = [
     "NO_RULE",
     "RuleForm",
     "backward",
+    "backward_saved",
     "forward",
+    "named",
+    "run_forward",
+    "saved",
 ]
 
 
@@ -179,6 +186,37 @@ class IntervalResiduals(NamedTuple):
     r_post: Tensor
 
 
+#: The inputs that the backward ops do not read (the rows and the filters' states), by name: :func:`saved` leaves
+#: them out.
+_NOT_SAVED = tuple(name in ("x", "h1", "h2", "ref_h1", "ref_h2") for name in IntervalInputs._fields)
+
+#: How many of :func:`saved`'s tensors are inputs (the residuals follow them).
+_SAVED_INPUTS = len(IntervalInputs._fields)
+
+#: ``named(struct, tensors)``: the NamedTuple ``struct`` of ``tensors`` in its fields' order (an op's result list, or
+#: autograd's tuple of a flattened struct): ``_make`` without its length check, which the op's schema makes.
+named = tuple.__new__
+
+
+def run_forward(
+    ops: Any,
+    inputs: IntervalInputs,
+    constants: IntervalConstants,
+    form: RuleForm,
+    need_surrogate: bool,
+    write_trace: Optional[bool] = None,
+) -> tuple[IntervalOutputs, list[Tensor]]:
+    """:func:`forward`'s outputs, and its residuals as the op returns them: a list for :func:`saved`, which is the
+    only reader of their order."""
+    if write_trace is None:
+        outputs, residuals = ops.srm_interval_forward(list(inputs), *constants, *form, need_surrogate)
+    else:
+        outputs, residuals = ops.srm_interval_deferred_forward(
+            list(inputs), *constants, *form, need_surrogate, write_trace
+        )
+    return named(IntervalOutputs, outputs), residuals
+
+
 def forward(
     ops: Any,
     inputs: IntervalInputs,
@@ -191,13 +229,33 @@ def forward(
     pending updates in ``inputs`` applied in the product's pass, the interval's own returned as ``p_next, q_next``,
     the trace it used written out only with ``write_trace``). ``need_surrogate``: compute the surrogate gradient
     (training)."""
+    outputs, residuals = run_forward(ops, inputs, constants, form, need_surrogate, write_trace)
+    return outputs, IntervalResiduals._make(residuals)
+
+
+def saved(inputs: IntervalInputs, residuals: list[Tensor]) -> tuple[Optional[Tensor], ...]:
+    """What :func:`backward_saved` reads of an interval, as one tuple for ``save_for_backward``: the inputs that the
+    backward op reads (``None`` for the others), then the residuals of :func:`run_forward`."""
+    return (*[None if dropped else t for t, dropped in zip(inputs, _NOT_SAVED)], *residuals)
+
+
+def backward_saved(
+    ops: Any,
+    grad_outputs: tuple[Optional[Tensor], ...],
+    saved_tensors: tuple[Optional[Tensor], ...],
+    constants: IntervalConstants,
+    form: RuleForm,
+    need_rows: bool,
+    write_trace: Optional[bool] = None,
+) -> list[Optional[Tensor]]:
+    """:func:`backward` from the tensors :func:`saved` kept and the gradients of the outputs in their order (as
+    autograd hands them to a node), returning the op's gradients in the inputs' order (as autograd takes them)."""
+    inputs, residuals = list(saved_tensors[:_SAVED_INPUTS]), list(saved_tensors[_SAVED_INPUTS:])
     if write_trace is None:
-        outputs, residuals = ops.srm_interval_forward(list(inputs), *constants, *form, need_surrogate)
-    else:
-        outputs, residuals = ops.srm_interval_deferred_forward(
-            list(inputs), *constants, *form, need_surrogate, write_trace
-        )
-    return IntervalOutputs._make(outputs), IntervalResiduals._make(residuals)
+        return ops.srm_interval_backward(list(grad_outputs), residuals, inputs, *constants, *form, need_rows)
+    return ops.srm_interval_deferred_backward(
+        list(grad_outputs), residuals, inputs, *constants, *form, need_rows, write_trace
+    )
 
 
 def backward(

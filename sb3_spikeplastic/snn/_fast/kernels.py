@@ -49,7 +49,10 @@ def cpu_float_operands(first: Tensor, *others: Tensor) -> bool:
     dtype = first.dtype
     if not (first.is_cpu and (dtype is torch.float32 or dtype is torch.float64)):
         return False
-    return all(t.dtype is dtype and t.is_cpu for t in others)
+    for t in others:
+        if t.dtype is not dtype or not t.is_cpu:
+            return False
+    return True
 
 
 # --- srm_loop (srm_loop.cpp, srm_loop_cuda.cu) -------------------------------------------------------------------
