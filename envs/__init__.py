@@ -7,6 +7,8 @@
   ``obs_indices`` limits the observation noise to some elements).
 * ``TMazeReversal-v0`` / ``TMazeReversalNoisy-v0``: a spiking two-armed T-maze whose paying arm is hidden, must be
   learned from the outcomes within the episode and reverses once (:class:`TMazeReversalEnv`); low / high noise.
+* :class:`PreviousReward`: a wrapper that appends the previous reward (and optionally action) to a vector
+  observation (the RL² convention), for policies that learn from reward within an episode.
 * ``HalfCheetahSwitch-v5``: ``HalfCheetah-v5`` whose dynamics change once during each episode (``kind``,
   ``window``, ``factor_range``, ``target``; :class:`DynamicsSwitch`).
 
@@ -27,6 +29,7 @@ from sb3_spikeplastic.envs.noise import (
     make_noisy_env,
     noise_kwargs,
 )
+from sb3_spikeplastic.envs.previous_reward import PreviousReward
 from sb3_spikeplastic.envs.reversal import TMazeReversalEnv
 from sb3_spikeplastic.envs.switch import SWITCH_KINDS, DynamicsSwitch, make_switch_env
 from sb3_spikeplastic.envs.tmaze import TMazeCueEnv
@@ -39,6 +42,7 @@ __all__ = [
     "DynamicsSwitch",
     "FrictionNoise",
     "ObservationNoise",
+    "PreviousReward",
     "TMazeCueEnv",
     "TMazeReversalEnv",
     "make_noisy_env",
