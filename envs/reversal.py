@@ -16,7 +16,15 @@ import gymnasium
 import numpy as np
 from gymnasium import spaces
 
-from sb3_spikeplastic.envs.tmaze import LEFT, NOISE_LEVELS, RIGHT, _check_int, _check_probability
+from sb3_spikeplastic.envs.tmaze import (
+    LEFT,
+    RIGHT,
+    _check_int,
+    _check_probability,
+    check_rendering,
+    raster_image,
+    spike_probabilities,
+)
 
 # Index of each population in the input vector; each occupies ``neurons_per_population`` consecutive neurons.
 _DECISION_POP, _REWARD_POP, _NO_REWARD_POP, _NOISE_POP = 0, 1, 2, 3
@@ -25,7 +33,6 @@ _N_POPULATIONS = 4
 #: Video colours of the populations' spikes (decision cue, reward, no reward, noise) and of their columns' bands.
 _POPULATION_COLOURS = np.array([(255, 255, 255), (0, 200, 0), (230, 0, 0), (150, 150, 150)])
 _POPULATION_BANDS = np.array([(30, 30, 30), (10, 35, 10), (40, 10, 10), (15, 15, 15)])
-_BLOCK = 8
 
 
 class TMazeReversalEnv(gymnasium.Env):
@@ -92,10 +99,9 @@ class TMazeReversalEnv(gymnasium.Env):
         render_mode: str | None = None,
         render_fps: float = 4.0,
     ) -> None:
-        if noise not in NOISE_LEVELS:
-            raise ValueError(f"noise={noise!r} is not one of {tuple(NOISE_LEVELS)}")
-        if render_mode not in (None, "rgb_array"):
-            raise ValueError(f"render_mode={render_mode!r} is not supported; accepted: None, 'rgb_array'")
+        self.p_cue_event, self.p_cue_rest, self.p_noise = spike_probabilities(noise, p_cue_event, p_cue_rest, p_noise)
+        self.noise = noise
+        fps = check_rendering(render_mode, render_fps)
         self.n_trials = _check_int("n_trials", n_trials, 1)
         self.p_reward = _check_probability("p_reward", p_reward)
         if not isinstance(reversal, (bool, np.bool_)):
@@ -113,24 +119,13 @@ class TMazeReversalEnv(gymnasium.Env):
         self.outcome_ms = _check_int("outcome_ms", outcome_ms, 1)
         self.decision_ms = _check_int("decision_ms", decision_ms, 1)
         self.neurons_per_population = _check_int("neurons_per_population", neurons_per_population, 1)
-        defaults = NOISE_LEVELS[noise]
-        self.noise = noise
-        self.p_cue_event = _check_probability("p_cue_event", defaults[0] if p_cue_event is None else p_cue_event)
-        self.p_cue_rest = _check_probability("p_cue_rest", defaults[1] if p_cue_rest is None else p_cue_rest)
-        self.p_noise = _check_probability("p_noise", defaults[2] if p_noise is None else p_noise)
-        if (
-            isinstance(render_fps, bool)
-            or not isinstance(render_fps, (int, float))
-            or not 0 < render_fps < float("inf")
-        ):
-            raise ValueError(f"render_fps={render_fps!r} must be a finite number > 0")
 
         self.frame_ms = self.outcome_ms + self.decision_ms
         self.n_inputs = _N_POPULATIONS * self.neurons_per_population
         self.observation_space = spaces.Box(0.0, 1.0, shape=(self.frame_ms, self.n_inputs), dtype=np.float32)
         self.action_space = spaces.Discrete(2)
         self.render_mode = render_mode
-        self.metadata = {**type(self).metadata, "render_fps": float(render_fps)}
+        self.metadata = {**type(self).metadata, "render_fps": fps}
 
         #: The good arm of the first trial (0 = left, 1 = right).
         self.first_good_arm: int | None = None
@@ -196,10 +191,7 @@ class TMazeReversalEnv(gymnasium.Env):
         """The current trial's raster as an RGB image (``render_mode="rgb_array"``), else ``None``."""
         if self.render_mode != "rgb_array":
             return None
-        colours = np.repeat(_POPULATION_COLOURS, self.neurons_per_population, axis=0)
-        background = np.repeat(_POPULATION_BANDS, self.neurons_per_population, axis=0)
-        image = np.where(self._frame[..., None] > 0, colours[None], background[None]).astype(np.uint8)
-        return np.kron(image, np.ones((_BLOCK, _BLOCK, 1), dtype=np.uint8))
+        return raster_image(self._frame, _POPULATION_COLOURS, _POPULATION_BANDS, self.neurons_per_population)
 
     @property
     def video_labels(self) -> list[tuple[float, str]]:

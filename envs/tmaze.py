@@ -45,6 +45,36 @@ _POPULATION_BANDS = np.array([(10, 20, 40), (40, 25, 10), (30, 30, 30), (15, 15,
 _BLOCK = 8
 
 
+def spike_probabilities(noise: str, p_cue_event: Any, p_cue_rest: Any, p_noise: Any) -> tuple[float, float, float]:
+    """``(p_cue_event, p_cue_rest, p_noise)``: each given one checked, each ``None`` from the ``noise`` level."""
+    if noise not in NOISE_LEVELS:
+        raise ValueError(f"noise={noise!r} is not one of {tuple(NOISE_LEVELS)}")
+    given = {"p_cue_event": p_cue_event, "p_cue_rest": p_cue_rest, "p_noise": p_noise}
+    return tuple(
+        _check_probability(name, level if value is None else value)
+        for (name, value), level in zip(given.items(), NOISE_LEVELS[noise])
+    )
+
+
+def check_rendering(render_mode: Any, render_fps: Any) -> float:
+    """``render_fps`` as a float, once ``render_mode`` and it are checked (one-line errors naming them)."""
+    if render_mode not in (None, "rgb_array"):
+        raise ValueError(f"render_mode={render_mode!r} is not supported; accepted: None, 'rgb_array'")
+    if isinstance(render_fps, bool) or not isinstance(render_fps, (int, float)) or not 0 < render_fps < float("inf"):
+        raise ValueError(f"render_fps={render_fps!r} must be a finite number > 0")
+    return float(render_fps)
+
+
+def raster_image(frame: np.ndarray, colours: np.ndarray, bands: np.ndarray, neurons_per_population: int) -> np.ndarray:
+    """A ``(ms, neurons)`` spike raster as an RGB image: each population's spikes in its colour (``colours``: one
+    per population, or one per neuron) on its band, one 8x8 pixel block per neuron-millisecond."""
+    if len(colours) != frame.shape[1]:
+        colours = np.repeat(colours, neurons_per_population, axis=0)
+    background = np.repeat(bands, neurons_per_population, axis=0)
+    image = np.where(frame[..., None] > 0, colours[None], background[None]).astype(np.uint8)
+    return np.kron(image, np.ones((_BLOCK, _BLOCK, 1), dtype=np.uint8))
+
+
 class TMazeCueEnv(gymnasium.Env):
     """Cue-association T-maze with spiking input: choose the side that showed more cues.
 
@@ -128,10 +158,9 @@ class TMazeCueEnv(gymnasium.Env):
         render_mode: str | None = None,
         render_fps: float = 4.0,
     ) -> None:
-        if noise not in NOISE_LEVELS:
-            raise ValueError(f"noise={noise!r} is not one of {tuple(NOISE_LEVELS)}")
-        if render_mode not in (None, "rgb_array"):
-            raise ValueError(f"render_mode={render_mode!r} is not supported; accepted: None, 'rgb_array'")
+        self.p_cue_event, self.p_cue_rest, self.p_noise = spike_probabilities(noise, p_cue_event, p_cue_rest, p_noise)
+        self.noise = noise
+        fps = check_rendering(render_mode, render_fps)
         self.n_cues = _check_int("n_cues", n_cues, 1)
         if self.n_cues % 2 == 0:
             raise ValueError(f"n_cues={n_cues!r} must be odd so that one side always shows more cues")
@@ -145,12 +174,6 @@ class TMazeCueEnv(gymnasium.Env):
         if not is_sequence or len(rest_choices_ms) == 0:
             raise ValueError(f"rest_choices_ms={rest_choices_ms!r} must be a non-empty sequence of integers >= 0")
         self.rest_choices_ms = tuple(_check_int("rest_choices_ms", r, 0) for r in rest_choices_ms)
-
-        defaults = NOISE_LEVELS[noise]
-        self.noise = noise
-        self.p_cue_event = _check_probability("p_cue_event", defaults[0] if p_cue_event is None else p_cue_event)
-        self.p_cue_rest = _check_probability("p_cue_rest", defaults[1] if p_cue_rest is None else p_cue_rest)
-        self.p_noise = _check_probability("p_noise", defaults[2] if p_noise is None else p_noise)
 
         self._fixed_cues: list[int] | None = None
         if cues is not None:
@@ -172,13 +195,7 @@ class TMazeCueEnv(gymnasium.Env):
         self.action_space = spaces.Discrete(2)
         self.render_mode = render_mode
         # Real time: one frame of frame_ms per frame shown.
-        if (
-            isinstance(render_fps, bool)
-            or not isinstance(render_fps, (int, float))
-            or not 0 < render_fps < float("inf")
-        ):
-            raise ValueError(f"render_fps={render_fps!r} must be a finite number > 0")
-        self.metadata = {**type(self).metadata, "render_fps": float(render_fps)}
+        self.metadata = {**type(self).metadata, "render_fps": fps}
 
         #: Sides of the current episode's cues (0 = left, 1 = right), in order of presentation.
         self.cues: list[int] = []
@@ -258,12 +275,10 @@ class TMazeCueEnv(gymnasium.Env):
             else np.zeros((self.frame_ms, self.n_inputs), dtype=np.float32)
         )
         if self._success is None:
-            colours = np.repeat(_POPULATION_COLOURS, self.neurons_per_population, axis=0)  # (n_inputs, 3)
+            colours = _POPULATION_COLOURS
         else:
             colours = np.tile((0, 200, 0) if self._success else (230, 0, 0), (self.n_inputs, 1))
-        background = np.repeat(_POPULATION_BANDS, self.neurons_per_population, axis=0)
-        image = np.where(frame[..., None] > 0, colours[None], background[None]).astype(np.uint8)
-        return np.kron(image, np.ones((_BLOCK, _BLOCK, 1), dtype=np.uint8))
+        return raster_image(frame, colours, _POPULATION_BANDS, self.neurons_per_population)
 
     @property
     def video_labels(self) -> list[tuple[float, str]]:
