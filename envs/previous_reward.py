@@ -53,6 +53,9 @@ class PreviousReward(gymnasium.Wrapper, gymnasium.utils.RecordConstructorArgs):
         low = np.concatenate([space.low, [reward_bounds[0]], action_low]).astype(space.dtype)
         high = np.concatenate([space.high, [reward_bounds[1]], action_high]).astype(space.dtype)
         self.observation_space = spaces.Box(low, high, shape=(space.shape[0] + extra,), dtype=space.dtype)
+        #: where the observation carries the reward, for the policies that read it
+        #: (:class:`sb3_spikeplastic.sb3.modulation.RewardInput`; ``modulation_source="reward"``)
+        self.reward_input = {"positive": [int(space.shape[0])]}
 
     def _observation(self, obs: np.ndarray, reward: float, action: Any) -> np.ndarray:
         encoded = np.zeros(self._action_size, dtype=self.observation_space.dtype)

@@ -137,6 +137,23 @@ class TMazeReversalEnv(gymnasium.Env):
         self._frame = np.zeros(self.observation_space.shape, dtype=np.float32)
         self._good_choices = 0
 
+    @property
+    def reward_input(self) -> dict[str, Any] | None:
+        """Where a trial's raster shows the reward the previous trial paid, for the policies that read it
+        (:class:`sb3_spikeplastic.sb3.modulation.RewardInput`): the reward population's mean spike rate minus the
+        no-reward population's, scaled so that its expected value is the reward (1 or 0), and 0.5 in the first
+        trial (no outcome shown). ``None`` where the two populations fire alike (no outcome in the input)."""
+        contrast = (self.p_cue_event - self.p_cue_rest) * self.outcome_ms / self.frame_ms
+        if contrast == 0:
+            return None
+        n = self.neurons_per_population
+        return {
+            "positive": list(range(_REWARD_POP * n, (_REWARD_POP + 1) * n)),
+            "negative": list(range(_NO_REWARD_POP * n, (_NO_REWARD_POP + 1) * n)),
+            "scale": 1.0 / (2.0 * contrast),
+            "offset": 0.5,
+        }
+
     def good_arm(self, trial: int) -> int:
         """The arm that pays with ``p_reward`` in ``trial`` (0-based) of the current episode."""
         swapped = self.reversal_trial is not None and trial >= self.reversal_trial

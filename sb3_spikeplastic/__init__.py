@@ -34,6 +34,8 @@ _LAZY = {
     "load_hyperparams": "zoo.config",
     "Ablation": "sb3.ablation",
     "ablated": "sb3.ablation",
+    "ModulationSource": "sb3.modulation",
+    "register_modulation_source": "sb3.modulation",
 }
 __all__ = list(_LAZY)
 

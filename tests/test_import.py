@@ -53,6 +53,7 @@ def test_cli_help_does_not_load_torch(tmp_path):
 def test_public_names_load_on_first_use(tmp_path):
     import sb3_spikeplastic
     from sb3_spikeplastic.sb3.ablation import Ablation, ablated
+    from sb3_spikeplastic.sb3.modulation import ModulationSource, register_modulation_source
     from sb3_spikeplastic.sb3.policy import SpikePlasticPolicy
     from sb3_spikeplastic.sb3.ppo import PPO
     from sb3_spikeplastic.snn.plasticity import PlasticityRule, available_rules, register_rule
@@ -67,6 +68,8 @@ def test_public_names_load_on_first_use(tmp_path):
         "load_hyperparams": load_hyperparams,
         "Ablation": Ablation,
         "ablated": ablated,
+        "ModulationSource": ModulationSource,
+        "register_modulation_source": register_modulation_source,
     }
     assert sorted(sb3_spikeplastic.__all__) == sorted(public)
     for name, value in public.items():

@@ -118,7 +118,7 @@ class AblatedState(NamedTuple):
 def _plastic_map(fn, state: NetworkState) -> NetworkState:
     """``state`` with ``fn`` applied to every tensor of every layer's plastic state (traces and rule state)."""
     layers = tuple(LayerState(s.psp, s.refractory, map_tensors(fn, s.plastic)) for s in state.layers)
-    return NetworkState(layers, state.noise_key)
+    return state._replace(layers=layers)
 
 
 def ablate(ablation: Ablation, state: NetworkState, steps: Tensor) -> NetworkState:

@@ -55,13 +55,13 @@ class RolloutActivity:
         # `record`, so that a rollout step never waits for the device (which would stall a GPU).
         self._sums: Optional[torch.Tensor] = None
         self._spikes: Optional[torch.Tensor] = None
-        self._unsummed: list[tuple[Optional[Tensor], ...]] = []  # (input_rate, *rates) of the latest steps
+        self._unsummed: list[tuple[Optional[Tensor], ...]] = []  # (modulator, input_rate, *rates) of the latest steps
 
     @torch.no_grad()
     def add(self, out: NetworkOutput) -> None:
         """Accumulate one rollout step's rates (all environments)."""
         self.steps += 1
-        self._unsummed.append((out.input_rate, *out.rates))
+        self._unsummed.append((out.modulator, out.input_rate, *out.rates))
         if len(self._unsummed) >= self.BATCH_STEPS:
             self._sum_up()
 
@@ -70,7 +70,8 @@ class RolloutActivity:
         if not self._unsummed:
             return
         k = len(self._unsummed)
-        input_rates, *layer_rates = [list(column) for column in zip(*self._unsummed)]
+        modulators, input_rates, *layer_rates = [list(column) for column in zip(*self._unsummed)]
+        modulator = None if modulators[0] is None else torch.stack(modulators)
         self._unsummed = []
         rates = [torch.stack(column) for column in layer_rates]
         if input_rates[0] is not None:  # spike_counts of every step, summed
@@ -80,7 +81,7 @@ class RolloutActivity:
         rows = []
         for layer, r in zip(self.network.layers, rates):
             if layer.plastic and layer.rule.modulated:
-                m = layer.rule.modulation(r)
+                m = layer.rule.modulation(r, modulator if layer.rule.takes_modulator else None)
                 modulation = (m.mean(), m.pow(2).mean())
             else:
                 modulation = (r.new_zeros(()), r.new_zeros(()))

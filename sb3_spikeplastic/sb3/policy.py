@@ -24,8 +24,9 @@ from torch import Tensor, nn
 from ..snn.coding import ContinuousDecoder, DiscreteDecoder, ObservationStandardizer, PopulationEncoder, RasterInput
 from ..snn.network import NetworkOutput, NetworkState, SpikingPlasticNetwork
 from ..snn.neurons import SRMParameters
-from ..snn.plasticity import get_rule_class
+from ..snn.plasticity import LEARNED_SOURCE, available_rules, get_rule_class
 from .ablation import AblatedState, Ablation, ablate
+from .modulation import ModulationSource, RewardInput, get_modulation_source
 
 MISUSE_MESSAGE = (
     "SpikePlasticPolicy is recurrent (its synapses and neurons carry state across environment steps) and needs "
@@ -105,7 +106,9 @@ class SpikePlasticPolicy(ActorCriticPolicy):
     :param e_max: trace clip bound :math:`E_{max}`.
     :param plasticity_interval: :math:`\\Delta\\tau` in network steps (must divide ``steps``; default ``steps``).
     :param rule_kwargs: extra arguments of the rule (e.g. ``eta_init``; ``modulation="linear"`` for the NDP rules'
-        unbounded modulation as the paper writes it, instead of their default ``tanh``).
+        unbounded modulation as the paper writes it, instead of their default ``tanh``; ``modulation_source`` for
+        their neuromodulation from outside the network: ``"reward"``, ``"td-error"`` or a registered source,
+        :mod:`sb3_spikeplastic.sb3.modulation`).
     :param encoder_pop_size: place cells per observation dimension (paper: 50; default 10).
     :param encoder_beta: place-cell sharpness (paper: 15 for 50 cells over [-3, 3]; default 0.5 keeps the
         paper's overlap ``beta * spacing^2 = 0.22`` for 10 cells: with 15, values between two centres fire
@@ -143,6 +146,12 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         encoder then clips them to ``obs_bounds``. Dimensions with finite bounds and spike rasters are never
         changed. Composes with ``VecNormalize`` (its output is then standardised again, close to the identity);
         ``False`` leaves observations as they come.
+    :param reward_input: where the observation carries the previous step's reward, for the modulation sources that
+        read it (:class:`~sb3_spikeplastic.sb3.modulation.RewardInput`: an index, a list of indices or a dict of its
+        fields). ``None``: :class:`sb3_spikeplastic.PPO` takes the environment's ``reward_input`` attribute (the
+        :class:`~sb3_spikeplastic.envs.PreviousReward` wrapper's, ``TMazeReversal-v0``'s). The element is never
+        standardised.
+    :param modulation_kwargs: settings of the modulation source (``td-error``: ``gamma``, by default PPO's).
     :param ablation: plasticity ablation that :meth:`predict` applies (:mod:`sb3_spikeplastic.sb3.ablation`:
         ``"none"``, ``"frozen"``, ``"reset-every:N"``, ``"shuffled"`` or an
         :class:`~sb3_spikeplastic.sb3.ablation.Ablation`; also settable later as ``policy.ablation``); training never
@@ -182,6 +191,8 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         log_std_init: float = -2.0,
         alpha_lr_scale: float = 1.0,
         standardize_obs: bool = True,
+        reward_input: Union[dict, int, Sequence[int], None] = None,
+        modulation_kwargs: Optional[dict] = None,
         ablation: Union[str, Ablation, None] = None,
         **kwargs: Any,
     ):
@@ -221,6 +232,13 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         modulation = inspect.signature(get_rule_class(rule).__init__).parameters.get("modulation")
         if modulation is not None and modulation.default is not inspect.Parameter.empty:
             rule_kwargs.setdefault("modulation", modulation.default)  # recorded: a saved model keeps its form
+        critic = critic or ("snn" if raster else "mlp")
+        if reward_input is not None:
+            reward_input = RewardInput.parse(reward_input, observation_space).as_dict()
+        modulation_kwargs = dict(modulation_kwargs or {})
+        source = rule_kwargs.get("modulation_source", LEARNED_SOURCE)
+        if source != LEARNED_SOURCE:
+            rule_kwargs["modulation_channels"] = _check_modulation_source(source, rule, critic, reward_input).channels
         if not raster:
             neuron.setdefault("tau_s", steps / 5.0)
             if alpha_init_mean is None:
@@ -248,10 +266,12 @@ class SpikePlasticPolicy(ActorCriticPolicy):
             w_init_mean=w_init_mean,
             alpha_init_mean=alpha_init_mean,
             alpha_init_std=alpha_init_std,
-            critic=critic or ("snn" if raster else "mlp"),
+            critic=critic,
             critic_hidden=critic_hidden,
             alpha_lr_scale=float(alpha_lr_scale),
             standardize_obs=bool(standardize_obs),
+            reward_input=reward_input,
+            modulation_kwargs=modulation_kwargs,
         )
         super().__init__(observation_space, action_space, lr_schedule, log_std_init=log_std_init, **kwargs)
 
@@ -301,7 +321,18 @@ class SpikePlasticPolicy(ActorCriticPolicy):
             cfg["alpha_init_std"],
         )
         space = self.observation_space
+        reward_input = None if cfg.get("reward_input") is None else RewardInput(**cfg["reward_input"])
+        source = cfg["rule_kwargs"].get("modulation_source", LEARNED_SOURCE)
+        #: the signal from outside the network that the plastic rules read (``None``: they form their own)
+        self.modulation_source: Optional[ModulationSource] = (
+            None
+            if source == LEARNED_SOURCE
+            else get_modulation_source(source)(space, reward_input, **cfg.get("modulation_kwargs", {}))
+        )
         unbounded = ~(np.isfinite(space.low) & np.isfinite(space.high)).reshape(-1)
+        if reward_input is not None and not is_spike_raster_space(space):
+            # The sources read the reward as the environment paid it.
+            unbounded[[*reward_input.positive, *reward_input.negative]] = False
         self.obs_standardizer = ObservationStandardizer(
             unbounded & bool(cfg.get("standardize_obs", True)) & (not is_spike_raster_space(space))
         )
@@ -371,7 +402,36 @@ class SpikePlasticPolicy(ActorCriticPolicy):
 
     def initial_state(self, n_envs: int, seed: int = 0) -> NetworkState:
         """Initial network state for ``n_envs`` environments (``seed`` picks the input-noise streams)."""
-        return self.snn.initial_state(n_envs, seed=seed, device=self.device)
+        state = self.snn.initial_state(n_envs, seed=seed, device=self.device)
+        if self.modulation_source is None:
+            return state
+        return state._replace(source=self.modulation_source.initial_state(n_envs, self.device))
+
+    def _source_state(self, state: NetworkState) -> Tensor:
+        """The modulation source's state in ``state`` (its initial state where the state was built without it)."""
+        if state.source is not None:
+            return state.source
+        return self.modulation_source.initial_state(state.noise_key.shape[0], state.noise_key.device)
+
+    def network_step(
+        self, obs: Tensor, state: NetworkState, record: bool = False, hold_plastic: bool = False
+    ) -> tuple[NetworkOutput, NetworkState]:
+        """One step of the spiking network on preprocessed ``obs`` from ``state`` (not reset here), with the
+        modulation source's signal where the rules read one; ``record`` and ``hold_plastic`` as in
+        :meth:`~sb3_spikeplastic.snn.network.SpikingPlasticNetwork.forward`."""
+        modulator = None
+        if self.modulation_source is not None:
+            starts = obs.new_zeros(1, obs.shape[0])
+            signals, source = self.modulation_source.sequence(obs.unsqueeze(0), starts, self._source_state(state), self)
+            modulator, state = signals[0], state._replace(source=source)
+        return self.snn(obs, state, record=record, hold_plastic=hold_plastic, modulator=modulator)
+
+    def observation_value(self, obs: Tensor) -> Tensor:
+        """The critic's value ``(batch,)`` of preprocessed observations, before the network runs on them
+        (``critic="mlp"``, which reads the observation only; the TD-error modulation source's values)."""
+        if self.snn_config["critic"] != "mlp":
+            raise ValueError("observation_value needs critic='mlp' (the 'snn' critic reads the network's rates)")
+        return self.value_net(obs.flatten(1).float()).squeeze(-1)
 
     def _value(self, obs: Tensor, out: NetworkOutput) -> Tensor:
         if self.snn_config["critic"] == "snn":
@@ -415,7 +475,7 @@ class SpikePlasticPolicy(ActorCriticPolicy):
     ):
         """:meth:`step` of already preprocessed ``obs``; ``sync_free`` as in :meth:`_evaluate_sequence`,
         ``hold_plastic`` as in :meth:`~sb3_spikeplastic.snn.network.SpikingPlasticNetwork.forward`."""
-        out, new_state = self.snn(obs, state.reset(episode_start, sync_free), hold_plastic=hold_plastic)
+        out, new_state = self.network_step(obs, state.reset(episode_start, sync_free), hold_plastic=hold_plastic)
         distribution = self._distribution(out, action_masks)
         actions = distribution.get_actions(deterministic=deterministic)
         log_prob = distribution.log_prob(actions)
@@ -427,7 +487,7 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         obs = self._preprocess(obs)
         if episode_start is not None:
             state = state.reset(episode_start)
-        out, _ = self.snn(obs, state)
+        out, _ = self.network_step(obs, state)
         return self._value(obs, out)
 
     def evaluate_actions_sequence(
@@ -459,7 +519,10 @@ class SpikePlasticPolicy(ActorCriticPolicy):
     ):
         """:meth:`evaluate_actions_sequence` of already preprocessed ``obs``; with ``sync_free`` no operation
         waits for the device (for CUDA-graph capture, :mod:`sb3_spikeplastic.sb3.cuda_graphs`)."""
-        outputs, _ = self.snn.forward_sequence(obs, episode_starts, state, sync_free)
+        modulators = None
+        if self.modulation_source is not None:
+            modulators, _ = self.modulation_source.sequence(obs, episode_starts, self._source_state(state), self)
+        outputs, _ = self.snn.forward_sequence(obs, episode_starts, state, sync_free, modulators)
         merged = NetworkOutput(
             torch.cat([o.action for o in outputs]), tuple(torch.cat(r) for r in zip(*[o.rates for o in outputs])), None
         )
@@ -581,6 +644,33 @@ class SpikePlasticPolicy(ActorCriticPolicy):
 
     def evaluate_actions(self, obs: Tensor, actions: Tensor):
         raise RuntimeError(MISUSE_MESSAGE)
+
+
+def _check_modulation_source(name: str, rule: str, critic: str, reward_input: Optional[dict]) -> type[ModulationSource]:
+    """The source class of ``rule_kwargs.modulation_source=name``, after the checks that it can run (one-line
+    errors naming what is missing)."""
+    source = get_modulation_source(name)
+    if "modulation_source" not in inspect.signature(get_rule_class(rule).__init__).parameters:
+        able = [
+            r
+            for r in available_rules()
+            if "modulation_source" in inspect.signature(get_rule_class(r).__init__).parameters
+        ]
+        raise ValueError(
+            f"rule {rule!r} takes no neuromodulation (modulation_source={name!r}); rules that do: {', '.join(able)}"
+        )
+    if source.needs_reward and reward_input is None:
+        raise ValueError(
+            f"modulation_source={name!r} needs the previous reward in the observation: wrap the environment in "
+            "sb3_spikeplastic.envs.PreviousReward (or use one with a reward_input, e.g. TMazeReversal-v0), "
+            "or pass policy_kwargs reward_input=..."
+        )
+    if source.needs_observation_value and critic != "mlp":
+        raise ValueError(
+            f"modulation_source={name!r} needs the value of the observation before the network runs: "
+            f"critic='mlp', not {critic!r}"
+        )
+    return source
 
 
 class MisusedSpikePlasticPolicy(SpikePlasticPolicy):

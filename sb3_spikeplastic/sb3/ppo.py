@@ -34,6 +34,7 @@ from torch.nn import functional as F
 
 from ..snn.cpu_settings import spiking_cpu_settings
 from ..snn.network import NetworkState
+from ..snn.plasticity import LEARNED_SOURCE
 from .activity import RolloutActivityCallback
 from .buffers import ChunkRolloutBuffer, ChunkSamples, check_chunking
 from .cuda_graphs import GraphedRolloutStep, GraphedSequenceEvaluation
@@ -276,6 +277,8 @@ class PPO(SB3PPO):
         if self.recurrent:
             self.rollout_buffer_class = ChunkRolloutBuffer
             self.rollout_buffer_kwargs = {**(self.rollout_buffer_kwargs or {}), "chunk_len": self.bptt_steps}
+        if isinstance(self.policy_class, type) and issubclass(self.policy_class, SpikePlasticPolicy):
+            self.policy_kwargs = self._modulation_filled(self.policy_kwargs)
         super()._setup_model()
         if isinstance(self.policy, SpikePlasticPolicy):
             # What the defaults resolved to, so that a saved model rebuilds the same policy under later defaults.
@@ -286,6 +289,23 @@ class PPO(SB3PPO):
         self._skipped_steps, self._warned_nonfinite = 0, False
         if self.recurrent:
             self._last_network_state = self.policy.initial_state(self.n_envs, seed=self.seed or 0)
+
+    def _modulation_filled(self, policy_kwargs: dict) -> dict:
+        """``policy_kwargs`` with what an external modulation source needs and the user left out: the environment's
+        ``reward_input`` (:class:`~sb3_spikeplastic.envs.PreviousReward`, ``TMazeReversal-v0``) and, for the TD
+        error, this algorithm's ``gamma``."""
+        source = (policy_kwargs.get("rule_kwargs") or {}).get("modulation_source", LEARNED_SOURCE)
+        if source == LEARNED_SOURCE:
+            return policy_kwargs
+        filled = dict(policy_kwargs)
+        if filled.get("reward_input") is None and self.env is not None:
+            try:
+                filled["reward_input"] = self.env.get_attr("reward_input", indices=[0])[0]
+            except AttributeError:
+                pass  # the policy names what is missing
+        if source == "td-error":
+            filled["modulation_kwargs"] = {"gamma": self.gamma, **(filled.get("modulation_kwargs") or {})}
+        return filled
 
     def _init_callback(self, callback, progress_bar: bool = False) -> BaseCallback:
         """SB3's callback setup, plus the ``snn/`` and ``plasticity/`` scalars of every rollout for spiking

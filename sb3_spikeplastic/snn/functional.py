@@ -186,6 +186,7 @@ def interval_step(
     parameters: IntervalParameters,
     monitor: bool = False,
     defer_update: bool = False,
+    modulator: Optional[Tensor] = None,
 ) -> tuple[LayerOutput, LayerState]:
     r"""One plasticity interval of presynaptic spikes ``(batch, L, n_in)``: the layer's outputs and next state.
 
@@ -203,6 +204,8 @@ def interval_step(
     :param monitor: also return the interval's neuromodulatory signal (computed once more).
     :param defer_update: a request that only the compiled interval takes (it leaves the update pending, with the
         same values); this step applies every update at once.
+    :param modulator: the signal from outside the network ``(batch, k)`` of a rule that
+        :attr:`~sb3_spikeplastic.snn.plasticity.PlasticityRule.takes_modulator` (``None`` for the others).
     """
     rule, plastic = parameters.rule, parameters.alpha is not None
     if plastic and state.plastic.pending is not None:
@@ -210,8 +213,10 @@ def interval_step(
     synaptic, psp = synaptic_input(spikes_in, state.psp, state.plastic.trace, parameters)
     spikes, membrane, refractory = srm_spikes(synaptic, state.refractory, parameters.neuron)
     r_pre, r_post = spikes_in.mean(1), spikes.mean(1)
-    new_plastic = rule.step(r_pre, r_post, state.plastic) if plastic else state.plastic
-    return interval_result(spikes, membrane, psp, refractory, r_pre, r_post, new_plastic, parameters, monitor)
+    new_plastic = rule.step(r_pre, r_post, state.plastic, modulator) if plastic else state.plastic
+    return interval_result(
+        spikes, membrane, psp, refractory, r_pre, r_post, new_plastic, parameters, monitor, modulator
+    )
 
 
 def interval_result(
@@ -224,8 +229,9 @@ def interval_result(
     plastic: PlasticState,
     parameters: IntervalParameters,
     monitor: bool,
+    modulator: Optional[Tensor] = None,
 ) -> tuple[LayerOutput, LayerState]:
     """An interval's :class:`LayerOutput` and :class:`LayerState` from its parts (the eager and the compiled step's
-    alike); with ``monitor`` the output carries the rule's neuromodulatory signal of ``r_post``."""
-    modulation = parameters.rule.modulation(r_post) if monitor and parameters.alpha is not None else None
+    alike); with ``monitor`` the output carries the rule's neuromodulatory signal of ``r_post`` (and ``modulator``)."""
+    modulation = parameters.rule.modulation(r_post, modulator) if monitor and parameters.alpha is not None else None
     return LayerOutput(spikes, membrane, modulation, r_post, r_pre), LayerState(psp, refractory, plastic)

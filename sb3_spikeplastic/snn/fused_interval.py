@@ -165,11 +165,13 @@ def fused_interval_step(
     parameters: IntervalParameters,
     monitor: bool = False,
     defer_update: bool = False,
+    modulator: Optional[Tensor] = None,
 ) -> tuple[LayerOutput, LayerState]:
     """:func:`~sb3_spikeplastic.snn.functional.interval_step` by the compiled op (``ops``: its namespace).
 
-    Other rules than the built-in ones run their :meth:`~sb3_spikeplastic.snn.plasticity.PlasticityRule.step` after
-    the op. With ``defer_update`` (a built-in rule, without ``monitor``) the update is returned as the state's
+    Other rules than the built-in ones, and rules that take an external ``modulator``, run their
+    :meth:`~sb3_spikeplastic.snn.plasticity.PlasticityRule.step` after the op. With ``defer_update`` (a built-in
+    rule, without ``monitor``) the update is returned as the state's
     :attr:`~sb3_spikeplastic.snn.plasticity.PlasticState.pending` instead, and the next interval applies it in its
     own pass over ``E`` (:class:`_DeferredInterval`): the same values, one pass over the trace fewer each way. Every
     other such interval leaves the update before it pending too and passes its input trace on unchanged, so that a
@@ -195,7 +197,7 @@ def fused_interval_step(
         if form is not None:  # the op updated the trace
             new_plastic = PlasticState(out.trace, (out.phi,) if form.bcm else ())
         else:
-            new_plastic = rule.step(out.r_pre, out.r_post, state.plastic) if plastic else state.plastic
+            new_plastic = rule.step(out.r_pre, out.r_post, state.plastic, modulator) if plastic else state.plastic
     return interval_result(
         out.spikes,
         out.membrane,
@@ -206,6 +208,7 @@ def fused_interval_step(
         new_plastic,
         parameters,
         monitor,
+        modulator,
     )
 
 

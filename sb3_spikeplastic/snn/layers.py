@@ -87,7 +87,12 @@ class PlasticSRMLayer(nn.Module):
         return efficacy(self.weight, self.alpha, trace)
 
     def forward(
-        self, spikes_in: Tensor, state: LayerState, monitor: bool = False, defer_update: bool = False
+        self,
+        spikes_in: Tensor,
+        state: LayerState,
+        monitor: bool = False,
+        defer_update: bool = False,
+        modulator: Optional[Tensor] = None,
     ) -> tuple[LayerOutput, LayerState]:
         """Run one plasticity interval of presynaptic spikes ``(batch, L, n_in)``
         (:func:`~sb3_spikeplastic.snn.functional.interval_step`).
@@ -98,10 +103,13 @@ class PlasticSRMLayer(nn.Module):
         built-in rule on the CPU, without ``monitor``) the update is returned as the state's
         :attr:`~sb3_spikeplastic.snn.plasticity.PlasticState.pending` instead, and the next interval applies it in
         its own pass over ``E``: the same values, one pass over the trace fewer each way. Pending updates in
-        ``state`` are always applied first.
+        ``state`` are always applied first. ``modulator`` ``(batch, k)``: the signal from outside the network of a
+        rule that :attr:`~sb3_spikeplastic.snn.plasticity.PlasticityRule.takes_modulator`.
         """
         parameters = self.interval_parameters(spikes_in.shape[1], spikes_in.dtype, spikes_in.device)
-        return _fast.dispatch(FUSED_INTERVAL, interval_step, spikes_in, state, parameters, monitor, defer_update)
+        return _fast.dispatch(
+            FUSED_INTERVAL, interval_step, spikes_in, state, parameters, monitor, defer_update, modulator
+        )
 
     def interval_parameters(self, length: int, dtype, device) -> IntervalParameters:
         """What an interval of ``length`` steps reads besides its input and state: the parameters, and the filter's

@@ -26,10 +26,14 @@ class NetworkState(NamedTuple):
     :param noise_key: ``(batch,)`` int32 key of the replayable input sampler. It is the random stream, not memory:
         it advances every step and is *not* reset at episode starts (otherwise every episode would see the same
         input noise).
+    :param source: the state of the policy's modulation source ``(batch, n)`` (e.g. the previous value of a TD
+        error, :mod:`sb3_spikeplastic.sb3.modulation`), reset with the layers; ``None`` without one. The network
+        passes it on unchanged.
     """
 
     layers: tuple[LayerState, ...]
     noise_key: Tensor
+    source: Optional[Tensor] = None
 
     def reset(self, episode_start: Tensor, sync_free: bool = False) -> "NetworkState":
         """The state with every environment where ``episode_start`` is 1 set back to its initial value (zeros):
@@ -47,7 +51,9 @@ class NetworkState(NamedTuple):
         def zero_where_started(x: Tensor) -> Tensor:
             return x * keep.to(x.dtype).view(-1, *([1] * (x.dim() - 1)))
 
-        return NetworkState(map_tensors(zero_where_started, self.layers), self.noise_key)
+        return NetworkState(
+            map_tensors(zero_where_started, self.layers), self.noise_key, map_tensors(zero_where_started, self.source)
+        )
 
     def select(self, index) -> "NetworkState":
         """The state of the environments ``index`` (anything that indexes the batch axis)."""
@@ -135,12 +141,14 @@ class NetworkOutput(NamedTuple):
     :param record: the full activity when requested, else ``None``.
     :param input_rate: the input population's mean spike rate over the step ``(batch, n_in)`` (for spike and
         synaptic-operation counts, :mod:`sb3_spikeplastic.sb3.activity`).
+    :param modulator: the signal from outside the network the step's plasticity read ``(batch, k)``, or ``None``.
     """
 
     action: Tensor
     rates: tuple[Tensor, ...]
     record: Optional[NetworkRecord]
     input_rate: Optional[Tensor] = None
+    modulator: Optional[Tensor] = None
 
 
 IntOrSeq = Union[float, Sequence[float]]
@@ -269,6 +277,19 @@ class SpikingPlasticNetwork(nn.Module):
     def sizes(self) -> list[int]:
         return [self.layers[0].n_in] + [layer.n_out for layer in self.layers]
 
+    @property
+    def modulator_channels(self) -> int:
+        """Channels of the signal from outside the network that the plastic layers' rules read on every step (the
+        ``modulator`` of :meth:`forward`); 0 where every rule forms its modulation itself."""
+        return max(
+            (
+                layer.rule.modulator_gains.shape[1]
+                for layer in self.layers
+                if layer.plastic and layer.rule.takes_modulator
+            ),
+            default=0,
+        )
+
     def backward_bytes_per_step(self, dtype: torch.dtype = torch.float32) -> int:
         """Memory that backpropagation keeps per environment step of one sequence with the compiled CPU ops (which
         ``chunks_per_pass="auto"`` sizes its passes for; the eager ops keep more), estimated from the sizes: per
@@ -299,6 +320,7 @@ class SpikingPlasticNetwork(nn.Module):
         record: bool = False,
         defer_updates: bool = False,
         hold_plastic: bool = False,
+        modulator: Optional[Tensor] = None,
     ) -> tuple[NetworkOutput, NetworkState]:
         """One environment step for a batch of observations; returns ``(output, new_state)``.
 
@@ -306,7 +328,10 @@ class SpikingPlasticNetwork(nn.Module):
         step applies them in its own pass over the traces; :meth:`settle` applies them), as
         :meth:`forward_sequence` runs its steps. With ``hold_plastic`` every layer keeps the plastic state it came
         in with (traces, rule state): its updates are dropped, also between the intervals of the step (the
-        ``frozen`` ablation, :mod:`sb3_spikeplastic.sb3.ablation`)."""
+        ``frozen`` ablation, :mod:`sb3_spikeplastic.sb3.ablation`). ``modulator`` ``(batch, k)``: the signal from
+        outside the network that rules with an external ``modulation_source`` read at every update of the step
+        (:attr:`modulator_channels`; required exactly where they are)."""
+        self._check_modulator(modulator, obs.shape[0])
         spikes_in = self.encoder(obs, state.noise_key, self.steps)
         layer_states = list(state.layers)
         n_intervals = self.steps // self.interval
@@ -315,7 +340,8 @@ class SpikingPlasticNetwork(nn.Module):
         for j in range(n_intervals):
             x = spikes_in if n_intervals == 1 else spikes_in[:, j * self.interval : (j + 1) * self.interval]
             for i, layer in enumerate(self.layers):
-                out, layer_states[i] = layer(x, layer_states[i], monitor=record, defer_update=defer_updates)
+                given = modulator if layer.plastic and layer.rule.takes_modulator else None
+                out, layer_states[i] = layer(x, layer_states[i], record, defer_updates, given)
                 if hold_plastic and layer.plastic:
                     layer_states[i] = layer_states[i]._replace(plastic=state.layers[i].plastic)
                 outputs[i].append(out)
@@ -329,7 +355,7 @@ class SpikingPlasticNetwork(nn.Module):
         else:
             rates = tuple(s.mean(1) for s in spikes)
             input_rate = spikes_in.mean(1)
-        new_state = NetworkState(tuple(layer_states), advance_keys(state.noise_key))
+        new_state = state._replace(layers=tuple(layer_states), noise_key=advance_keys(state.noise_key))
         rec = None
         if record:
             rec = NetworkRecord(
@@ -342,18 +368,38 @@ class SpikingPlasticNetwork(nn.Module):
                 ),
                 tuple(torch.stack(t, 1) if t else None for t in traces),
             )
-        return NetworkOutput(self.decoder(rates[-1]), rates, rec, input_rate), new_state
+        return NetworkOutput(self.decoder(rates[-1]), rates, rec, input_rate, modulator), new_state
+
+    def _check_modulator(self, modulator: Optional[Tensor], batch: int) -> None:
+        channels = self.modulator_channels
+        if channels == 0 and modulator is not None:
+            raise ValueError(
+                "a modulator was passed, but no plastic layer's rule takes one (modulation_source='learned')"
+            )
+        if channels and (modulator is None or tuple(modulator.shape) != (batch, channels)):
+            got = None if modulator is None else tuple(modulator.shape)
+            raise ValueError(
+                f"the plastic layers' rules read a modulator of shape (batch, channels) = ({batch}, {channels}) from "
+                f"outside the network on every step; got {got}"
+            )
 
     def forward_sequence(
-        self, obs: Tensor, episode_start: Tensor, state: NetworkState, sync_free: bool = False
+        self,
+        obs: Tensor,
+        episode_start: Tensor,
+        state: NetworkState,
+        sync_free: bool = False,
+        modulators: Optional[Tensor] = None,
     ) -> tuple[list[NetworkOutput], NetworkState]:
         """Run a sequence ``obs`` of shape ``(L, batch, ...)`` from ``state``, resetting where ``episode_start``
         ``(L, batch)`` is 1 (truncated BPTT through the whole sequence, traces included); ``sync_free`` as in
         :meth:`NetworkState.reset`. The steps defer the trace updates to the next step (``defer_updates``): one
-        pass over each trace fewer, forward and backward; the returned state has them applied."""
+        pass over each trace fewer, forward and backward; the returned state has them applied. ``modulators``
+        ``(L, batch, k)``: each step's ``modulator`` (see :meth:`forward`)."""
         outputs = []
         for k in range(obs.shape[0]):
-            out, state = self(obs[k], state.reset(episode_start[k], sync_free), defer_updates=True)
+            modulator = None if modulators is None else modulators[k]
+            out, state = self(obs[k], state.reset(episode_start[k], sync_free), defer_updates=True, modulator=modulator)
             outputs.append(out)
         return outputs, self.settle(state)
 
@@ -363,4 +409,4 @@ class SpikingPlasticNetwork(nn.Module):
             s._replace(plastic=layer.rule.apply_pending(s.plastic)) if s.plastic.pending is not None else s
             for layer, s in zip(self.layers, state.layers)
         )
-        return NetworkState(layers, state.noise_key)
+        return state._replace(layers=layers)

@@ -157,6 +157,38 @@ def modulatory_signal(w_m: Tensor, r_post: Tensor, form: str = "tanh") -> Tensor
     return torch.tanh(m) if form == "tanh" else m
 
 
+#: the modulation source of a rule whose signal comes from its own layer's rates (:func:`modulatory_signal`)
+LEARNED_SOURCE = "learned"
+
+
+def external_modulatory_signal(
+    modulator: Tensor,
+    gains: Tensor,
+    bias: Tensor,
+    form: str = "tanh",
+    w_m: Optional[Tensor] = None,
+    r_post: Optional[Tensor] = None,
+) -> Tensor:
+    r"""Neuromodulatory signal from a signal outside the layer (a reward, a TD error...):
+    :math:`M = f(G\,m + b\,[+\,W_m r_{post}])`, :math:`f` = ``tanh`` or the identity (``form``).
+
+    The paper's discussion proposes this extension, "a pre-defined global signal ... an online reward signal
+    emulating dopaminergic neurons"; the learned per-neuron gains ``G`` and offsets ``b`` let each neuron read the
+    signal with its own sign and size (Backpropamine, Miconi et al., 2019, uses one learned gain per network).
+
+    :param modulator: the signal ``m`` per environment ``(..., k)``.
+    :param gains: ``G`` ``(n_out, k)``.
+    :param bias: ``b`` ``(n_out,)``.
+    :param form: ``"tanh"`` or ``"linear"``.
+    :param w_m: ``W_m`` to add the learned term :math:`W_m r_{post}` (``None``: the external term alone).
+    :param r_post: the postsynaptic rates ``(..., n_out)`` (with ``w_m``).
+    """
+    m = torch.addmm(bias, modulator.flatten(0, -2), gains.T).view(*modulator.shape[:-1], -1)
+    if w_m is not None:
+        m = m + r_post @ w_m.T
+    return torch.tanh(m) if form == "tanh" else m
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # Rule modules and registry.
 
@@ -209,6 +241,12 @@ class PlasticityRule(nn.Module):
     fused update) or :meth:`update` (any equation, without clipping), and, if they keep state besides ``E``,
     :meth:`initial_extra_state`. :meth:`step` applies one update and the clip to ``±e_max``.
 
+    A rule that takes its neuromodulation from outside the network (a reward, a TD error:
+    :mod:`sb3_spikeplastic.sb3.modulation`) accepts ``modulation_source`` in its constructor, sets
+    :attr:`takes_modulator`, and receives the signal as the ``modulator`` argument of :meth:`hebbian_terms` /
+    :meth:`update` / :meth:`modulation` (``(batch, k)``, one value per environment and channel for the whole
+    environment step). The NDP rules do (:class:`NDPOjaRule`).
+
     :param n_in: presynaptic neurons.
     :param n_out: postsynaptic neurons.
     :param e_max: trace clip bound :math:`E_{max}` (applied after every update).
@@ -249,30 +287,44 @@ class PlasticityRule(nn.Module):
             torch.zeros(shape, dtype=dtype, device=device), self.initial_extra_state(batch, dtype, device)
         )
 
-    def hebbian_terms(self, r_pre: Tensor, r_post: Tensor, state: PlasticState) -> HebbianTerms:
-        """The factors of the update for rules of the shared Hebbian form (see the class docstring)."""
+    @property
+    def takes_modulator(self) -> bool:
+        """Whether the rule's updates read a signal from outside the network (the ``modulator`` argument)."""
+        return False
+
+    def hebbian_terms(self, r_pre: Tensor, r_post: Tensor, state: PlasticState, *modulator: Tensor) -> HebbianTerms:
+        """The factors of the update for rules of the shared Hebbian form (see the class docstring); ``modulator``
+        only for rules that :attr:`takes_modulator`."""
         raise NotImplementedError(f"{type(self).__name__} implements neither hebbian_terms nor update")
 
-    def update(self, r_pre: Tensor, r_post: Tensor, state: PlasticState) -> PlasticState:
+    def update(self, r_pre: Tensor, r_post: Tensor, state: PlasticState, *modulator: Tensor) -> PlasticState:
         """The rule's equation: the state after one interval with rates ``r_pre``, ``r_post`` (no clipping).
 
         The default evaluates :meth:`hebbian_terms` with the eager ops (:func:`hebbian_update`)."""
-        terms = self.hebbian_terms(r_pre, r_post, state)
+        terms = self.hebbian_terms(r_pre, r_post, state, *modulator)
         return PlasticState(hebbian_update(state.trace, self.eta, terms), terms.extra)
 
-    def modulation(self, r_post: Tensor) -> Optional[Tensor]:
+    def modulation(self, r_post: Tensor, modulator: Optional[Tensor] = None) -> Optional[Tensor]:
         """The neuromodulatory signal for these rates (``None`` for unmodulated rules)."""
         return None
 
-    def step(self, r_pre: Tensor, r_post: Tensor, state: PlasticState) -> PlasticState:
-        """One plasticity update followed by the clip of ``E`` to ``[-e_max, e_max]``."""
+    def step(
+        self, r_pre: Tensor, r_post: Tensor, state: PlasticState, modulator: Optional[Tensor] = None
+    ) -> PlasticState:
+        """One plasticity update followed by the clip of ``E`` to ``[-e_max, e_max]``; ``modulator`` ``(batch, k)``
+        for rules that :attr:`takes_modulator` (and only for them)."""
         if not self.has_trace:
             return state
+        given = () if modulator is None else (modulator,)
         if type(self).update is PlasticityRule.update:
-            terms = self.hebbian_terms(r_pre, r_post, state)
+            terms = self.hebbian_terms(r_pre, r_post, state, *given)
             return PlasticState(hebbian_trace_step(state.trace, self.eta, terms, self.e_max), terms.extra)
-        new = self.update(r_pre, r_post, state)
+        new = self.update(r_pre, r_post, state, *given)
         return PlasticState(new.trace.clamp(-self.e_max, self.e_max), new.extra)
+
+    def modulation_macs(self) -> int:
+        """Multiply-accumulates per update that the neuromodulatory signal costs (0 for unmodulated rules)."""
+        return 0
 
     def apply_pending(self, state: PlasticState) -> PlasticState:
         """The state with its pending updates (:attr:`PlasticState.pending`) applied by :func:`hebbian_trace_step`,
@@ -350,42 +402,113 @@ class DPBCMRule(_BCMRule):
 
 
 class _ModulatedMixin:
-    """Learned modulatory weights :math:`W_m \\in R^{n_{out} \\times n_{out}}` and the modulation form."""
+    r"""The neuromodulatory signal's parameters and form: learned modulatory weights
+    :math:`W_m \in R^{n_{out} \times n_{out}}` (``modulation_source="learned"``, :func:`modulatory_signal`), or
+    per-neuron gains ``G`` ``(n_out, k)`` and offsets ``b`` for a signal from outside the network
+    (:func:`external_modulatory_signal`), with ``W_m`` beside them if ``learned_modulation``."""
 
     modulated = True
 
-    def _init_modulation(self, n_out: int, wm_init_gain: float, wm_init_std: float, modulation: str) -> None:
+    def _init_modulation(
+        self,
+        n_out: int,
+        wm_init_gain: float,
+        wm_init_std: float,
+        modulation: str,
+        modulation_source: str,
+        modulation_channels: int,
+        learned_modulation: Optional[bool],
+    ) -> None:
         if modulation not in MODULATION_FORMS:
             raise ValueError(f"unknown modulation form {modulation!r}; accepted: {', '.join(MODULATION_FORMS)}")
-        self.modulation_form = modulation
+        if not isinstance(modulation_source, str) or not modulation_source:
+            raise ValueError(f"modulation_source={modulation_source!r} must be a source name such as 'reward'")
+        if isinstance(modulation_channels, bool) or not isinstance(modulation_channels, int) or modulation_channels < 1:
+            raise ValueError(f"modulation_channels={modulation_channels!r} must be a positive integer")
+        external = modulation_source != LEARNED_SOURCE
+        if learned_modulation is None:
+            learned_modulation = not external
+        if not (external or learned_modulation):
+            raise ValueError("learned_modulation=False needs an external modulation_source (e.g. 'reward')")
+        self.modulation_form, self.modulation_source = modulation, modulation_source
         # Starting near gain * identity makes M ~ r_post: the rule begins close to its DP form.
-        self.w_m = nn.Parameter(wm_init_gain * torch.eye(n_out) + wm_init_std * torch.randn(n_out, n_out))
+        self.w_m = (
+            nn.Parameter(wm_init_gain * torch.eye(n_out) + wm_init_std * torch.randn(n_out, n_out))
+            if learned_modulation
+            else None
+        )
+        if external:
+            # The channels' mean gain is wm_init_gain: M ~ f(gain * m) in every neuron at the start.
+            k = modulation_channels
+            self.modulator_gains = nn.Parameter(wm_init_gain / k + wm_init_std * torch.randn(n_out, k))
+            self.modulator_bias = nn.Parameter(torch.zeros(n_out))
 
-    def modulation(self, r_post: Tensor) -> Tensor:
-        return modulatory_signal(self.w_m, r_post, self.modulation_form)
+    @property
+    def takes_modulator(self) -> bool:
+        return self.modulation_source != LEARNED_SOURCE
+
+    def modulation(self, r_post: Tensor, modulator: Optional[Tensor] = None) -> Tensor:
+        if not self.takes_modulator:
+            return modulatory_signal(self.w_m, r_post, self.modulation_form)
+        if modulator is None:
+            raise ValueError(
+                f"rule {self.name!r} with modulation_source={self.modulation_source!r} needs a modulator "
+                "(batch, channels) on every update; none was passed"
+            )
+        return external_modulatory_signal(
+            modulator, self.modulator_gains, self.modulator_bias, self.modulation_form, self.w_m, r_post
+        )
+
+    def modulation_macs(self) -> int:
+        learned = self.n_out**2 if self.w_m is not None else 0
+        return learned + (self.n_out * self.modulator_gains.shape[1] if self.takes_modulator else 0)
 
 
 @register_rule("ndp-oja")
 class NDPOjaRule(_ModulatedMixin, PlasticityRule):
-    """Neuromodulated Oja (paper eqs. 11–12), :func:`ndp_oja_update`. Learned: :math:`\\eta, W_m`.
+    r"""Neuromodulated Oja (paper eqs. 11–12), :func:`ndp_oja_update`. Learned: :math:`\eta, W_m` (``G, b`` for an
+    external signal).
 
-    :param wm_init_gain: ``W_m`` starts at ``wm_init_gain * I + N(0, wm_init_std^2)``.
+    :param wm_init_gain: ``W_m`` starts at ``wm_init_gain * I + N(0, wm_init_std^2)``; an external signal's gains
+        ``G`` at ``wm_init_gain / k + N(0, wm_init_std^2)``.
     :param wm_init_std: see ``wm_init_gain``.
-    :param modulation: ``"tanh"`` (the default: :math:`M = \\tanh(W_m r_{post})`, bounded, a stabiliser) or
+    :param modulation: ``"tanh"`` (the default: :math:`M = \tanh(W_m r_{post})`, bounded, a stabiliser) or
         ``"linear"`` (the paper as written, :math:`M = W_m r_{post}`; its gradients explode on HalfCheetah).
+    :param modulation_source: ``"learned"`` (the paper, :func:`modulatory_signal`) or the name of a signal from
+        outside the network, which the network's forward then takes as its ``modulator``
+        (:mod:`sb3_spikeplastic.sb3.modulation`: ``"reward"``, ``"td-error"``, sources of one's own):
+        :math:`M = f(G\,m + b)`, :func:`external_modulatory_signal`.
+    :param modulation_channels: ``k``, the external signal's channels.
+    :param learned_modulation: add the learned term :math:`W_m r_{post}` to the external one (``None``: only for
+        ``"learned"``).
     """
 
-    def __init__(self, n_in, n_out, e_max=1.0, eta_init=0.05, wm_init_gain=1.0, wm_init_std=0.1, modulation="tanh"):
+    def __init__(
+        self,
+        n_in,
+        n_out,
+        e_max=1.0,
+        eta_init=0.05,
+        wm_init_gain=1.0,
+        wm_init_std=0.1,
+        modulation="tanh",
+        modulation_source=LEARNED_SOURCE,
+        modulation_channels=1,
+        learned_modulation=None,
+    ):
         super().__init__(n_in, n_out, e_max, eta_init)
-        self._init_modulation(n_out, wm_init_gain, wm_init_std, modulation)
+        self._init_modulation(
+            n_out, wm_init_gain, wm_init_std, modulation, modulation_source, modulation_channels, learned_modulation
+        )
 
-    def hebbian_terms(self, r_pre, r_post, state):
-        return HebbianTerms(self.modulation(r_post) * r_post, r_pre, True)
+    def hebbian_terms(self, r_pre, r_post, state, *modulator):
+        return HebbianTerms(self.modulation(r_post, *modulator) * r_post, r_pre, True)
 
 
 @register_rule("ndp-bcm")
 class NDPBCMRule(_ModulatedMixin, _BCMRule):
-    """Neuromodulated BCM (paper eqs. 13–16), :func:`ndp_bcm_update`. Learned: :math:`\\eta, \\eta_\\phi, \\psi, W_m`.
+    r"""Neuromodulated BCM (paper eqs. 13–16), :func:`ndp_bcm_update`. Learned: :math:`\eta, \eta_\phi, \psi, W_m`
+    (``G, b`` for an external signal).
 
     Parameters as :class:`_BCMRule` and :class:`NDPOjaRule`.
     """
@@ -400,13 +523,18 @@ class NDPBCMRule(_ModulatedMixin, _BCMRule):
         wm_init_gain=1.0,
         wm_init_std=0.1,
         modulation="tanh",
+        modulation_source=LEARNED_SOURCE,
+        modulation_channels=1,
+        learned_modulation=None,
     ):
         super().__init__(n_in, n_out, e_max, eta_init, eta_phi_init)
-        self._init_modulation(n_out, wm_init_gain, wm_init_std, modulation)
+        self._init_modulation(
+            n_out, wm_init_gain, wm_init_std, modulation, modulation_source, modulation_channels, learned_modulation
+        )
 
-    def hebbian_terms(self, r_pre, r_post, state):
+    def hebbian_terms(self, r_pre, r_post, state, *modulator):
         r_beta, phi = self.presynaptic(r_pre, state)
-        return HebbianTerms(self.modulation(r_post) * r_post, r_beta, False, (phi,))
+        return HebbianTerms(self.modulation(r_post, *modulator) * r_post, r_beta, False, (phi,))
 
 
 _COMPILED_FORMS = {
@@ -418,13 +546,20 @@ _COMPILED_FORMS = {
 }
 
 
-def compiled_form(rule: PlasticityRule) -> Optional[RuleForm]:
-    """How the compiled layer op (``_fast/srm_interval.cpp``) evaluates a built-in rule's terms, op for op as
-    :meth:`PlasticityRule.hebbian_terms` (:class:`~sb3_spikeplastic.snn._fast.interval.RuleForm`); ``None`` for any
-    other rule, subclasses of the built-in ones included (they may change the terms), which then run
-    :meth:`PlasticityRule.step` as written."""
+def builtin_form(rule: PlasticityRule) -> Optional[RuleForm]:
+    """A built-in rule's terms as a :class:`~sb3_spikeplastic.snn._fast.interval.RuleForm` (its Oja and BCM forms and
+    its modulation); ``None`` for any other rule, subclasses of the built-in ones included (they may change the
+    terms)."""
     flags = _COMPILED_FORMS.get(type(rule))
     if flags is None:
         return None
     modulation = 1 + MODULATION_FORMS.index(rule.modulation_form) if rule.modulated else 0
     return RuleForm(*flags, modulation)
+
+
+def compiled_form(rule: PlasticityRule) -> Optional[RuleForm]:
+    """How the compiled layer op (``_fast/srm_interval.cpp``) evaluates a built-in rule's terms, op for op as
+    :meth:`PlasticityRule.hebbian_terms` (:func:`builtin_form`); ``None`` for the rules that then run
+    :meth:`PlasticityRule.step` as written: any other rule, and those that take an external modulator (the op forms
+    :math:`M` from :math:`W_m r_{post}` only)."""
+    return None if rule.takes_modulator else builtin_form(rule)

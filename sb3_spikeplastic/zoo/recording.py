@@ -145,7 +145,7 @@ def record_episode(
     network_seed: int = 0,
 ) -> EpisodeActivity:
     """Run one episode of a :class:`~sb3_spikeplastic.SpikePlasticPolicy` on a single (non-vectorised) environment
-    and record the network's activity step by step (``policy.snn(obs, state, record=True)``), from the initial
+    and record the network's activity step by step (``policy.network_step(obs, state, record=True)``), from the initial
     (reset) network state.
 
     The global random generators are not touched when ``deterministic`` (the input spikes come from the network's
@@ -170,7 +170,7 @@ def record_episode(
     for _ in range(max_steps):
         x = obs_transform(obs) if obs_transform is not None else obs
         x = torch.as_tensor(np.asarray(x, dtype=np.float32)[None], device=policy.device)
-        out, state = net(policy._preprocess(x), state, record=True)
+        out, state = policy.network_step(policy._preprocess(x), state, record=True)
         action = policy._distribution(out).get_actions(deterministic=deterministic).cpu().numpy()[0]
         if isinstance(policy.action_space, spaces.Box):
             action = policy.clip_actions(action.reshape(policy.action_space.shape))

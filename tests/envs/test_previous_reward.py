@@ -40,3 +40,11 @@ def test_a_raster_observation_is_a_one_line_error_naming_the_alternative():
     with pytest.raises(ValueError, match=r"needs a 1-D Box observation space.*TMazeReversal-v0") as error:
         PreviousReward(gymnasium.make("TMazeCue-v0"))
     assert "\n" not in str(error.value)
+
+
+def test_the_wrapper_declares_where_the_reward_is():
+    env = PreviousReward(gymnasium.make("CartPole-v1"), action=True)
+    assert env.reward_input == {"positive": [4]}
+    obs, _ = env.reset(seed=0)
+    obs, reward, *_ = env.step(1)
+    assert obs[env.reward_input["positive"][0]] == reward == 1.0

@@ -155,3 +155,26 @@ def test_the_bayesian_learner_follows_the_evidence():
     assert bayes_choice([1, 1, 1], [True, True, True]) == 1
     # Four trials of a paying right arm, then right fails twice after the reversal window opened: switch.
     assert bayes_choice([1, 1, 1, 1, 1, 1], [True, True, True, True, False, False]) == 0
+
+
+@pytest.mark.parametrize("noise", ["low", "high"])
+def test_the_reward_input_reads_the_previous_reward_from_the_spikes(noise):
+    """Averaged over trials, what the declared reward input reads from a raster is the reward the previous trial
+    paid (1 or 0), and 0.5 in the first trial."""
+    import torch
+
+    from sb3_spikeplastic.sb3.modulation import RewardInput, read_reward
+
+    env = TMazeReversalEnv(noise=noise)
+    reward_input = RewardInput.parse(env.reward_input, env.observation_space)
+    read = {None: [], 0.0: [], 1.0: []}
+    for seed in range(150):
+        obs, _ = env.reset(seed=seed)
+        previous, done = None, False
+        while not done:
+            read[previous].append(read_reward(reward_input, torch.as_tensor(obs), raster=True).item())
+            obs, reward, done, _, _ = env.step(seed % 2)
+            previous = float(reward)
+    assert np.mean(read[None]) == pytest.approx(0.5, abs=0.03)
+    assert np.mean(read[1.0]) == pytest.approx(1.0, abs=0.03)
+    assert np.mean(read[0.0]) == pytest.approx(0.0, abs=0.03)
