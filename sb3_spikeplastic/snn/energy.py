@@ -76,6 +76,17 @@ def spike_counts(out: NetworkOutput, steps: int) -> Tensor:
     return torch.stack([r.sum(-1).mean() for r in (out.input_rate, *out.rates)]) * steps
 
 
+def spike_counts_per_env(out: NetworkOutput, steps: int) -> Tensor:
+    """Spikes of each environment of the batch in one environment step, ``(batch, n_layers + 1)``, populations in
+    the order of :func:`spike_counts` (whose value is their mean over the batch).
+
+    :param out: one environment step's output (with ``input_rate``).
+    :param steps: network steps per environment step ``T``.
+    """
+    batch = out.action.shape[0]
+    return torch.stack([r.reshape(batch, -1).sum(-1) for r in (out.input_rate, *out.rates)], -1) * steps
+
+
 def synaptic_operations(spikes: Tensor, sizes: Sequence[int]) -> Tensor:
     """Synaptic operations (SynOps) per layer, the neuromorphic convention for the energy of a spiking network: each
     presynaptic spike is delivered to every neuron of the next layer, so SynOps = presynaptic spikes x fan-out.
@@ -89,7 +100,8 @@ def synaptic_operations(spikes: Tensor, sizes: Sequence[int]) -> Tensor:
 
 class EnergyMeter:
     """Mean spikes and SynOps per environment step over every forward pass of ``network`` inside the ``with``
-    block (a forward hook: evaluation code, ``model.predict`` and rollouts are measured unchanged).
+    block (a forward hook: evaluation code, ``model.predict`` and rollouts are measured unchanged), and each
+    environment's spikes since its last episode ended (:meth:`episode`: the energy of one episode).
 
     ::
 
@@ -104,6 +116,7 @@ class EnergyMeter:
         self.network = network
         self.env_steps = 0
         self._sums: Optional[Tensor] = None
+        self._env_sums: Optional[Tensor] = None
 
     def _hook(self, module, inputs, output) -> None:
         out = output[0]
@@ -111,6 +124,10 @@ class EnergyMeter:
         counts = spike_counts(out, self.network.steps).detach() * batch
         self._sums = counts if self._sums is None else self._sums + counts
         self.env_steps += batch
+        per_env = spike_counts_per_env(out, self.network.steps).detach().double()
+        # Each row is one environment of a vectorised evaluation: a batch of another size starts the rows anew.
+        fresh = self._env_sums is None or self._env_sums.shape != per_env.shape
+        self._env_sums = per_env if fresh else self._env_sums + per_env
 
     def __enter__(self) -> "EnergyMeter":
         self._handle = self.network.register_forward_hook(self._hook)
@@ -138,4 +155,26 @@ class EnergyMeter:
             "plasticity_macs_per_step": plastic,
             "total_plasticity_macs_per_step": None if plastic is None else float(sum(plastic)),
             "energy_nj": energy_estimate(synops.tolist(), plastic),
+        }
+
+    def episode(self, env: int, length: int) -> dict[str, float]:
+        """The energy of the episode environment ``env`` (the row of the batch) has just ended, and its spikes
+        cleared for the next one: ``synops`` (the episode's synaptic operations), ``plasticity_macs`` (its trace
+        updates, :func:`plasticity_operations` per step times ``length``; NaN for a rule of one's own) and
+        ``energy_nj`` (:func:`energy_estimate` of both).
+
+        :param env: the environment's index in the batch of every forward pass.
+        :param length: the episode's environment steps.
+        """
+        if self._env_sums is None:
+            raise RuntimeError("no environment step was measured")
+        spikes = self._env_sums[env].cpu().clone()  # a copy: the row is cleared next
+        self._env_sums[env] = 0.0
+        synops = synaptic_operations(spikes, self.network.sizes).tolist()
+        plastic = plasticity_operations(self.network)
+        plastic = None if plastic is None else [macs * length for macs in plastic]
+        return {
+            "synops": float(sum(synops)),
+            "plasticity_macs": float("nan") if plastic is None else float(sum(plastic)),
+            "energy_nj": energy_estimate(synops, plastic)["total_nj"],
         }

@@ -9,6 +9,7 @@ report derived from the raw episodes alone.
 * :mod:`~sb3_spikeplastic.study.cell` — the work of one cell: training to its budgets, its evaluations
 * :mod:`~sb3_spikeplastic.study.groups` — the report's groups of models and the comparisons between them
 * :mod:`~sb3_spikeplastic.study.report` — tables, intervals, verdicts and figures
+* :mod:`~sb3_spikeplastic.study.step_info` — step-info values by step position, and energy per episode
 * :mod:`~sb3_spikeplastic.study.storage` — Optuna storages with heartbeats (also used by ``optimize``)
 * :mod:`~sb3_spikeplastic.study.robustness` — one model's return under noise (``sb3-spikeplastic robustness``)
 * :mod:`~sb3_spikeplastic.study.intervals` — two-stage bootstrap intervals over seeds and episodes

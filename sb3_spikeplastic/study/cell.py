@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Optional
 
 from .declaration import Evaluation, model_name
-from .layout import StudyFolder
+from .layout import ALIGN_COLUMN, ENERGY_COLUMNS, STEPS_COLUMN, StudyFolder
 from .storage import train_command
 
 
@@ -177,6 +177,36 @@ def evaluate_model_file(
         return _evaluate(job, env, name, evaluation, model_path, folder, missing, eval_name, same_env, Path(tmp))
 
 
+def write_final(f, result, align: Optional[str]) -> None:
+    """A final evaluation's raw rows: episode, return, length, success (empty where the task reports none), then
+    each step-info key's values at every step (a JSON list; bools as 0/1), the alignment key of the final step
+    (empty for ``None``) and, for a spiking model, the episode's energy (:data:`~.layout.ENERGY_COLUMNS`).
+
+    :param f: the open text file
+    :param result: :class:`sb3_spikeplastic.zoo.evaluation.Evaluation` of the episodes
+    :param align: the final step's info key that ``result.aligned`` holds, or ``None``
+    """
+    import json
+
+    n = len(result.returns)
+    columns = {
+        "episode": list(range(n)),
+        "return": result.returns.tolist(),
+        "length": result.lengths.astype(int).tolist(),
+        "success": result.successes if len(result.successes) == n else [""] * n,
+    }
+    for key, episodes in result.steps.items():
+        columns[f"{STEPS_COLUMN}{key}"] = [json.dumps([int(v) if v.is_integer() else v for v in e]) for e in episodes]
+    if align is not None:
+        columns[f"{ALIGN_COLUMN}{align}"] = ["" if a is None else a for a in result.aligned]
+    if result.episode_energy is not None:
+        for key in ENERGY_COLUMNS:
+            columns[key] = [f"{e[key]:.6g}" for e in result.episode_energy]
+    writer = csv.writer(f)
+    writer.writerow(columns)
+    writer.writerows(zip(*columns.values()))
+
+
 def _evaluate(
     job,
     env: str,
@@ -223,20 +253,18 @@ def _evaluate(
         venv = make_eval_env(env, p.n_envs, p.seed, env_kwargs, statistics)
         try:
             result = evaluate_model(
-                model, venv, p.episodes, deterministic=True, seed=p.seed, ablation=_ablation_for(model, evaluation)
+                model,
+                venv,
+                p.episodes,
+                deterministic=True,
+                seed=p.seed,
+                ablation=_ablation_for(model, evaluation),
+                info_keys=evaluation.info_keys,
+                align=evaluation.align,
             )
         finally:
             venv.close()
-        successes = result.successes if len(result.successes) == len(result.returns) else [""] * len(result.returns)
-
-        def write(f):
-            writer = csv.writer(f)
-            writer.writerow(["episode", "return", "length", "success"])
-            writer.writerows(
-                zip(range(len(result.returns)), result.returns.tolist(), result.lengths.astype(int).tolist(), successes)
-            )
-
-        atomic_write(folder / missing[0], write, binary=False)
+        atomic_write(folder / missing[0], lambda f: write_final(f, result, evaluation.align), binary=False)
         return 1
     for file in missing:
         noise = file[len(eval_name) + 1 : -len(".csv")]

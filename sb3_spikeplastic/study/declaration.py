@@ -57,7 +57,19 @@ STUDY_KEYS = (
 )
 VARIANT_KEYS = ("rule", "conf", "hyperparams", "seeds", "budgets", "train_env", "noises")
 EVALUATION_KINDS = ("final", "robustness", "sensitivity")
-FINAL_KEYS = ("kind", "episodes", "seed", "n_envs", "model", "ablation", "variants", "seeds", "budgets")
+FINAL_KEYS = (
+    "kind",
+    "episodes",
+    "seed",
+    "n_envs",
+    "model",
+    "ablation",
+    "info_keys",
+    "align",
+    "variants",
+    "seeds",
+    "budgets",
+)
 FILTER_KEYS = ("variants", "seeds", "budgets")
 SENSITIVITY_KEYS = ("kind", "shift", "seed", "groups", "model", *FILTER_KEYS)
 ROBUSTNESS_KEYS = (
@@ -113,6 +125,10 @@ class Evaluation:
     :param shift: ``sensitivity``: the shift of one raw observation element (:mod:`~sb3_spikeplastic.study.probes`)
     :param groups: ``sensitivity``: named groups of observation elements the report averages (``None``: each
         element)
+    :param info_keys: ``final``: keys of the step info whose value at every step of every episode the raw file
+        keeps (the report's mean at each step position)
+    :param align: ``final``: a key of the final step's info holding a step index (or ``None``), kept per episode:
+        the report lines the steps up on it as well
     """
 
     kind: str
@@ -125,6 +141,8 @@ class Evaluation:
     ablation: Optional[str] = None
     shift: Optional[float] = None
     groups: Optional[tuple[tuple[str, tuple[int, ...]], ...]] = None
+    info_keys: tuple[str, ...] = ()
+    align: Optional[str] = None
 
     def applies(self, variant: str, seed: int, budget: int) -> bool:
         return all(
@@ -398,7 +416,26 @@ def _evaluation(name, spec, where: str, variants: dict) -> Evaluation:
             raise ValueError(f"ablation of {what} in {where}: {exc}") from None
         filters["ablation"] = None if ablation == "none" else ablation
     if kind == "final":
-        return Evaluation(kind, replace(protocol, noises=(), sigmas=(0.0,)), model, **filters)
+        info_keys = spec.get("info_keys", [])
+        if (
+            not isinstance(info_keys, list)
+            or not all(isinstance(k, str) and k for k in info_keys)
+            or len(set(info_keys)) != len(info_keys)
+        ):
+            raise ValueError(f"info_keys={info_keys!r} of {what} in {where} must be a list of distinct step-info keys")
+        align = spec.get("align")
+        if align is not None and (not isinstance(align, str) or not align):
+            raise ValueError(f"align={align!r} of {what} in {where} must be a key of the final step's info")
+        if align is not None and not info_keys:
+            raise ValueError(f"align={align!r} of {what} in {where} needs info_keys: the step values it aligns")
+        return Evaluation(
+            kind,
+            replace(protocol, noises=(), sigmas=(0.0,)),
+            model,
+            info_keys=tuple(info_keys),
+            align=align,
+            **filters,
+        )
     if kind == "sensitivity":
         shift = spec.get("shift", 0.1)
         if isinstance(shift, bool) or not isinstance(shift, (int, float)) or not math.isfinite(shift) or shift == 0:
@@ -543,7 +580,7 @@ def packaged_studies() -> dict[str, Path]:
 
 
 def study_path(name_or_path: os.PathLike | str) -> Path:
-    """A study file: a path, or the name of a packaged study (``fig4``, ``tmaze``)."""
+    """A study file: a path, or the name of a packaged study (``fig4``, ``reversal``, ``tmaze``)."""
     path = Path(name_or_path)
     if path.is_file():
         return path

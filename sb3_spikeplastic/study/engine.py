@@ -104,6 +104,9 @@ class StudyJob:
                         "shift": e.shift,
                         "ablation": e.ablation,
                         **e.protocol.as_dict(),
+                        # Only where declared: a study recorded before these keys existed is declared alike.
+                        **({"info_keys": list(e.info_keys)} if e.info_keys else {}),
+                        **({"align": e.align} if e.align is not None else {}),
                     }
                     for name, e in s.evaluations.items()
                 },

@@ -41,6 +41,11 @@ class Interval(NamedTuple):
         return self.low > 0.0 or self.high < 0.0
 
 
+def fmt(interval: Interval, digits: int = 0) -> str:
+    """``estimate [low, high]`` with ``digits`` decimals: an interval in a report's table."""
+    return f"{interval.estimate:.{digits}f} [{interval.low:.{digits}f}, {interval.high:.{digits}f}]"
+
+
 def _check(groups: Sequence[np.ndarray], n_resamples: int, level: float) -> list[np.ndarray]:
     if not 0.0 < level < 1.0:
         raise ValueError(f"level={level!r} must lie strictly between 0 and 1")

@@ -6,7 +6,9 @@
     <folder>/training/<env>/<variant>_s<seed>.csv           every evaluation during training: timesteps, episode,
                                                             return
     <folder>/episodes/<env>/<variant>@<budget>_s<seed>/     every evaluation's episodes:
-        <evaluation>.csv                                    final: episode, return, length, success
+        <evaluation>.csv                                    final: episode, return, length, success (and
+                                                            steps:<key>, align:<key>, synops, plasticity_macs,
+                                                            energy_nj where recorded)
         <evaluation>_<noise>.csv                            robustness: model, noise_type, sigma, episode, return
         <evaluation>.csv                                    sensitivity: element, sensitivity, obs_sd
 
@@ -18,6 +20,7 @@ whole (into a temporary file, then renamed), so a killed worker never leaves hal
 from __future__ import annotations
 
 import csv
+import json
 import re
 from collections import defaultdict
 from dataclasses import dataclass, field
@@ -27,6 +30,12 @@ from typing import Optional
 import numpy as np
 
 from .declaration import Study, model_name
+
+#: Column prefixes of a final evaluation's raw file: a step-info key's value at every step of the episode (a JSON
+#: list), and the final step's alignment key (a step index; empty for ``None``).
+STEPS_COLUMN, ALIGN_COLUMN = "steps:", "align:"
+#: Columns of a spiking model's energy per episode (:meth:`sb3_spikeplastic.snn.energy.EnergyMeter.episode`).
+ENERGY_COLUMNS = ("synops", "plasticity_macs", "energy_nj")
 
 _CHECKPOINT = re.compile(r"rl_model_(\d+)_steps\.zip")
 _RUN = re.compile(r".+_\d+")
@@ -87,14 +96,30 @@ def read_robustness(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return sigmas, np.array([[r for _, r in sorted(by_sigma[s])] for s in sigmas])
 
 
-def read_final(path: Path) -> dict[str, np.ndarray]:
-    """A final-evaluation file: ``return``, ``length`` and ``success`` (NaN where the task reports none)."""
+def read_final(path: Path) -> dict:
+    """A final-evaluation file: ``return``, ``length`` and ``success`` (arrays; NaN where the task reports none);
+    ``steps`` (step-info key -> each episode's values, an array per episode), ``align`` (key -> each episode's
+    step index or ``None``) and ``energy`` (:data:`ENERGY_COLUMNS` -> arrays; ``None`` where not recorded)."""
     with open(path) as f:
-        rows = list(csv.DictReader(f))
-    return {
+        reader = csv.DictReader(f)
+        rows, columns = list(reader), reader.fieldnames or []
+    out: dict = {
         key: np.array([float(r[key]) if r[key] != "" else np.nan for r in rows])
         for key in ("return", "length", "success")
     }
+    out["steps"] = {
+        c[len(STEPS_COLUMN) :]: [np.array(json.loads(r[c]), dtype=float) for r in rows]
+        for c in columns
+        if c.startswith(STEPS_COLUMN)
+    }
+    out["align"] = {
+        c[len(ALIGN_COLUMN) :]: [int(r[c]) if r[c] != "" else None for r in rows]
+        for c in columns
+        if c.startswith(ALIGN_COLUMN)
+    }
+    recorded = all(c in columns for c in ENERGY_COLUMNS) and all(r[c] != "" for r in rows for c in ENERGY_COLUMNS)
+    out["energy"] = {c: np.array([float(r[c]) for r in rows]) for c in ENERGY_COLUMNS} if recorded else None
+    return out
 
 
 def read_training(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -123,7 +148,7 @@ class StudyData:
     """What a study's folder holds, read once.
 
     :param robustness: (env, evaluation) -> model -> noise -> (sigmas, returns (n_sigma, n_episodes))
-    :param final: (env, evaluation) -> model -> {"return", "length", "success"}
+    :param final: (env, evaluation) -> model -> :func:`read_final`
     :param sensitivity: (env, evaluation) -> model -> (sensitivity per element, observation s.d. per element)
     :param training: env -> (variant, seed) -> (timesteps, mean return)
     :param missing: one line per missing cell or evaluation file

@@ -14,6 +14,9 @@ study's folder (with one environment; with several, each file name starts with `
   differences (model minus reference) of the AUC, of R0 and of the return at the largest sigma (robustness), or of
   the mean return and success rate (final), with intervals, and a verdict only where the interval excludes 0.
 * ``summary.md`` — one row per group of each robustness evaluation: seeds, R0 and the AUC of every noise type.
+* ``steps_<evaluation>.md``, ``steps_<evaluation>.csv``, ``steps_<evaluation>_<key>.png`` — per final evaluation
+  with ``info_keys``: each key's mean at every step of the episode, and relative to the ``align`` step
+  (:mod:`sb3_spikeplastic.study.step_info`); ``table.md`` adds a spiking model's energy per episode.
 * ``points.csv`` (every group x noise x sigma: return and ratio with intervals), ``<evaluation>.png`` (return and
   ratio against sigma: Fig. 4 F-H), ``curves.csv`` and ``training_curves.png`` (Fig. 4 E: the deterministic
   evaluations during training, mean and range over seeds).
@@ -30,9 +33,10 @@ import numpy as np
 
 from .declaration import Evaluation, Study
 from .groups import comparisons, group_of, groups_of, kinds, variant_of
-from .intervals import Interval, bootstrap_mean_differences, bootstrap_mean_intervals
+from .intervals import Interval, bootstrap_mean_differences, bootstrap_mean_intervals, fmt
 from .layout import StudyFolder, read_study
 from .protocol import auc, ratio_to_r0
+from .step_info import energy_section, steps_section
 
 # ----------------------------------------------------------------------------------------------------------------
 # Statistics of per-seed means (shape (..., seeds, sigmas)), vectorised over bootstrap replicates
@@ -51,10 +55,6 @@ def ratio_at(j: int) -> Callable[[np.ndarray], np.ndarray]:
 def auc_of(sigmas) -> Callable[[np.ndarray], np.ndarray]:
     """The mean over seeds of each seed's area under the ratio curve."""
     return lambda means: auc(ratio_to_r0(means), sigmas).mean(axis=-1)
-
-
-def fmt(interval: Interval, digits: int = 0) -> str:
-    return f"{interval.estimate:.{digits}f} [{interval.low:.{digits}f}, {interval.high:.{digits}f}]"
 
 
 def verdict(difference: Interval, better: str, worse: str) -> str:
@@ -472,9 +472,20 @@ def write_report(study: Study, folder: Path, log: Optional[Callable[[str], None]
                     env, name, data.final[(env, name)], study, kind, boot, f"# {env}: evaluation {name!r}"
                 )
                 lines += section + [""]
+                models = data.final[(env, name)]
+                lines += energy_section(models, study, boot, f"## {env}: energy per episode, evaluation {name!r}")
                 if rows:
                     verdict_lines += [f"## evaluation {name!r}", "", *verdict_table(rows)]
                 verdict_rows += rows
+                if evaluation.info_keys:
+                    step_lines, step_rows, figures = steps_section(env, name, evaluation, models, study, boot)
+                    written.append(_write_text(folder / f"{prefix}steps_{name}.md", "\n".join(step_lines) + "\n"))
+                    if step_rows:
+                        written.append(_write_csv(folder / f"{prefix}steps_{name}.csv", step_rows))
+                    for key, fig in figures.items():
+                        written.append(folder / f"{prefix}steps_{name}_{key}.png")
+                        fig.savefig(written[-1], dpi=120)
+                        plt.close(fig)
             elif evaluation.kind == "sensitivity" and (env, name) in data.sensitivity:
                 lines += sensitivity_section(
                     env,

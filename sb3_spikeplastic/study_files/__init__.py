@@ -1,1 +1,2 @@
-"""The studies installed with the package: ``sb3-spikeplastic study fig4`` / ``study tmaze`` (their YAML files)."""
+"""The studies installed with the package: ``sb3-spikeplastic study fig4`` / ``study reversal`` /
+``study tmaze`` (their YAML files)."""

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
 
@@ -26,12 +26,20 @@ class Evaluation:
     :param lengths: episode lengths
     :param successes: ``info["is_success"]`` of the episodes whose environment reports it
     :param energy: :meth:`EnergyMeter.summary` for spiking policies, else ``None``
+    :param steps: per requested step-info key, every episode's values at each of its steps (bools as 0/1), in the
+        order of ``returns``
+    :param aligned: per episode, the requested key of its final step's info (a step index, or ``None``)
+    :param episode_energy: per episode, :meth:`EnergyMeter.episode` (SynOps, trace-update MACs, nJ) for spiking
+        policies, else ``None``
     """
 
     returns: np.ndarray
     lengths: np.ndarray
     successes: list[float]
     energy: Optional[dict[str, Any]]
+    steps: dict[str, list[list[float]]] = field(default_factory=dict)
+    aligned: list[Optional[int]] = field(default_factory=list)
+    episode_energy: Optional[list[dict[str, float]]] = None
 
     @property
     def success_rate(self) -> Optional[float]:
@@ -50,7 +58,15 @@ class Evaluation:
 
 
 def evaluate_model(
-    model, venv, n_episodes: int, deterministic: bool = True, seed: int = 0, progress: bool = False, ablation=None
+    model,
+    venv,
+    n_episodes: int,
+    deterministic: bool = True,
+    seed: int = 0,
+    progress: bool = False,
+    ablation=None,
+    info_keys: Sequence[str] = (),
+    align: Optional[str] = None,
 ) -> Evaluation:
     """Run ``n_episodes`` episodes of ``model`` on the (seeded) vectorised ``venv`` with SB3's ``evaluate_policy``,
     which carries a recurrent policy's state and resets it at episode starts.
@@ -64,6 +80,11 @@ def evaluate_model(
     :param ablation: plasticity ablation to evaluate under (:mod:`sb3_spikeplastic.sb3.ablation`: ``"frozen"``,
         ``"reset-every:N"``, ``"shuffled"``, ``"none"`` or an ``Ablation``; spiking policies only); ``None``: the
         policy's own (``policy.ablation``, normally ``none``)
+    :param info_keys: keys of the environment's step info (numbers or bools) whose value at every step of every
+        episode is kept (:attr:`Evaluation.steps`), e.g. whether each trial's choice was the good one
+    :param align: a key of the final step's info holding a step index (or ``None``), kept per episode
+        (:attr:`Evaluation.aligned`) so that the steps can be lined up on an event such as a reversal
+    :raises ValueError: a key is missing from the step info, or its value is not a number
     """
     import torch
     from stable_baselines3.common.evaluation import evaluate_policy
@@ -74,14 +95,33 @@ def evaluate_model(
 
     check_ablation(model, ablation, venv.num_envs)  # before any episode
     successes: list[float] = []
+    steps: dict[str, list[list[float]]] = {key: [] for key in info_keys}
+    aligned: list[Optional[int]] = []
+    episode_energy: list[dict[str, float]] = []
+    current: list[dict[str, list[float]]] = [{key: [] for key in info_keys} for _ in range(venv.num_envs)]
     bar = tqdm(total=n_episodes, unit="episode", disable=not progress, dynamic_ncols=True)
+    meter = None
 
     def on_step(local_vars: dict, _globals: dict) -> None:
-        if local_vars["done"] and "episode" in local_vars["info"]:
-            bar.update(1)
-            value = local_vars["info"].get("is_success")
-            if value is not None:
-                successes.append(float(value))
+        i, info = local_vars["i"], local_vars["info"]
+        for key in info_keys:
+            current[i][key].append(_step_value(info, key))
+        if not local_vars["done"]:
+            return
+        episode, current[i] = current[i], {key: [] for key in info_keys}
+        energy = None if meter is None else meter.episode(i, int(local_vars["current_lengths"][i]))
+        if "episode" not in info:  # not an episode's end that evaluate_policy counts
+            return
+        bar.update(1)
+        value = info.get("is_success")
+        if value is not None:
+            successes.append(float(value))
+        for key in info_keys:
+            steps[key].append(episode[key])
+        if align is not None:
+            aligned.append(_step_index(info, align))
+        if energy is not None:
+            episode_energy.append(energy)
 
     torch.manual_seed(seed)
     snn = getattr(model.policy, "snn", None)
@@ -106,7 +146,35 @@ def evaluate_model(
         np.asarray(lengths, dtype=float),
         successes,
         meter.summary() if meter is not None else None,
+        steps,
+        aligned,
+        episode_energy if meter is not None else None,
     )
+
+
+def _step_value(info: dict, key: str) -> float:
+    """``info[key]`` as a number (a bool as 0/1); ``ValueError`` naming the key when it is missing or no number."""
+    if key not in info:
+        raise ValueError(f"the step info has no {key!r}; it has {', '.join(map(repr, info)) or 'no key'}")
+    value = info[key]
+    if isinstance(value, (bool, np.bool_)):
+        return float(value)
+    if not isinstance(value, (int, float, np.integer, np.floating)):
+        raise ValueError(f"step info {key!r}={value!r} is not a number or a bool")
+    return float(value)
+
+
+def _step_index(info: dict, key: str) -> Optional[int]:
+    """``info[key]`` of an episode's final step: a step index or ``None``; ``ValueError`` naming the key
+    otherwise."""
+    if key not in info:
+        raise ValueError(f"the final step's info has no {key!r}; it has {', '.join(map(repr, info)) or 'no key'}")
+    value = info[key]
+    if value is None:
+        return None
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise ValueError(f"final step info {key!r}={value!r} is not a step index (an integer) or None")
+    return int(value)
 
 
 def check_fits(model, info: RunInfo, env_id: str, make_error: Optional[str] = None) -> None:
