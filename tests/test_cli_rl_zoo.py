@@ -182,6 +182,17 @@ def test_log_interval_reaches_learn(tmp_path, monkeypatch, run_cli):
             ],
             "policy_kwargs.rule_kwargs.eta_phi_init=1.5 must lie in (0, 1)",
         ),
+        (
+            [
+                "train",
+                "--env",
+                "TMazeReversal-v0",
+                "-params",
+                "policy_kwargs.rule=ndp-oja",
+                "policy_kwargs.rule_kwargs.modulation_source=dopamine",
+            ],
+            "policy_kwargs.rule_kwargs.modulation_source='dopamine' unknown; accepted: learned, reward, td-error",
+        ),
     ],
 )
 def test_bad_input_is_one_line_naming_its_option(argv, message, tmp_path, run_cli):

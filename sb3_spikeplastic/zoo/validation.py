@@ -140,6 +140,17 @@ def _check_rule_values(rule: str, rule_kwargs: dict) -> None:
         raise ValueError(f"policy_kwargs.rule_kwargs={rule_kwargs!r} for rule {rule!r}: {message}") from None
 
 
+def _check_modulation_source(name: Any) -> None:
+    """A one-line error for a ``modulation_source`` that no source is registered under, before any model is built."""
+    from ..sb3.modulation import available_modulation_sources
+
+    if name is not None and name not in available_modulation_sources():
+        raise ValueError(
+            f"policy_kwargs.rule_kwargs.modulation_source={name!r} unknown; accepted: "
+            f"{', '.join(available_modulation_sources())}"
+        )
+
+
 def _validate_policy_kwargs(policy: str, kwargs: Any, algo: str = "ppo") -> dict:
     from ..snn.plasticity import get_rule_class
 
@@ -185,6 +196,7 @@ def _validate_policy_kwargs(policy: str, kwargs: Any, algo: str = "ppo") -> dict
                 for k, v in out["rule_kwargs"].items()
             }
             _check_rule_values(out_rule, out["rule_kwargs"])
+            _check_modulation_source(out["rule_kwargs"].get("modulation_source"))
     if out.get("neuron"):
         from ..snn.neurons import SRMParameters
 
