@@ -64,6 +64,7 @@ FINAL_KEYS = (
     "n_envs",
     "model",
     "ablation",
+    "against",
     "info_keys",
     "align",
     "variants",
@@ -84,6 +85,7 @@ ROBUSTNESS_KEYS = (
     "clip_obs",
     "model",
     "ablation",
+    "against",
     *FILTER_KEYS,
 )
 REPORT_KEYS = ("learned_threshold", "resamples", "compare")
@@ -122,6 +124,9 @@ class Evaluation:
         observation at this bound instead of their own (``None``: as trained)
     :param ablation: evaluate the spiking models under this plasticity ablation (:mod:`sb3_spikeplastic.sb3.ablation`:
         ``frozen``, ``reset-every:N``, ``shuffled``; ``None``: as trained); other models as they are
+    :param against: with ``ablation``: the plain evaluation the report pairs this one with, episode by episode
+        (``None``: the first of the same kind, model and protocol without ablation;
+        :mod:`~sb3_spikeplastic.study.ablation_report`)
     :param shift: ``sensitivity``: the shift of one raw observation element (:mod:`~sb3_spikeplastic.study.probes`)
     :param groups: ``sensitivity``: named groups of observation elements the report averages (``None``: each
         element)
@@ -139,6 +144,7 @@ class Evaluation:
     budgets: Optional[tuple[int, ...]] = None
     clip_obs: Optional[float] = None
     ablation: Optional[str] = None
+    against: Optional[str] = None
     shift: Optional[float] = None
     groups: Optional[tuple[tuple[str, tuple[int, ...]], ...]] = None
     info_keys: tuple[str, ...] = ()
@@ -149,6 +155,11 @@ class Evaluation:
             chosen is None or value in chosen
             for chosen, value in ((self.variants, variant), (self.seeds, seed), (self.budgets, budget))
         )
+
+    def episode_seeds(self) -> tuple[int, int, int]:
+        """What sets the seed of every episode: the first environment seed, the episodes and the environments side
+        by side (environment ``i`` is seeded ``seed + i``)."""
+        return self.protocol.seed, self.protocol.episodes, self.protocol.n_envs
 
     def files(self, name: str, noises: Optional[Sequence[str]] = None) -> list[str]:
         """The raw files of this evaluation in a model's episode folder (``noises``: the variant's narrowing)."""
@@ -415,6 +426,15 @@ def _evaluation(name, spec, where: str, variants: dict) -> Evaluation:
         except ValueError as exc:
             raise ValueError(f"ablation of {what} in {where}: {exc}") from None
         filters["ablation"] = None if ablation == "none" else ablation
+    against = spec.get("against")
+    if against is not None:
+        if not isinstance(against, str):
+            raise ValueError(f"against={against!r} of {what} in {where} must be the name of an evaluation")
+        if filters.get("ablation") is None:
+            raise ValueError(
+                f"against={against!r} of {what} in {where} needs ablation: it names the plain evaluation to pair with"
+            )
+        filters["against"] = against
     if kind == "final":
         info_keys = spec.get("info_keys", [])
         if (
@@ -495,6 +515,33 @@ def _evaluation(name, spec, where: str, variants: dict) -> Evaluation:
     )
 
 
+def _check_against(evaluations: dict[str, Evaluation], where: str) -> None:
+    """Each ``against``: a plain evaluation of the same kind and model on the same episode seeds (for
+    ``robustness``: the same sigmas and every noise of the ablated one), so that their episodes pair one to one."""
+    for name, e in evaluations.items():
+        if e.against is None:
+            continue
+        if e.against not in evaluations:
+            raise _unknown(f"evaluation in against of evaluation {name!r}", e.against, list(evaluations), where)
+        plain, what = evaluations[e.against], f"against={e.against!r} of evaluation {name!r} in {where}"
+        if plain.kind != e.kind:
+            raise ValueError(f"{what}: a {plain.kind} evaluation, not {e.kind}")
+        if plain.ablation is not None:
+            raise ValueError(f"{what}: ablated itself ({plain.ablation}); name an evaluation without ablation")
+        if plain.model != e.model:
+            raise ValueError(f"{what}: model {plain.model!r}, not {e.model!r} (other models)")
+        if plain.episode_seeds() != e.episode_seeds():
+            raise ValueError(
+                f"{what}: different episode seeds (seed, episodes, n_envs: {plain.episode_seeds()} vs "
+                f"{e.episode_seeds()})"
+            )
+        if plain.protocol.sigmas != e.protocol.sigmas:
+            raise ValueError(f"{what}: different sigmas ({list(plain.protocol.sigmas)} vs {list(e.protocol.sigmas)})")
+        noises = [n for n in e.protocol.noises if n not in plain.protocol.noises]
+        if noises:
+            raise ValueError(f"{what}: {e.against!r} has no {', '.join(noises)} noise")
+
+
 def _comparisons(data, variants: dict[str, Variant], where: str) -> tuple[Comparison, ...]:
     if not isinstance(data, list):
         raise ValueError(f"report.compare in {where} must be a list of mappings with {', '.join(COMPARE_KEYS)}")
@@ -567,6 +614,7 @@ def study_from_dict(data, where: str = "the study", base: Path = Path(".")) -> S
         _int(report.get("resamples", 2000), "report.resamples", 1),
         description.strip(),
     )
+    _check_against(study.evaluations, where)
     return study
 
 

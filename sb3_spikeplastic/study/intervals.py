@@ -46,6 +46,21 @@ def fmt(interval: Interval, digits: int = 0) -> str:
     return f"{interval.estimate:.{digits}f} [{interval.low:.{digits}f}, {interval.high:.{digits}f}]"
 
 
+def verdict(difference: Interval, above: str, below: str) -> str:
+    """The word of a report's table for a difference: ``above`` where its interval lies above 0, ``below`` where
+    it lies below, else ``not resolved``.
+
+    :param difference: a difference and its interval.
+    :param above: the word for a difference resolved above 0 (e.g. ``higher``).
+    :param below: the word for a difference resolved below 0.
+    """
+    if difference.low > 0:
+        return above
+    if difference.high < 0:
+        return below
+    return "not resolved"
+
+
 def _check(groups: Sequence[np.ndarray], n_resamples: int, level: float) -> list[np.ndarray]:
     if not 0.0 < level < 1.0:
         raise ValueError(f"level={level!r} must lie strictly between 0 and 1")
