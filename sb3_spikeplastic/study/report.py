@@ -17,6 +17,9 @@ study's folder (with one environment; with several, each file name starts with `
 * ``steps_<evaluation>.md``, ``steps_<evaluation>.csv``, ``steps_<evaluation>_<key>.png`` — per final evaluation
   with ``info_keys``: each key's mean at every step of the episode, and relative to the ``align`` step
   (:mod:`sb3_spikeplastic.study.step_info`); ``table.md`` adds a spiking model's energy per episode.
+* ``ablation_<evaluation>.md``, ``ablation_<evaluation>.csv`` — per evaluation with ``ablation`` and a plain
+  counterpart: each plastic group's value plain, ablated and the paired difference plain - ablated with its
+  interval and verdict (:mod:`sb3_spikeplastic.study.ablation_report`).
 * ``points.csv`` (every group x noise x sigma: return and ratio with intervals), ``<evaluation>.png`` (return and
   ratio against sigma: Fig. 4 F-H), ``curves.csv`` and ``training_curves.png`` (Fig. 4 E: the deterministic
   evaluations during training, mean and range over seeds).
@@ -31,9 +34,10 @@ from typing import Optional
 
 import numpy as np
 
+from .ablation_report import ablation_table
 from .declaration import Evaluation, Study
 from .groups import comparisons, group_of, groups_of, kinds, variant_of
-from .intervals import Interval, bootstrap_mean_differences, bootstrap_mean_intervals, fmt
+from .intervals import Interval, bootstrap_mean_differences, bootstrap_mean_intervals, fmt, verdict
 from .layout import StudyFolder, read_study
 from .protocol import auc, ratio_to_r0
 from .step_info import energy_section, steps_section
@@ -55,14 +59,6 @@ def ratio_at(j: int) -> Callable[[np.ndarray], np.ndarray]:
 def auc_of(sigmas) -> Callable[[np.ndarray], np.ndarray]:
     """The mean over seeds of each seed's area under the ratio curve."""
     return lambda means: auc(ratio_to_r0(means), sigmas).mean(axis=-1)
-
-
-def verdict(difference: Interval, better: str, worse: str) -> str:
-    if difference.low > 0:
-        return better
-    if difference.high < 0:
-        return worse
-    return "not resolved"
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -525,6 +521,11 @@ def write_report(study: Study, folder: Path, log: Optional[Callable[[str], None]
                 written.append(folder / f"{prefix}{name}.png")
                 fig.savefig(written[-1], dpi=120)
                 plt.close(fig)
+        for name in study.evaluations:
+            if (table := ablation_table(study, data, env, name, kind, boot)) is not None:
+                written.append(_write_text(folder / f"{prefix}ablation_{name}.md", table[0]))
+                if table[1]:
+                    written.append(_write_csv(folder / f"{prefix}ablation_{name}.csv", table[1]))
         if env in data.training:
             written.append(folder / f"{prefix}training_curves.png")
             written.append(
