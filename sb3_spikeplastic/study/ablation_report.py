@@ -20,7 +20,7 @@ from typing import Optional
 
 import numpy as np
 
-from .declaration import Study, model_name
+from .declaration import Evaluation, Study, model_name
 from .groups import group_of, groups_of, variant_of
 from .intervals import bootstrap_mean_intervals, fmt, verdict
 from .layout import StudyData
@@ -54,7 +54,10 @@ def counterpart(study: Study, name: str) -> Optional[str]:
 
 
 def _reading(ablation: str) -> str:
-    """What the ablation does to a spiking model, and how the table's differences read."""
+    """What the ablation does to a spiking model, and how the table's differences read: the table's first lines.
+
+    :param ablation: the mode as declared, e.g. ``frozen`` or ``reset-every:10``
+    """
     mode, _, every = ablation.partition(":")
     done, participle = {
         "frozen": ("every trace and rule state held at zero, the network running on its weights alone", "frozen"),
@@ -71,7 +74,12 @@ def _reading(ablation: str) -> str:
 
 def _rows(study: Study, kind: dict[str, str], seeds_of: Callable[[str], list]) -> list[tuple[str, list]]:
     """``(label, seeds)`` of every plastic group with data, budget by budget, each budget's plastic variants pooled
-    after them when more than one."""
+    after them when more than one (as ``report.compare``'s pooled rows).
+
+    :param study: the study (its groups' order)
+    :param kind: variant -> ``plastic``, ``static`` or ``baselines``
+    :param seeds_of: a group -> its models' paired data (empty: no row)
+    """
     plastic = [g for g in groups_of(study) if kind[variant_of(g)] == "plastic" and seeds_of(g)]
     rows = []
     for budget in dict.fromkeys(g.split("@")[1] for g in plastic):
@@ -130,20 +138,15 @@ def _table(
 
 
 def _robustness_quantities(sigmas: np.ndarray) -> list[Quantity]:
-    """R0, the AUC of the ratio to R0 (each model's own R0) and the return at the largest sigma."""
+    """R0, the AUC of the ratio to R0 (each model's own R0) and the return at the largest sigma.
+
+    :param sigmas: the evaluation's sigmas, 0 first
+    """
     return [
         ("r0", "R0", 0, lambda x: x[..., 0]),
         ("auc", "AUC", 3, lambda x: auc(ratio_to_r0(x), sigmas)),
         (f"return_at_sigma_{sigmas[-1]:g}", f"return at sigma {sigmas[-1]:g}", 0, lambda x: x[..., -1]),
     ]
-
-
-def _final_values(data: dict, keys: list[str]) -> np.ndarray:
-    """A final evaluation's values of one model, shape ``(quantities, episodes)``: the return, then each of ``keys``
-    (``success``, or a step-info key: its mean over the episode's steps)."""
-    rows = [data["return"]]
-    rows += [data["success"] if k == "success" else np.array([e.mean() for e in data["steps"][k]]) for k in keys]
-    return np.stack(rows)
 
 
 def _pairs(
@@ -152,7 +155,12 @@ def _pairs(
     """The plastic models the ablated evaluation ``name`` applies to, per raw file: noise (``""`` for ``final``) ->
     the models with both evaluations' data, and one line per model and file where one of the two is not there.
 
+    :param study: the study
+    :param env: the environment
+    :param name: the ablated evaluation
+    :param plain: its plain counterpart
     :param runs: evaluation name -> model -> its data (:class:`sb3_spikeplastic.study.layout.StudyData`)
+    :param kind: variant -> ``plastic``, ``static`` or ``baselines``
     """
     paired: dict[str, list[str]] = {}
     missing = []
@@ -176,46 +184,78 @@ def _pairs(
 
 
 def _final_section(
-    study: Study, models: list[str], plain: dict, ablated: dict, kind: dict[str, str], boot: dict, head: dict
+    study: Study,
+    evaluation: Evaluation,
+    models: list[str],
+    plain: dict,
+    ablated: dict,
+    kind: dict[str, str],
+    boot: dict,
+    head: dict,
 ) -> tuple[list[str], list[dict]]:
-    """The table of a final evaluation: return, success rate (where every episode has one) and each step-info key
-    of the ablated evaluation that every model's two files keep.
+    """The table of a final evaluation: the return, the success rate (where every episode has one) and the episode
+    mean of each of the ablated evaluation's ``info_keys`` that every model's two files keep.
 
-    :param models: the paired models; ``plain`` and ``ablated``: model -> :func:`~.layout.read_final`
+    :param study: the study (its groups, the learned threshold)
+    :param evaluation: the ablated evaluation
+    :param models: the paired models
+    :param plain: model -> its plain evaluation (:func:`~sb3_spikeplastic.study.layout.read_final`)
+    :param ablated: model -> its ablated evaluation, likewise
+    :param kind: variant -> ``plastic``, ``static`` or ``baselines``
+    :param boot: the bootstrap's keyword arguments
+    :param head: the leading columns of every CSV row
     """
     both = [runs[m] for runs in (plain, ablated) for m in models]
-    keys = ["success"] if all(np.isfinite(d["success"]).all() for d in both) else []
-    keys += [k for k in study.evaluations[head["evaluation"]].info_keys if all(k in d["steps"] for d in both)]
-    values = {m: np.stack([_final_values(plain[m], keys), _final_values(ablated[m], keys)]) for m in models}
-    titles = [("return", "return"), *((k, k if k == "success" else f"mean {k}") for k in keys)]
-    quantities = [(key, title, 3, lambda x, i=i: x[..., i]) for i, (key, title) in enumerate(titles)]
+    columns = [("return", "return", lambda d: d["return"])]
+    if all(np.isfinite(d["success"]).all() for d in both):
+        columns.append(("success", "success", lambda d: d["success"]))
+    columns += [
+        (f"mean_{k}", f"mean {k}", lambda d, k=k: np.array([e.mean() for e in d["steps"][k]]))
+        for k in evaluation.info_keys
+        if all(k in d["steps"] for d in both)
+    ]
+    values = {m: np.stack([[get(runs[m]) for *_, get in columns] for runs in (plain, ablated)]) for m in models}
+    quantities = [(key, title, 3, lambda x, i=i: x[..., i]) for i, (key, title, _) in enumerate(columns)]
     rows = _rows(study, kind, lambda g: [values[m] for m in models if group_of(m) == g])
     if not rows:
         return [], []
-    section, csv_rows = _table(rows, quantities, head["ablation"], boot, dict(head, noise=""))
+    section, csv_rows = _table(rows, quantities, evaluation.ablation, boot, dict(head, noise=""))
     return ["", *section], csv_rows
 
 
 def _robustness_section(
-    study: Study, paired: dict[str, list[str]], plain: dict, ablated: dict, kind: dict[str, str], boot: dict, head: dict
+    study: Study,
+    evaluation: Evaluation,
+    paired: dict[str, list[str]],
+    plain: dict,
+    ablated: dict,
+    kind: dict[str, str],
+    boot: dict,
+    head: dict,
 ) -> tuple[list[str], list[dict]]:
     """The tables of a robustness evaluation, one per noise type, and the models whose plain R0 is below the
     learned threshold, left out.
 
-    :param paired: noise -> the paired models; ``plain`` and ``ablated``: model -> noise -> (sigmas, returns)
+    :param study: the study (its groups, the learned threshold)
+    :param evaluation: the ablated evaluation
+    :param paired: noise -> the paired models
+    :param plain: model -> noise -> (sigmas, returns) of its plain evaluation
+    :param ablated: model -> noise -> (sigmas, returns) of its ablated evaluation
+    :param kind: variant -> ``plastic``, ``static`` or ``baselines``
+    :param boot: the bootstrap's keyword arguments
+    :param head: the leading columns of every CSV row
     """
-    noises = study.evaluations[head["evaluation"]].protocol.noises
     # The plain R0 from the first noise a model has (sigma 0: the same episodes under every noise).
     r0 = {m: next(plain[m][n][1][0].mean() for n in plain[m]) for models in paired.values() for m in models}
     failed = sorted(m for m, value in r0.items() if value < study.learned_threshold)
     lines, csv_rows = [], []
-    for noise in noises:
+    for noise in evaluation.protocol.noises:
         models = [m for m in paired.get(noise, []) if m not in failed]
         values = {m: np.stack([plain[m][noise][1], ablated[m][noise][1]]) for m in models}
         rows = _rows(study, kind, lambda g: [values[m] for m in models if group_of(m) == g])
         if rows:
             quantities = _robustness_quantities(plain[models[0]][noise][0])
-            section, noise_rows = _table(rows, quantities, head["ablation"], boot, dict(head, noise=noise))
+            section, noise_rows = _table(rows, quantities, evaluation.ablation, boot, dict(head, noise=noise))
             lines += ["", f"## {noise} noise", "", *section]
             csv_rows += noise_rows
     if failed:
@@ -244,9 +284,9 @@ def ablation_table(
     paired, missing = _pairs(study, env, name, plain, runs, kind)
     head = dict(env=env, evaluation=name, against=plain, ablation=evaluation.ablation)
     section, csv_rows = (
-        _final_section(study, paired.get("", []), runs[plain], runs[name], kind, boot, head)
+        _final_section(study, evaluation, paired.get("", []), runs[plain], runs[name], kind, boot, head)
         if evaluation.kind == "final"
-        else _robustness_section(study, paired, runs[plain], runs[name], kind, boot, head)
+        else _robustness_section(study, evaluation, paired, runs[plain], runs[name], kind, boot, head)
     )
     lines = [
         f"# {env}: evaluation {name!r} ({evaluation.ablation}) against {plain!r}",

@@ -144,8 +144,8 @@ def test_final_differences_by_hand(report):
     # Success 3/4 plain, 1/4 frozen; good_choice's episode means 0.6875 plain, 0.4375 frozen, for every model.
     for row in rows.values():
         assert float(row["success_difference_estimate"]) == pytest.approx(0.5)
-        assert float(row["good_choice_plain"]) == pytest.approx(0.6875)
-        assert float(row["good_choice_difference_estimate"]) == pytest.approx(0.25)
+        assert float(row["mean_good_choice_plain"]) == pytest.approx(0.6875)
+        assert float(row["mean_good_choice_difference_estimate"]) == pytest.approx(0.25)
 
 
 @pytest.mark.parametrize(
