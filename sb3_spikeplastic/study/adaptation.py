@@ -142,8 +142,9 @@ def adaptation_section(env: str, name: str, evaluation: Evaluation, models: dict
     :param study: the study (its groups' order)
     :param boot: the bootstrap's keyword arguments
     :return: Markdown lines, CSV rows (env, evaluation, measure, bin_start, bin_end, group, seeds, episodes,
-        estimate, low, high) and the figure (relative return per bin around the change; recovery per group), or
-        ``None`` for the figure where no model has the step rewards and the alignment
+        left_out: the group's episodes of reference <= 0, estimate, low, high) and the figure (relative return per
+        bin around the change; recovery per group), or ``None`` for the figure where no model has the step rewards
+        and the alignment
     """
     import matplotlib.pyplot as plt
 
