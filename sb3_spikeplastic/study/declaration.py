@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 from ..zoo.config import check_env_id, resolve_hyperparams
+from ..zoo.evaluation import REWARD_KEY
 from ..zoo.zoo_yaml import PACKAGED_HYPERPARAMS, load_hyperparams_file, parse_override, yaml_load
 from .protocol import FIG4, NOISES, Protocol
 
@@ -67,6 +68,8 @@ FINAL_KEYS = (
     "against",
     "info_keys",
     "align",
+    "bins",
+    "recovery",
     "variants",
     "seeds",
     "budgets",
@@ -93,6 +96,9 @@ COMPARE_KEYS = ("variants", "against", "pooled")
 GROUPS = ("plastic", "static", "spiking", "baselines")
 #: Which model of a budget an evaluation uses: the checkpoint at that budget, or the run's best evaluated model.
 MODELS = ("budget", "best")
+#: Steps after an aligned change of dynamics whose mean reward is the drop (the first ``early`` steps after it)
+#: and the recovered level (the episode's last ``late`` steps): ``recovery: [early, late]`` of a final evaluation.
+RECOVERY = (100, 200)
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.+-]*$")
 
 
@@ -134,6 +140,11 @@ class Evaluation:
         keeps (the report's mean at each step position)
     :param align: ``final``: a key of the final step's info holding a step index (or ``None``), kept per episode:
         the report lines the steps up on it as well
+    :param bins: ``final``: the report's return per ``bins``-step bin around the aligned step, relative to the same
+        episode's bins before it, and the recovery after it (:mod:`sb3_spikeplastic.study.adaptation`); ``None``:
+        none
+    :param recovery: ``final`` with ``bins``: ``(early, late)``, the steps after the aligned one whose mean reward
+        is the drop (the first ``early``) and the recovered level (the episode's last ``late``)
     """
 
     kind: str
@@ -149,6 +160,8 @@ class Evaluation:
     groups: Optional[tuple[tuple[str, tuple[int, ...]], ...]] = None
     info_keys: tuple[str, ...] = ()
     align: Optional[str] = None
+    bins: Optional[int] = None
+    recovery: tuple[int, int] = RECOVERY
 
     def applies(self, variant: str, seed: int, budget: int) -> bool:
         return all(
@@ -309,6 +322,11 @@ def _int(value, what: str, minimum: int) -> int:
     return int(value)
 
 
+def _positive_int(value) -> bool:
+    """Whether ``value`` is an integer >= 1 (a bool is not)."""
+    return not isinstance(value, bool) and isinstance(value, int) and value >= 1
+
+
 def _ints(value, what: str, minimum: int) -> tuple[int, ...]:
     if not isinstance(value, list) or not value:
         raise ValueError(f"{what}={value!r} must be a non-empty list of integers")
@@ -448,12 +466,32 @@ def _evaluation(name, spec, where: str, variants: dict) -> Evaluation:
             raise ValueError(f"align={align!r} of {what} in {where} must be a key of the final step's info")
         if align is not None and not info_keys:
             raise ValueError(f"align={align!r} of {what} in {where} needs info_keys: the step values it aligns")
+        bins = spec.get("bins")
+        if bins is not None:
+            if not _positive_int(bins):
+                raise ValueError(f"bins={bins!r} of {what} in {where} must be an integer >= 1 (the steps of a bin)")
+            if align is None or REWARD_KEY not in info_keys:
+                raise ValueError(
+                    f"bins={bins} of {what} in {where} needs align (the step of the change) and {REWARD_KEY!r} in "
+                    "info_keys (the step rewards it sums)"
+                )
+        recovery = spec.get("recovery", list(RECOVERY))
+        if not isinstance(recovery, list) or len(recovery) != 2 or not all(map(_positive_int, recovery)):
+            raise ValueError(
+                f"recovery={recovery!r} of {what} in {where} must be [early, late], integers >= 1: the steps after "
+                "the change whose mean reward is the drop, and the episode's last steps whose mean is the recovered "
+                "level"
+            )
+        if "recovery" in spec and bins is None:
+            raise ValueError(f"recovery={recovery!r} of {what} in {where} needs bins")
         return Evaluation(
             kind,
             replace(protocol, noises=(), sigmas=(0.0,)),
             model,
             info_keys=tuple(info_keys),
             align=align,
+            bins=bins,
+            recovery=tuple(recovery),
             **filters,
         )
     if kind == "sensitivity":
@@ -628,7 +666,7 @@ def packaged_studies() -> dict[str, Path]:
 
 
 def study_path(name_or_path: os.PathLike | str) -> Path:
-    """A study file: a path, or the name of a packaged study (``fig4``, ``reversal``, ``tmaze``)."""
+    """A study file: a path, or the name of a packaged study (``fig4``, ``reversal``, ``switch_meta``, ...)."""
     path = Path(name_or_path)
     if path.is_file():
         return path

@@ -20,6 +20,9 @@ study's folder (with one environment; with several, each file name starts with `
 * ``ablation_<evaluation>.md``, ``ablation_<evaluation>.csv`` — per evaluation with ``ablation`` and a plain
   counterpart: each plastic group's value plain, ablated and the paired difference plain - ablated with its
   interval and verdict (:mod:`sb3_spikeplastic.study.ablation_report`).
+* ``adaptation_<evaluation>.md``, ``.csv``, ``.png`` — per final evaluation with ``bins``: the return per bin
+  around the aligned change relative to the same episode's before it, the drop and the recovery
+  (:mod:`sb3_spikeplastic.study.adaptation`).
 * ``points.csv`` (every group x noise x sigma: return and ratio with intervals), ``<evaluation>.png`` (return and
   ratio against sigma: Fig. 4 F-H), ``curves.csv`` and ``training_curves.png`` (Fig. 4 E: the deterministic
   evaluations during training, mean and range over seeds).
@@ -35,6 +38,7 @@ from typing import Optional
 import numpy as np
 
 from .ablation_report import ablation_table
+from .adaptation import adaptation_section
 from .declaration import Evaluation, Study
 from .groups import comparisons, group_of, groups_of, kinds, variant_of
 from .intervals import Interval, bootstrap_mean_differences, bootstrap_mean_intervals, fmt, verdict
@@ -480,6 +484,15 @@ def write_report(study: Study, folder: Path, log: Optional[Callable[[str], None]
                         written.append(_write_csv(folder / f"{prefix}steps_{name}.csv", step_rows))
                     for key, fig in figures.items():
                         written.append(folder / f"{prefix}steps_{name}_{key}.png")
+                        fig.savefig(written[-1], dpi=120)
+                        plt.close(fig)
+                if evaluation.bins is not None:
+                    adapt_lines, adapt_rows, fig = adaptation_section(env, name, evaluation, models, study, boot)
+                    written.append(_write_text(folder / f"{prefix}adaptation_{name}.md", "\n".join(adapt_lines) + "\n"))
+                    if adapt_rows:
+                        written.append(_write_csv(folder / f"{prefix}adaptation_{name}.csv", adapt_rows))
+                    if fig is not None:
+                        written.append(folder / f"{prefix}adaptation_{name}.png")
                         fig.savefig(written[-1], dpi=120)
                         plt.close(fig)
             elif evaluation.kind == "sensitivity" and (env, name) in data.sensitivity:

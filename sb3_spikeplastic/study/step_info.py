@@ -64,7 +64,7 @@ def position_intervals(
     return out
 
 
-def _figure_style(groups: list[str]) -> tuple[dict, dict]:
+def figure_style(groups: list[str]) -> tuple[dict, dict]:
     """A colour per variant (the same at every budget) and a line style per budget (the first solid)."""
     import matplotlib.pyplot as plt
 
@@ -106,7 +106,7 @@ def steps_section(env: str, name: str, evaluation: Evaluation, models: dict, stu
         if align is not None:
             tables.append((align, ALIGNED_OFFSETS, f"step - {align}"))
         fig, axes = plt.subplots(1, len(tables), figsize=(6.5 * len(tables) + 2, 4.5), squeeze=False)
-        colours, styles = _figure_style(groups)
+        colours, styles = figure_style(groups)
         for ax, (aligned_on, positions, label) in zip(axes[0], tables):
             per_group = {}
             for group in groups:

@@ -17,6 +17,10 @@ import numpy as np
 from .inputs import check_int, check_output_path, model_source
 from .run_folder import RunInfo, atomic_write, cpu_settings_of, load_model, make_eval_env
 
+#: The key of ``info_keys`` that is the step's reward as the environment returned it (what the episode's return
+#: sums), not a key of the step info: the reward of each step, e.g. to see a return fall and recover in an episode.
+REWARD_KEY = "reward"
+
 
 @dataclass
 class Evaluation:
@@ -81,7 +85,9 @@ def evaluate_model(
         ``"reset-every:N"``, ``"shuffled"``, ``"none"`` or an ``Ablation``; spiking policies only); ``None``: the
         policy's own (``policy.ablation``, normally ``none``)
     :param info_keys: keys of the environment's step info (numbers or bools) whose value at every step of every
-        episode is kept (:attr:`Evaluation.steps`), e.g. whether each trial's choice was the good one
+        episode is kept (:attr:`Evaluation.steps`), e.g. whether each trial's choice was the good one;
+        :data:`REWARD_KEY` (``"reward"``) keeps the step's reward instead of an info key (the steps of an episode
+        sum to its return)
     :param align: a key of the final step's info holding a step index (or ``None``), kept per episode
         (:attr:`Evaluation.aligned`) so that the steps can be lined up on an event such as a reversal
     :raises ValueError: a key is missing from the step info, or its value is not a number
@@ -105,7 +111,7 @@ def evaluate_model(
     def on_step(local_vars: dict, _globals: dict) -> None:
         i, info = local_vars["i"], local_vars["info"]
         for key in info_keys:
-            current[i][key].append(_step_value(info, key))
+            current[i][key].append(float(local_vars["reward"]) if key == REWARD_KEY else _step_value(info, key))
         if not local_vars["done"]:
             return
         episode, current[i] = current[i], {key: [] for key in info_keys}

@@ -180,7 +180,7 @@ def test_the_packaged_studies():
     assert best.protocol.n_envs == 10 and best.protocol.seed == 1_000_000
     tanh = tmaze.config("TMazeCueNoisy-v0", "ndp-bcm+tanh")["policy_kwargs"]
     assert tanh["rule"] == "ndp-bcm" and tanh["rule_kwargs"]["modulation"] == "tanh"
-    with pytest.raises(ValueError, match="no study file 'fig5'.*fig4, reversal, tmaze"):
+    with pytest.raises(ValueError, match="no study file 'fig5'.*fig4, reversal, switch_meta, switch_zero_shot, tmaze"):
         load_study_file("fig5")
 
 
