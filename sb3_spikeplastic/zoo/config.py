@@ -107,6 +107,8 @@ def _overridden_entry(
     for key in ("policy_kwargs", "normalize", "env_kwargs"):  # string forms, before dotted overrides reach in
         if isinstance(entry.get(key), str):
             entry[key] = as_mapping(entry[key], key)
+    if rule is not None:
+        _drop_other_rules_arguments(entry, rule)
     for index, (path, value) in enumerate(parsed):
         if replaced is not None:
             old = _get_path(entry, path)
@@ -116,6 +118,22 @@ def _overridden_entry(
     if rule is not None:
         _set_path(entry, ("policy_kwargs", "rule"), rule)
     return entry
+
+
+def _drop_other_rules_arguments(entry: dict, rule: str) -> None:
+    """Leave out of the file's ``rule_kwargs`` what ``rule`` does not take: they are the arguments of the file's own
+    rule (``--conf paper --rule static`` drops the NDP rule's ``wm_init_gain``). Overrides are applied after this, so
+    an argument given on the command line is still checked against ``rule``."""
+    import inspect
+
+    from ..snn.plasticity import get_rule_class
+
+    policy_kwargs = entry.get("policy_kwargs")
+    if not isinstance(policy_kwargs, Mapping) or not isinstance(policy_kwargs.get("rule_kwargs"), Mapping):
+        return
+    accepted = inspect.signature(get_rule_class(rule).__init__).parameters
+    kept = {k: v for k, v in policy_kwargs["rule_kwargs"].items() if k in accepted}
+    entry["policy_kwargs"] = {**policy_kwargs, "rule_kwargs": kept}
 
 
 def print_replaced_mappings(

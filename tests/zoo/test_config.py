@@ -205,6 +205,19 @@ def test_rule_flag_is_validated():
         assert resolve_hyperparams("TMazeCue-v0", rule=rule)["policy_kwargs"]["rule"] == rule
 
 
+def test_the_rule_flag_drops_the_files_arguments_of_another_rule():
+    """``--conf paper`` sets ndp-oja's ``wm_init_gain``: ``--rule static`` drops it, ``--rule ndp-bcm`` keeps it, and
+    the same argument given on the command line is still checked against the rule."""
+    assert resolve_hyperparams("HalfCheetah-v5", "paper", rule="static")["policy_kwargs"]["rule_kwargs"] == {}
+    assert resolve_hyperparams("HalfCheetah-v5", "paper", rule="ndp-bcm")["policy_kwargs"]["rule_kwargs"] == {
+        "wm_init_gain": 5
+    }
+    with pytest.raises(ValueError, match="unknown policy_kwargs.rule_kwargs key 'wm_init_gain' for rule 'static'"):
+        resolve_hyperparams(
+            "HalfCheetah-v5", "paper", overrides=["policy_kwargs.rule_kwargs.wm_init_gain=5"], rule="static"
+        )
+
+
 def test_lin_schedules_and_class_names():
     resolved = resolve_hyperparams(
         "TMazeCue-v0",
