@@ -272,6 +272,12 @@ class SpikingPlasticNetwork(nn.Module):
             )
         self.layers = nn.ModuleList(layers)
         self.rule_name = rule
+        # Per layer, whether its rule reads the modulator: looked up once, not on every interval of every step.
+        self._reads_modulator = tuple(layer.plastic and layer.rule.takes_modulator for layer in layers)
+        self._modulator_channels = max(
+            (layer.rule.modulator_gains.shape[1] for layer, reads in zip(layers, self._reads_modulator) if reads),
+            default=0,
+        )
 
     @property
     def sizes(self) -> list[int]:
@@ -281,14 +287,7 @@ class SpikingPlasticNetwork(nn.Module):
     def modulator_channels(self) -> int:
         """Channels of the signal from outside the network that the plastic layers' rules read on every step (the
         ``modulator`` of :meth:`forward`); 0 where every rule forms its modulation itself."""
-        return max(
-            (
-                layer.rule.modulator_gains.shape[1]
-                for layer in self.layers
-                if layer.plastic and layer.rule.takes_modulator
-            ),
-            default=0,
-        )
+        return self._modulator_channels
 
     def backward_bytes_per_step(self, dtype: torch.dtype = torch.float32) -> int:
         """Memory that backpropagation keeps per environment step of one sequence with the compiled CPU ops (which
@@ -339,9 +338,8 @@ class SpikingPlasticNetwork(nn.Module):
         traces: list[list[Tensor]] = [[] for _ in self.layers]
         for j in range(n_intervals):
             x = spikes_in if n_intervals == 1 else spikes_in[:, j * self.interval : (j + 1) * self.interval]
-            for i, layer in enumerate(self.layers):
-                given = modulator if layer.plastic and layer.rule.takes_modulator else None
-                out, layer_states[i] = layer(x, layer_states[i], record, defer_updates, given)
+            for i, (layer, reads) in enumerate(zip(self.layers, self._reads_modulator)):
+                out, layer_states[i] = layer(x, layer_states[i], record, defer_updates, modulator if reads else None)
                 if hold_plastic and layer.plastic:
                     layer_states[i] = layer_states[i]._replace(plastic=state.layers[i].plastic)
                 outputs[i].append(out)
@@ -355,7 +353,7 @@ class SpikingPlasticNetwork(nn.Module):
         else:
             rates = tuple(s.mean(1) for s in spikes)
             input_rate = spikes_in.mean(1)
-        new_state = state._replace(layers=tuple(layer_states), noise_key=advance_keys(state.noise_key))
+        new_state = NetworkState(tuple(layer_states), advance_keys(state.noise_key), state.source)
         rec = None
         if record:
             rec = NetworkRecord(
