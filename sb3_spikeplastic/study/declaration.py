@@ -92,7 +92,7 @@ ROBUSTNESS_KEYS = (
     *FILTER_KEYS,
 )
 REPORT_KEYS = ("learned_threshold", "resamples", "compare")
-COMPARE_KEYS = ("variants", "against", "pooled")
+COMPARE_KEYS = ("variants", "against", "pooled", "matched_r0")
 GROUPS = ("plastic", "static", "spiking", "baselines")
 #: Which model of a budget an evaluation uses: the checkpoint at that budget, or the run's best evaluated model.
 MODELS = ("budget", "best")
@@ -184,11 +184,13 @@ class Evaluation:
 @dataclass(frozen=True)
 class Comparison:
     """Rows of the verdict table: each of ``variants`` against each reference (the same budget), and the
-    variants pooled when ``pooled``."""
+    variants pooled when ``pooled``; with ``matched_r0``, against the reference's budget whose R0 is nearest
+    instead (:mod:`~sb3_spikeplastic.study.matched`)."""
 
     variants: tuple[str, ...]
     against: tuple[str, ...]
     pooled: bool = False
+    matched_r0: bool = False
 
 
 @dataclass(frozen=True)
@@ -598,10 +600,27 @@ def _comparisons(data, variants: dict[str, Variant], where: str) -> tuple[Compar
                 if name not in variants and name not in GROUPS:
                     raise _unknown(f"variant in report.compare.{key}", name, [*variants, *GROUPS], where)
             names[key] = tuple(value)
-        if not isinstance(item.get("pooled", False), bool):
-            raise ValueError(f"report.compare pooled={item['pooled']!r} in {where} must be true or false")
-        out.append(Comparison(names["variants"], names["against"], item.get("pooled", False)))
+        for key in ("pooled", "matched_r0"):
+            if not isinstance(item.get(key, False), bool):
+                raise ValueError(f"report.compare {key}={item[key]!r} in {where} must be true or false")
+        out.append(
+            Comparison(names["variants"], names["against"], item.get("pooled", False), item.get("matched_r0", False))
+        )
     return tuple(out)
+
+
+def _check_matched(study: Study, where: str) -> None:
+    """A ``matched_r0`` comparison needs a robustness evaluation (R0) and references declared at two or more
+    budgets (the checkpoints it chooses from)."""
+    for comparison in (c for c in study.comparisons if c.matched_r0):
+        if not any(e.kind == "robustness" for e in study.evaluations.values()):
+            raise ValueError(f"report.compare matched_r0 in {where} needs a robustness evaluation (R0 and AUC)")
+        for name in comparison.against:
+            if name in study.variants and len(study.budgets_of(name)) < 2:
+                raise ValueError(
+                    f"report.compare matched_r0 in {where}: reference {name!r} is declared at one budget; "
+                    "it needs two or more (the checkpoints whose R0 is matched)"
+                )
 
 
 def study_from_dict(data, where: str = "the study", base: Path = Path(".")) -> Study:
@@ -653,6 +672,7 @@ def study_from_dict(data, where: str = "the study", base: Path = Path(".")) -> S
         description.strip(),
     )
     _check_against(study.evaluations, where)
+    _check_matched(study, where)
     return study
 
 

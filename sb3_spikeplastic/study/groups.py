@@ -70,14 +70,22 @@ def members(names: tuple[str, ...], kind: dict[str, str]) -> list[str]:
 
 
 def comparisons(
-    study: Study, kind: dict[str, str], groups: list[str], has_data: Callable[[str], bool]
+    study: Study, kind: dict[str, str], groups: list[str], has_data: Callable[[str], bool], matched_r0: bool = False
 ) -> list[tuple[str, str, list[str]]]:
     """``(label, reference group, groups compared)`` of every declared comparison, budget by budget: each variant
-    against each reference of the same budget, then the variants pooled (when declared and more than one)."""
+    against each reference of the same budget, then the variants pooled (when declared and more than one).
+
+    :param study: the study.
+    :param kind: variant -> ``plastic``, ``static`` or ``baselines`` (:func:`kinds`).
+    :param groups: the groups that may be compared.
+    :param has_data: whether a group has data to compare.
+    :param matched_r0: the comparisons declared with ``matched_r0`` (their reference of the same budget is where
+        :mod:`~sb3_spikeplastic.study.matched` starts from), else those without.
+    """
     rows = []
     for budget in dict.fromkeys(g.split("@")[1] for g in groups):
         at_budget = {variant_of(g): g for g in groups if g.split("@")[1] == budget and has_data(g)}
-        for comparison in study.comparisons:
+        for comparison in (c for c in study.comparisons if c.matched_r0 == matched_r0):
             chosen = [v for v in members(comparison.variants, kind) if v in at_budget]
             for ref_variant in members(comparison.against, kind):
                 if ref_variant not in at_budget:

@@ -43,6 +43,7 @@ from .declaration import Evaluation, Study
 from .groups import comparisons, group_of, groups_of, kinds, variant_of
 from .intervals import Interval, bootstrap_mean_differences, bootstrap_mean_intervals, fmt, verdict
 from .layout import StudyFolder, read_study
+from .matched import matched_rows, matched_table
 from .protocol import auc, ratio_to_r0
 from .step_info import energy_section, steps_section
 
@@ -119,7 +120,7 @@ def robustness_section(
     if failed:
         lines += ["", f"Did not learn (R0 < {study.learned_threshold:g}): " + ", ".join(failed) + "."]
 
-    points, verdicts = [], []
+    points, verdicts, matched = [], [], []
     fig, axes = plt.subplots(2, len(noises), figsize=(5 * len(noises) + 3, 8), squeeze=False)
     # A variant keeps its colour at every budget; the larger budgets are dashed.
     variants = list(dict.fromkeys(variant_of(g) for g in groups))
@@ -182,11 +183,10 @@ def robustness_section(
         axes[1, col].axhline(1.0, color="0.6", ls=":", lw=0.8)
 
         top = len(sigmas) - 1
+        statistics = [auc_of(sigmas), mean_at(top), mean_at(0)]
         for label, reference, compared in comparisons(study, kind, groups, lambda g: bool(seeds_of(g, noise))):
             seeds, ref = [s for g in compared for s in seeds_of(g, noise)], seeds_of(reference, noise)
-            d_auc, d_top, d_r0 = bootstrap_mean_differences(
-                seeds, ref, [auc_of(sigmas), mean_at(top), mean_at(0)], **boot
-            )
+            d_auc, d_top, d_r0 = bootstrap_mean_differences(seeds, ref, statistics, **boot)
             verdicts.append(
                 dict(
                     env=env,
@@ -206,6 +206,7 @@ def robustness_section(
                     return_verdict=verdict(d_top, "higher", "lower"),
                 )
             )
+        matched += matched_rows(env, name, noise, sigmas, study, kind, groups, seeds_of, statistics, boot)
     # One legend for the whole figure (a group's label once, with the seeds of its first panel), right of the panels.
     handles = {}
     for ax in axes[0]:
@@ -218,7 +219,7 @@ def robustness_section(
         "|---|---|---|" + "---|" * len(noises),
     ]
     summary_lines += [f"| {g} | " + " | ".join(cells) + " |" for g, cells in summary.items()]
-    return lines, points, verdicts, fig, summary_lines
+    return lines, points, verdicts + matched, fig, summary_lines
 
 
 def final_section(
@@ -529,7 +530,7 @@ def write_report(study: Study, folder: Path, log: Optional[Callable[[str], None]
                 points += pts
                 if name != "robustness":
                     verdict_lines += [f"# evaluation {name!r}", ""]
-                verdict_lines += verdict_table(rows)
+                verdict_lines += verdict_table([r for r in rows if not r.get("matched")]) + matched_table(rows)
                 verdict_rows += rows
                 written.append(folder / f"{prefix}{name}.png")
                 fig.savefig(written[-1], dpi=120)
