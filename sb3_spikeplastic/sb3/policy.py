@@ -152,6 +152,8 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         :class:`~sb3_spikeplastic.envs.PreviousReward` wrapper's, ``TMazeReversal-v0``'s). The element is never
         standardised.
     :param modulation_kwargs: settings of the modulation source (``td-error``: ``gamma``, by default PPO's).
+    :param reward_to_encoder: whether the encoder also sees the ``reward_input`` elements (or neurons); ``False``
+        routes the reward to the modulation only (the encoder sees zeros there).
     :param ablation: plasticity ablation that :meth:`predict` applies (:mod:`sb3_spikeplastic.sb3.ablation`:
         ``"none"``, ``"frozen"``, ``"reset-every:N"``, ``"shuffled"`` or an
         :class:`~sb3_spikeplastic.sb3.ablation.Ablation`; also settable later as ``policy.ablation``); training never
@@ -193,6 +195,7 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         standardize_obs: bool = True,
         reward_input: Union[dict, int, Sequence[int], None] = None,
         modulation_kwargs: Optional[dict] = None,
+        reward_to_encoder: bool = True,
         ablation: Union[str, Ablation, None] = None,
         **kwargs: Any,
     ):
@@ -271,6 +274,7 @@ class SpikePlasticPolicy(ActorCriticPolicy):
             alpha_lr_scale=float(alpha_lr_scale),
             standardize_obs=bool(standardize_obs),
             reward_input=reward_input,
+            reward_to_encoder=bool(reward_to_encoder),
             modulation_kwargs=modulation_kwargs,
         )
         super().__init__(observation_space, action_space, lr_schedule, log_std_init=log_std_init, **kwargs)
@@ -329,6 +333,12 @@ class SpikePlasticPolicy(ActorCriticPolicy):
             if source == LEARNED_SOURCE
             else get_modulation_source(source)(space, reward_input, **cfg.get("modulation_kwargs", {}))
         )
+        # The reward elements the encoder does not see (reward_to_encoder=False), else None; a buffer, so that it
+        # moves with the policy's device, not saved.
+        hidden = None
+        if reward_input is not None and not cfg.get("reward_to_encoder", True):
+            hidden = torch.tensor([*reward_input.positive, *reward_input.negative], dtype=torch.long)
+        self.register_buffer("_hidden_reward", hidden, persistent=False)
         unbounded = ~(np.isfinite(space.low) & np.isfinite(space.high)).reshape(-1)
         if reward_input is not None and not is_spike_raster_space(space):
             # The sources read the reward as the environment paid it.
@@ -424,7 +434,13 @@ class SpikePlasticPolicy(ActorCriticPolicy):
             starts = obs.new_zeros(1, obs.shape[0])
             signals, source = self.modulation_source.sequence(obs.unsqueeze(0), starts, self._source_state(state), self)
             modulator, state = signals[0], state._replace(source=source)
-        return self.snn(obs, state, record=record, hold_plastic=hold_plastic, modulator=modulator)
+        return self.snn(self._encoder_view(obs), state, record=record, hold_plastic=hold_plastic, modulator=modulator)
+
+    def _encoder_view(self, obs: Tensor) -> Tensor:
+        """``obs`` as the network's encoder sees it: without the reward elements where ``reward_to_encoder`` is off."""
+        if self._hidden_reward is None:
+            return obs
+        return obs.index_fill(-1, self._hidden_reward, 0.0)
 
     def observation_value(self, obs: Tensor) -> Tensor:
         """The critic's value ``(batch,)`` of preprocessed observations, before the network runs on them
@@ -522,7 +538,7 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         modulators = None
         if self.modulation_source is not None:
             modulators, _ = self.modulation_source.sequence(obs, episode_starts, self._source_state(state), self)
-        outputs, _ = self.snn.forward_sequence(obs, episode_starts, state, sync_free, modulators)
+        outputs, _ = self.snn.forward_sequence(self._encoder_view(obs), episode_starts, state, sync_free, modulators)
         merged = NetworkOutput(
             torch.cat([o.action for o in outputs]), tuple(torch.cat(r) for r in zip(*[o.rates for o in outputs])), None
         )

@@ -224,3 +224,24 @@ def test_the_documented_novelty_source_trains():
         torch.testing.assert_close(signals[:, 0, 0], torch.tensor([1.0, 0.9]))  # |1 - 0|, then |1 - 0.1|
     finally:
         MODULATION_SOURCES.pop("novelty", None)
+
+
+def test_the_reward_can_reach_the_modulation_only(tmp_path):
+    """reward_to_encoder=False: the reversal T-maze's outcome neurons are silent in the network's input, the
+    modulator still reads them; the setting survives save and load."""
+    raster = torch.zeros(1, 25, 40)
+    raster[0, :10, 10:20] = 1.0  # the reward population fired: the previous trial paid
+    inputs = {}
+    for routed in (True, False):
+        model = _model("reward", "TMazeReversal-v0", {"reward_to_encoder": routed})
+        if not routed:
+            model.save(tmp_path / "m.zip")
+            model = PPO.load(tmp_path / "m.zip")
+            assert model.policy.snn_config["reward_to_encoder"] is False
+        with torch.no_grad():
+            out, _ = model.policy.network_step(raster, model.policy.initial_state(1), record=True)
+        reward_input = RewardInput(**model.policy.snn_config["reward_input"])
+        torch.testing.assert_close(out.modulator[:, 0], read_reward(reward_input, raster, raster=True))
+        assert out.modulator.item() > 1.0  # more reward spikes than a trial shows on average: above the reward 1
+        inputs[routed] = out.record.input_spikes[0, :, 10:30]
+    assert inputs[True][:10, :10].sum() > 0 and inputs[False].sum() == 0
