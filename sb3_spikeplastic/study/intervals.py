@@ -237,3 +237,33 @@ def bootstrap_mean_differences(
         )
         for f in statistics
     ]
+
+
+def robustness_difference_row(
+    env: str,
+    evaluation: str,
+    noise: str,
+    model: str,
+    reference: str,
+    seeds: int,
+    reference_seeds: int,
+    largest_sigma: float,
+    differences: tuple[Interval, Interval, Interval],
+) -> dict:
+    """One row of ``verdicts.csv`` for a robustness comparison: the differences ``(AUC, return at the largest sigma,
+    R0)`` of ``model`` minus ``reference`` with their intervals, and the verdict words of ``verdicts.md``."""
+    d_auc, d_top, d_r0 = differences
+    return dict(
+        env=env,
+        evaluation=evaluation,
+        noise=noise,
+        model=model,
+        reference=reference,
+        seeds=seeds,
+        reference_seeds=reference_seeds,
+        **{f"auc_difference_{k}": round(v, 4) for k, v in d_auc._asdict().items()},
+        **{f"return_at_sigma_{largest_sigma:g}_difference_{k}": round(v, 1) for k, v in d_top._asdict().items()},
+        **{f"r0_difference_{k}": round(v, 1) for k, v in d_r0._asdict().items()},
+        auc_verdict=verdict(d_auc, "loses less", "loses more"),
+        return_verdict=verdict(d_top, "higher", "lower"),
+    )

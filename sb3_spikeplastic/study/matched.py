@@ -17,7 +17,7 @@ import numpy as np
 
 from .declaration import Study, budget_label
 from .groups import comparisons, variant_of
-from .intervals import Interval, MeanStatistic, bootstrap_mean_differences, fmt, verdict
+from .intervals import Interval, MeanStatistic, bootstrap_mean_differences, fmt, robustness_difference_row
 
 
 def r0_of(seeds: Sequence[np.ndarray]) -> float:
@@ -71,21 +71,12 @@ def matched_rows(
         r0 = r0_of(seeds)
         reference = min(r0s, key=lambda g: abs(r0s[g] - r0))
         ref = seeds_of(reference, noise)
-        d_auc, d_top, d_r0 = bootstrap_mean_differences(seeds, ref, statistics, **boot)
+        differences = bootstrap_mean_differences(seeds, ref, statistics, **boot)
         rows.append(
             dict(
-                env=env,
-                evaluation=name,
-                noise=noise,
-                model=label,
-                reference=reference,
-                seeds=len(seeds),
-                reference_seeds=len(ref),
-                **{f"auc_difference_{k}": round(v, 4) for k, v in d_auc._asdict().items()},
-                **{f"return_at_sigma_{sigmas[-1]:g}_difference_{k}": round(v, 1) for k, v in d_top._asdict().items()},
-                **{f"r0_difference_{k}": round(v, 1) for k, v in d_r0._asdict().items()},
-                auc_verdict=verdict(d_auc, "loses less", "loses more"),
-                return_verdict=verdict(d_top, "higher", "lower"),
+                **robustness_difference_row(
+                    env, name, noise, label, reference, len(seeds), len(ref), sigmas[-1], differences
+                ),
                 matched="R0",
                 model_r0=round(r0, 1),
                 reference_r0=round(r0s[reference], 1),

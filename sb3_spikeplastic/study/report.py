@@ -41,7 +41,14 @@ from .ablation_report import ablation_table
 from .adaptation import adaptation_section
 from .declaration import Evaluation, Study
 from .groups import comparisons, group_of, groups_of, kinds, variant_of
-from .intervals import Interval, bootstrap_mean_differences, bootstrap_mean_intervals, fmt, verdict
+from .intervals import (
+    Interval,
+    bootstrap_mean_differences,
+    bootstrap_mean_intervals,
+    fmt,
+    robustness_difference_row,
+    verdict,
+)
 from .layout import StudyFolder, read_study
 from .matched import matched_rows, matched_table
 from .protocol import auc, ratio_to_r0
@@ -186,24 +193,10 @@ def robustness_section(
         statistics = [auc_of(sigmas), mean_at(top), mean_at(0)]
         for label, reference, compared in comparisons(study, kind, groups, lambda g: bool(seeds_of(g, noise))):
             seeds, ref = [s for g in compared for s in seeds_of(g, noise)], seeds_of(reference, noise)
-            d_auc, d_top, d_r0 = bootstrap_mean_differences(seeds, ref, statistics, **boot)
+            differences = bootstrap_mean_differences(seeds, ref, statistics, **boot)
             verdicts.append(
-                dict(
-                    env=env,
-                    evaluation=name,
-                    noise=noise,
-                    model=label,
-                    reference=reference,
-                    seeds=len(seeds),
-                    reference_seeds=len(ref),
-                    **{f"auc_difference_{k}": round(v, 4) for k, v in d_auc._asdict().items()},
-                    **{
-                        f"return_at_sigma_{sigmas[top]:g}_difference_{k}": round(v, 1)
-                        for k, v in d_top._asdict().items()
-                    },
-                    **{f"r0_difference_{k}": round(v, 1) for k, v in d_r0._asdict().items()},
-                    auc_verdict=verdict(d_auc, "loses less", "loses more"),
-                    return_verdict=verdict(d_top, "higher", "lower"),
+                robustness_difference_row(
+                    env, name, noise, label, reference, len(seeds), len(ref), sigmas[top], differences
                 )
             )
         matched += matched_rows(env, name, noise, sigmas, study, kind, groups, seeds_of, statistics, boot)
