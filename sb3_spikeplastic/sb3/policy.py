@@ -538,7 +538,9 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         modulators = None
         if self.modulation_source is not None:
             modulators, _ = self.modulation_source.sequence(obs, episode_starts, self._source_state(state), self)
-        outputs, _ = self.snn.forward_sequence(self._encoder_view(obs), episode_starts, state, sync_free, modulators)
+        outputs, _ = self.snn.forward_sequence(
+            self._encoder_view(obs), episode_starts, state, sync_free, modulators, final_state=False
+        )
         merged = NetworkOutput(
             torch.cat([o.action for o in outputs]), tuple(torch.cat(r) for r in zip(*[o.rates for o in outputs])), None
         )

@@ -14,6 +14,7 @@ from torch import Tensor, nn
 
 from . import _fast
 from .coding import advance_keys, initial_keys
+from .compiled_sequence import compiled_sequence_rates
 from .layers import LayerOutput, LayerState, PlasticSRMLayer, fan_in_std
 from .neurons import SRMParameters
 from .plasticity import compiled_form, get_rule_class
@@ -388,18 +389,42 @@ class SpikingPlasticNetwork(nn.Module):
         state: NetworkState,
         sync_free: bool = False,
         modulators: Optional[Tensor] = None,
-    ) -> tuple[list[NetworkOutput], NetworkState]:
+        final_state: bool = True,
+    ) -> tuple[list[NetworkOutput], Optional[NetworkState]]:
         """Run a sequence ``obs`` of shape ``(L, batch, ...)`` from ``state``, resetting where ``episode_start``
         ``(L, batch)`` is 1 (truncated BPTT through the whole sequence, traces included); ``sync_free`` as in
         :meth:`NetworkState.reset`. The steps defer the trace updates to the next step (``defer_updates``): one
         pass over each trace fewer, forward and backward; the returned state has them applied. ``modulators``
-        ``(L, batch, k)``: each step's ``modulator`` (see :meth:`forward`)."""
+        ``(L, batch, k)``: each step's ``modulator`` (see :meth:`forward`). Without ``final_state`` the state is not
+        returned (``None``), and where it applies the whole sequence runs as one autograd node
+        (:mod:`sb3_spikeplastic.snn.compiled_sequence`: the same outputs and gradients, less overhead)."""
+        if not final_state and modulators is None:
+            outputs = self._compiled_sequence(obs, episode_start, state)
+            if outputs is not None:
+                return outputs, None
         outputs = []
         for k in range(obs.shape[0]):
             modulator = None if modulators is None else modulators[k]
             out, state = self(obs[k], state.reset(episode_start[k], sync_free), defer_updates=True, modulator=modulator)
             outputs.append(out)
-        return outputs, self.settle(state)
+        return outputs, self.settle(state) if final_state else None
+
+    def _compiled_sequence(
+        self, obs: Tensor, episode_start: Tensor, state: NetworkState
+    ) -> Optional[list[NetworkOutput]]:
+        """:meth:`forward_sequence`'s outputs by
+        :func:`~sb3_spikeplastic.snn.compiled_sequence.compiled_sequence_rates`, or ``None`` where it does not apply."""
+        if not torch.is_grad_enabled() or self.modulator_channels:
+            return None
+        keys, spikes = state.noise_key, []
+        for k in range(obs.shape[0]):
+            spikes.append(self.encoder(obs[k], keys, self.steps))
+            keys = advance_keys(keys)
+        result = compiled_sequence_rates(self, spikes, episode_start, state)
+        if result is None:
+            return None
+        rates, input_rates = result
+        return [NetworkOutput(self.decoder(r[-1]), r, None, i) for r, i in zip(rates, input_rates)]
 
     def settle(self, state: NetworkState) -> NetworkState:
         """``state`` with every layer's pending trace update applied (see :meth:`forward`)."""
