@@ -46,6 +46,18 @@ def run_rows(checkout: Path, rows: list[str], threads: int) -> list[dict]:
         return json.loads(output.read_text())["rows"]
 
 
+def commit_of(checkout: Path) -> str:
+    """The checkout's commit (with ``+`` where its tracked files differ from it), or ``?`` outside git."""
+
+    def git(*command: str) -> subprocess.CompletedProcess:
+        return subprocess.run(["git", "-C", str(checkout), *command], capture_output=True, text=True)
+
+    head = git("rev-parse", "--short", "HEAD")
+    if head.returncode:
+        return "?"
+    return head.stdout.strip() + ("+" if git("diff", "--quiet", "HEAD").returncode else "")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("checkouts", type=Path, nargs=2, help="the two checkouts (A, B)")
@@ -55,6 +67,7 @@ def main() -> None:
     parser.add_argument("--output", type=Path, default=Path(__file__).parent / "results" / "compare_checkouts.json")
     args = parser.parse_args()
     checkouts = [c.resolve() for c in args.checkouts]
+    commits = [commit_of(c) for c in checkouts]
     runs = []
     for round_ in range(args.rounds):
         for checkout in checkouts if round_ % 2 == 0 else checkouts[::-1]:
@@ -86,7 +99,14 @@ def main() -> None:
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(
         json.dumps(
-            dict(checkouts=[str(c) for c in checkouts], threads=args.threads, runs=runs, summary=summary), indent=1
+            dict(
+                checkouts=[str(c) for c in checkouts],
+                commits=commits,
+                threads=args.threads,
+                runs=runs,
+                summary=summary,
+            ),
+            indent=1,
         )
     )
     print(f"wrote {args.output}")
