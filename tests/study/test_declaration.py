@@ -180,7 +180,18 @@ def test_the_packaged_studies():
     assert best.protocol.n_envs == 10 and best.protocol.seed == 1_000_000
     tanh = tmaze.config("TMazeCueNoisy-v0", "ndp-bcm+tanh")["policy_kwargs"]
     assert tanh["rule"] == "ndp-bcm" and tanh["rule_kwargs"]["modulation"] == "tanh"
-    with pytest.raises(ValueError, match="no study file 'fig5'.*fig4, reversal, switch_meta, switch_zero_shot, tmaze"):
+    paper, _ = load_study_file("paper_network")
+    config = paper.config("HalfCheetah-v5", "ndp-oja+tanh")
+    assert config["n_envs"] == 6 and config["policy_kwargs"]["steps"] == 50  # hyperparams/paper.yml's network
+    assert (
+        config["policy_kwargs"]["rule"] == "ndp-oja"
+        and paper.config("HalfCheetah-v5", "static")["policy_kwargs"]["rule"] == "static"
+    )
+    assert [name for name, _, _ in paper.evaluations_of("static", 0, 1_000_000)] == ["robustness"]
+    assert [name for name, _, _ in paper.evaluations_of("ndp-oja+tanh", 0, 1_000_000)] == ["robustness", "frozen"]
+    with pytest.raises(
+        ValueError, match="no study file 'fig5'.*fig4, paper_network, reversal, switch_meta, switch_zero_shot, tmaze"
+    ):
         load_study_file("fig5")
 
 
