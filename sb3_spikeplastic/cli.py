@@ -349,7 +349,13 @@ def build_parser() -> argparse.ArgumentParser:
     study_options(g, "study", "the study file's name without .yml")
     g.add_argument("--folder", help="the study's folder (default: <log folder>/study/<study>)")
     g.add_argument("--workers", type=int, default=1, help="worker processes on this machine (default: 1)")
-    g.add_argument("--variants", nargs="+", metavar="NAME", help="only these variants (default: all)")
+    g.add_argument(
+        "--variants",
+        nargs="+",
+        metavar="NAME",
+        help="only these variants: their cells are queued and run here; other invocations' cells are left to their "
+        "own workers (default: all)",
+    )
     g.add_argument("--seeds", nargs="+", type=int, metavar="SEED", help="only these seeds (default: all)")
     g.add_argument(
         "--heartbeat-interval", type=int, default=60, help="seconds between heartbeats of a running cell (default: 60)"

@@ -6,7 +6,9 @@ attributes ``cell``, ``work``); a worker takes one with ``study.optimize`` (a he
 ``study`` queues every cell with no trial waiting or running and no finished trial that did that work (so raising a
 budget, adding seeds, variants or evaluations queues exactly what is new). Two workers that queue the same cell at
 once leave two trials; a worker runs its trial only if no earlier trial of the cell is waiting or running and no
-finished one did its work, else it marks it pruned (``duplicate_of``). A killed worker stops sending heartbeats:
+finished one did its work, else it marks it pruned (``duplicate_of``). A worker runs only the cells of its own
+invocation's ``--variants`` and ``--seeds``: another invocation's cell that it takes goes back to the end of the
+queue for a worker that runs it (``requeued``). A killed worker stops sending heartbeats:
 its trial is failed after the grace period and queued again (:mod:`sb3_spikeplastic.study.storage`), and the cell
 resumes from what it had written. The study records its declaration (every variant's resolved entry, every
 evaluation's protocol); a file that declares an existing variant or evaluation otherwise is refused, so results
@@ -251,6 +253,11 @@ def queue_cells(job: StudyJob, study) -> int:
     return queued
 
 
+def own_cells(job: StudyJob) -> set[str]:
+    """The keys of the cells that ``job`` runs (its ``--variants`` and ``--seeds``)."""
+    return {cell_key(env, variant, seed) for env, variant, seed in job.study.cells()}
+
+
 def owner_of(study, trial) -> Optional[int]:
     """The trial that owns ``trial``'s cell, if another one does: an earlier trial waiting or running, or a
     finished one that did this trial's work."""
@@ -276,6 +283,7 @@ class CellRunner:
     def __init__(self, job: StudyJob, log: Callable[[str], None] = print):
         self.job, self.log = job, log
         self.current: Optional[int] = None
+        self.cells = own_cells(job)
 
     def __call__(self, trial) -> float:
         import optuna
@@ -283,6 +291,15 @@ class CellRunner:
         self.current = trial.number
         if "cell" not in trial.user_attrs:  # made by ask() when another worker took the last waiting cell
             raise optuna.TrialPruned("no cell")
+        if trial.user_attrs["cell"] not in self.cells:
+            # Queued by an invocation with other --variants or --seeds, whose study this worker's lacks: back to the
+            # end of the queue, for a worker that runs it.
+            trial.study.enqueue_trial(
+                {}, user_attrs={"cell": trial.user_attrs["cell"], "work": trial.user_attrs["work"]}
+            )
+            trial.set_user_attr("requeued", True)
+            trial.set_user_attr("duplicate_of", "queue")
+            raise optuna.TrialPruned("another selection's cell")
         trial.set_user_attr("worker", worker_name())
         owner = owner_of(trial.study, trial)
         if owner is not None:
@@ -315,7 +332,8 @@ def run_worker(job: StudyJob, log: Callable[[str], None] = print) -> int:
     runner = CellRunner(job, log)
     while True:
         optuna.storages.fail_stale_trials(study)
-        states = [t.state.name for t in study.get_trials(deepcopy=False)]
+        # Only this invocation's cells keep it working (other invocations' workers run theirs).
+        states = [t.state.name for t in study.get_trials(deepcopy=False) if t.user_attrs.get("cell") in runner.cells]
         if "WAITING" in states:
             try:
                 study.optimize(runner, n_trials=1, catch=(Exception,), callbacks=[lambda _, t: log(cell_line(t))])
@@ -336,6 +354,8 @@ def cell_line(trial) -> str:
     head = f"{trial.user_attrs.get('cell', '(no cell)')} (trial {trial.number})"
     if trial.state.name == "COMPLETE":
         return f"{head}: done, {int(trial.value)} file(s) written"
+    if trial.state.name == "PRUNED" and trial.user_attrs.get("requeued"):
+        return f"{head}: queued again for a worker of its own selection"
     if trial.state.name == "PRUNED":
         owner = trial.user_attrs.get("duplicate_of")
         return f"{head}: skipped" + (f", taken by trial {owner}" if owner is not None else "")

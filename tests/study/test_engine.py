@@ -218,6 +218,27 @@ def test_a_cell_queued_twice_runs_once(files):
     assert any(f"(trial {later.number}): skipped, taken by trial {earlier.number}" in line for line in lines), lines
 
 
+def test_a_worker_leaves_another_selections_cell_to_that_selection(files):
+    """Two invocations with other --variants share one study: a worker that takes the other's waiting cell puts it
+    back at the end of the queue (never fails it) and runs its own; the other's worker then runs it."""
+    folder = files / "s"
+    large = engine.prepare(mini(files).select(["large"]), folder, "mini")
+    small = engine.prepare(mini(files).select(["small"]), folder, "mini")
+    assert engine.queue_cells(large, large.open()) == 1  # first in the queue: the cell the small worker cannot run
+    lines = []
+    assert engine.run_worker(small, lines.append) == 0
+    study = small.open()
+    small_key, large_key = engine.cell_key(ENV, "small", 0), engine.cell_key(ENV, "large", 0)
+    assert completed(study) == {small_key: 1}
+    (passed,) = [t for t in study.trials if t.user_attrs.get("requeued")]
+    assert passed.state.name == "PRUNED" and passed.user_attrs["cell"] == large_key
+    assert [t.state.name for t in study.trials if t.user_attrs.get("cell") == large_key] == ["PRUNED", "WAITING"]
+    assert not any(t.state.name == "FAIL" for t in study.trials)
+    assert any("queued again for a worker of its own selection" in line for line in lines), lines
+    assert engine.run_worker(large, lines.append) == 0
+    assert completed(large.open()) == {small_key: 1, large_key: 1}
+
+
 @pytest.mark.parametrize(
     "changes, what",
     [
