@@ -80,7 +80,8 @@ class PPO(SB3PPO):
     :param grad_clip: how ``max_grad_norm`` applies: ``"global"`` (SB3: one norm over all parameters) or
         ``"per-parameter"`` (each parameter tensor's gradient clipped to ``max_grad_norm`` on its own, as the
         unit-wise clipping of Brock et al. 2021). ``None``: ``"per-parameter"`` for recurrent spiking policies,
-        ``"global"`` otherwise. ``train/grad_norm`` logs the global pre-clip norm either way.
+        ``"global"`` otherwise. ``train/grad_norm`` logs the global pre-clip norm either way (the median over the
+        update's minibatches), ``train/grad_norm/<parameter>`` each parameter's.
     :param use_action_masks: ask the environments for ``action_masks()`` (sb3-contrib ``MaskablePPO``'s
         convention: a boolean array of open actions) before every rollout step; a recurrent policy with
         ``Discrete`` actions then samples only open actions and is trained with the same masks. Where one action
@@ -287,6 +288,7 @@ class PPO(SB3PPO):
         self._graphed_evaluation: Optional[GraphedSequenceEvaluation] = None
         self._graphed_step: Optional[GraphedRolloutStep] = None
         self._skipped_steps, self._warned_nonfinite = 0, False
+        self._parameter_grad_norms: dict[str, list[float]] = {}
         if self.recurrent:
             self._last_network_state = self.policy.initial_state(self.n_envs, seed=self.seed or 0)
 
@@ -328,6 +330,7 @@ class PPO(SB3PPO):
             "_graphed_step",
             "_skipped_steps",
             "_warned_nonfinite",
+            "_parameter_grad_norms",
         ]
 
     def _training_evaluation(self):
@@ -487,12 +490,16 @@ class PPO(SB3PPO):
 
     def _clip_gradients(self) -> Optional[float]:
         """Clip as ``self.grad_clip`` says; returns the global gradient norm before clipping, or ``None`` (and
-        the gradients untouched) when that norm is not finite."""
-        params = [p for p in self.policy.parameters() if p.grad is not None]
+        the gradients untouched) when that norm is not finite. Each parameter's own norm before clipping is kept in
+        ``self._parameter_grad_norms`` (logged as ``train/grad_norm/<parameter>``)."""
+        named = [(name, p) for name, p in self.policy.named_parameters() if p.grad is not None]
+        params = [p for _, p in named]
         norms = torch.stack([torch.linalg.vector_norm(p.grad) for p in params])
         total = torch.linalg.vector_norm(norms).item()
         if not math.isfinite(total):
             return None
+        for (name, _), norm in zip(named, norms.tolist()):
+            self._parameter_grad_norms.setdefault(name, []).append(norm)
         if self.grad_clip == "global":
             scale = min(self.max_grad_norm / (total + 1e-6), 1.0)  # as torch's clip_grad_norm_
             for p in params:
@@ -632,7 +639,7 @@ class PPO(SB3PPO):
         approx_kl_divs: list[float] = []
         continue_training = True
         evaluate = self._training_evaluation()
-        self._skipped_steps = 0
+        self._skipped_steps, self._parameter_grad_norms = 0, {}
         for epoch in range(self.n_epochs):
             approx_kl_divs = []
             for batch in self.rollout_buffer.get_chunks(self.batch_size // self.bptt_steps):
@@ -659,6 +666,10 @@ class PPO(SB3PPO):
         self.logger.record("train/explained_variance", explained_var)
         if history["grad_norm"]:
             self.logger.record("train/grad_norm", float(np.median(history["grad_norm"])))
+        # Which tensor a growing norm comes from (through the plastic traces, the input layer's first): files and
+        # TensorBoard only, the console table stays short.
+        for name, norms in self._parameter_grad_norms.items():
+            self.logger.record(f"train/grad_norm/{name}", float(np.median(norms)), exclude="stdout")
         self.logger.record("train/skipped_steps", self._skipped_steps)
         if hasattr(self.policy, "log_std"):
             self.logger.record("train/std", torch.exp(self.policy.log_std).mean().item())

@@ -278,7 +278,7 @@ def test_unknown_grad_clip_is_a_clear_error():
 @pytest.mark.parametrize("mode", ["global", "per-parameter"])
 def test_grad_clip_modes(mode):
     """Global: one factor for all tensors (SB3). Per-parameter: each tensor's norm capped on its own, small
-    gradients untouched. Both return the global pre-clip norm (logged as train/grad_norm)."""
+    gradients untouched. Both return the global pre-clip norm (logged as train/grad_norm) and keep each tensor's."""
     model = PPO(
         "SpikePlasticPolicy",
         tmaze(1),
@@ -296,6 +296,11 @@ def test_grad_clip_modes(mode):
     before = [p.grad.clone() for p in params]
     total = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(b) for b in before])).item()
     assert model._clip_gradients() == pytest.approx(total, rel=1e-5)
+    # Each parameter's pre-clip norm, by name, for train/grad_norm/<parameter>.
+    names = [name for name, _ in model.policy.named_parameters()]
+    assert list(model._parameter_grad_norms) == names
+    for name, b in zip(names, before):
+        assert model._parameter_grad_norms[name] == [pytest.approx(torch.linalg.vector_norm(b).item(), rel=1e-6)]
     norms = [torch.linalg.vector_norm(p.grad).item() for p in params]
     if mode == "global":
         assert sum(n * n for n in norms) ** 0.5 == pytest.approx(1.0, rel=1e-4)

@@ -45,6 +45,11 @@ def test_shipped_entry_updates_move_the_policy_with_finite_gradients():
     values = model.logger.name_to_value
     assert values["train/approx_kl"] > 0
     assert math.isfinite(values["train/grad_norm"]) and values["train/skipped_steps"] == 0
+    # Every parameter's own norm is logged, for the files and TensorBoard but not the console table.
+    per_parameter = {k[len("train/grad_norm/") :]: v for k, v in values.items() if k.startswith("train/grad_norm/")}
+    assert set(per_parameter) == {name for name, _ in model.policy.named_parameters()}
+    assert all(0 <= v < float("inf") for v in per_parameter.values()) and max(per_parameter.values()) > 0
+    assert all(model.logger.name_to_excluded[f"train/grad_norm/{k}"] == ("stdout",) for k in per_parameter)
     assert not torch.equal(model.policy.log_std, log_std)
     for name, p in model.policy.snn.named_parameters():  # every spiking layer learns, not only the readouts
         if name.endswith("weight"):
