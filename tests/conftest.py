@@ -21,6 +21,20 @@ def _one_thread():
     torch.set_num_threads(n)
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _mujoco_warnings_routed():
+    """MuJoCo's warnings routed as the command line routes them: HalfCheetah's deprecation notice would otherwise
+    append to ./MUJOCO_LOG.TXT in the folder the suite runs from."""
+    import mujoco
+
+    from sb3_spikeplastic.envs import route_mujoco_warnings
+
+    previous = mujoco.get_mju_user_warning()
+    route_mujoco_warnings()
+    yield
+    mujoco.set_mju_user_warning(previous)
+
+
 def _built(monkeypatch, cuda: bool):
     """The compiled ops (built on first use, even where ``SB3_SPIKEPLASTIC_NO_COMPILE`` is set), or a skip naming
     the build error."""

@@ -25,6 +25,7 @@ from functools import reduce
 from pathlib import Path
 from typing import Callable, Optional
 
+from ..envs import route_mujoco_warnings
 from .cell import run_cell
 from .declaration import Study
 from .layout import StudyFolder
@@ -363,6 +364,7 @@ def cell_line(trial) -> str:
 
 
 def _worker_process(job: StudyJob, index: int) -> None:
+    route_mujoco_warnings()  # a spawned process starts without the command line's route
     prefix = f"[worker {index}] "
     sys.exit(run_worker(job, lambda line: print(prefix + line, flush=True)))
 

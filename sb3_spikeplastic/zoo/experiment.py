@@ -23,6 +23,7 @@ from typing import Any, Optional
 
 import gymnasium
 
+from ..envs import route_mujoco_warnings
 from .config import dump_yaml, model_arguments, normalize_arguments, rule_label
 from .run_folder import RunInfo, atomic_write, check_spaces, next_run_dir, save_model, save_vecnormalize
 from .validation import META_KEYS, algorithm_class, ppo_argument_hints
@@ -49,6 +50,7 @@ def make_train_env(
 
     def factory(rank: int):
         def make():
+            route_mujoco_warnings()  # in a subprocess too: the parent's route does not reach it
             env = SuccessColumn(gymnasium.make(env_id, **env_kwargs))
             filename = None if monitor_dir is None else str(monitor_dir / str(rank))
             return Monitor(env, filename=filename, info_keywords=("is_success",))

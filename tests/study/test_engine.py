@@ -371,3 +371,20 @@ def test_four_processes_never_take_the_same_waiting_trial_from_sqlite(tmp_path):
         == set(taken)
         >= set(range(40))
     )
+
+
+def test_a_worker_process_routes_mujoco_warnings(monkeypatch):
+    """A spawned worker starts without the command line's route of MuJoCo's warnings: it installs its own, so that
+    its HalfCheetah builds neither print MuJoCo's deprecation nor write ./MUJOCO_LOG.TXT."""
+    import mujoco
+
+    previous = mujoco.get_mju_user_warning()
+    try:
+        mujoco.set_mju_user_warning(None)
+        monkeypatch.setattr(engine, "run_worker", lambda job, log: 0)
+        with pytest.raises(SystemExit) as exit_info:
+            engine._worker_process(None, 1)
+        assert exit_info.value.code == 0
+        assert mujoco.get_mju_user_warning() is not None
+    finally:
+        mujoco.set_mju_user_warning(previous)

@@ -7,7 +7,7 @@ import torch
 from helpers import shipped_model
 
 from sb3_spikeplastic.zoo import config as cfg
-from sb3_spikeplastic.zoo.experiment import Experiment, resolved_entry
+from sb3_spikeplastic.zoo.experiment import Experiment, make_train_env, resolved_entry
 from sb3_spikeplastic.zoo.train import continued_run, train_command, training_threads
 
 #: Overrides of the T-maze entry to one 64-step rollout per update.
@@ -107,3 +107,12 @@ def test_a_later_default_does_not_change_a_recorded_run(tmp_path, monkeypatch):
     (tmp_path / "config.yml").write_text(cfg.dump_yaml({"TMazeCue-v0": entry}))
     rebuilt = build("TMazeCue-v0", cfg.resolve_hyperparams("TMazeCue-v0", str(tmp_path / "config.yml"), []), tmp_path)
     assert rebuilt.grad_clip == entry["grad_clip"] != "global"
+
+
+def test_subprocess_environments_route_mujoco_warnings(mujoco_log_in_tmp):
+    """`--vec-env subproc`: each environment's process routes MuJoCo's warnings itself (a spawned process does not
+    inherit the parent's route), so HalfCheetah's deprecation notice writes no ./MUJOCO_LOG.TXT there."""
+    venv = make_train_env("HalfCheetah-v5", 2, {}, vec_env="subproc")
+    venv.reset()
+    venv.close()
+    assert not (mujoco_log_in_tmp / "MUJOCO_LOG.TXT").exists()
