@@ -14,7 +14,7 @@ Two groups of rows, each algorithm at one and at every other requested torch thr
 * ``bare`` and ``bare-mlp``: ``PPO("SpikePlasticPolicy", "HalfCheetah-v5")`` and ``PPO("MlpPolicy",
   "HalfCheetah-v5")`` with every default (one environment);
 * ``paper-conf``: the model of ``train --env HalfCheetah-v5 --conf paper`` (``paper.yml``: ndp-oja with the tanh
-  modulation, 6 environments x 500 steps, batch 1000, BPTT 20, VecNormalize), against ``recurrent``.
+  modulation, 6 environments x 500 steps, batch 1000, BPTT 10, VecNormalize), against ``recurrent``.
 
 ``--n-envs N`` sets the number of environments of the paper rows (keeping 2048 transitions per update) and of
 ``paper-conf`` (keeping ~3000): the sweep of a GPU's throughput against the batch of environments.
@@ -95,7 +95,7 @@ RATIOS = {
 }
 #: Rows whose number of environments ``--n-envs`` sets, keeping the transitions per update: the paper rows' 2048
 #: (``n_steps = 2048 / n_envs``, a multiple of their BPTT length 32) and ``paper.yml``'s 3000 (``n_steps`` the
-#: multiple of its BPTT length 20 nearest to ``3000 / n_envs``).
+#: multiple of its BPTT length nearest to ``3000 / n_envs``).
 SCALABLE = ("mlp", "recurrent", "static", "ndp-oja", "ndp-oja-eager", "ndp-oja-two-passes", "paper-conf")
 
 
