@@ -208,7 +208,7 @@ def test_bins_are_refused_by_robustness_evaluations(files, tiny_study):
 def test_the_packaged_switch_studies(name, train_env):
     study, path = load_study_file(name)
     assert path.name == f"{name}.yml" and study.envs == ("HalfCheetahSwitch-v5",)
-    assert study.seeds == (0, 1, 2) and study.budgets == (1_000_000,)
+    assert study.seeds == (0, 1, 2) and study.budgets == (300_000,)
     assert list(study.variants) == ["static", "dp-oja", "ndp-oja+tanh", "mlp_zoo", "ppo_lstm_zoo"]
     for variant in study.variants:
         assert study.train_env("HalfCheetahSwitch-v5", variant) == train_env
