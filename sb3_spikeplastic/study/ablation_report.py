@@ -9,7 +9,8 @@ episodes, the same drawn episodes for both (the two stacked on a leading axis of
 :mod:`sb3_spikeplastic.study.intervals`). One row per spiking plastic group (``<variant>@<budget>``) and one for the
 plastic variants of a budget pooled (:func:`sb3_spikeplastic.study.groups.kinds`); robustness: R0, the AUC of the
 ratio to R0 and the return at the largest sigma, per noise type (a model with plain R0 below the learned threshold
-is listed apart, as in ``table.md``); final: the return, the success rate and each step-info key's episode mean.
+is listed apart, as in ``table.md``); final: the return, the success rate and each step-info key's episode mean,
+and for an evaluation with ``bins`` the drop and recovery after the aligned change.
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ from typing import Optional
 
 import numpy as np
 
+from ..zoo.evaluation import REWARD_KEY
+from .adaptation import episode_drop_recovery
 from .declaration import Evaluation, Study, model_name
 from .groups import group_of, groups_of, variant_of
 from .intervals import bootstrap_mean_intervals, fmt, verdict
@@ -220,7 +223,51 @@ def _final_section(
     if not rows:
         return [], []
     section, csv_rows = _table(rows, quantities, evaluation.ablation, boot, dict(head, noise=""))
-    return ["", *section], csv_rows
+    lines = ["", *section]
+    if evaluation.bins is not None and all(REWARD_KEY in d["steps"] and evaluation.align in d["align"] for d in both):
+        pairs = {m: np.stack([episode_drop_recovery(runs[m], evaluation) for runs in (plain, ablated)]) for m in models}
+        adaptation, adaptation_rows = _adaptation_section(study, evaluation, pairs, kind, boot)
+        lines += adaptation
+        by_label = {r["model"]: r for r in csv_rows}
+        for r in adaptation_rows:  # the same row of the CSV, with the drop's and recovery's columns
+            by_label[r.pop("model")].update({f"adaptation_{k}" if k == "seeds" else k: v for k, v in r.items()})
+    return lines, csv_rows
+
+
+def _adaptation_section(
+    study: Study, evaluation: Evaluation, pairs: dict[str, np.ndarray], kind: dict[str, str], boot: dict
+) -> tuple[list[str], list[dict]]:
+    """The drop and recovery after the aligned change (:mod:`sb3_spikeplastic.study.adaptation`), plain - ablated,
+    paired by episode over the episodes that both evaluations measure: recovery that survives the ablation is not
+    the traces' doing.
+
+    :param study: the study (its groups)
+    :param evaluation: the ablated final evaluation (``bins``, ``align``, ``recovery``)
+    :param pairs: model -> its episodes' drops and recoveries, plain and ablated: ``(2, 2, episodes)``, NaN where
+        an episode has none (:func:`~sb3_spikeplastic.study.adaptation.episode_drop_recovery`)
+    :param kind: variant -> ``plastic``, ``static`` or ``baselines``
+    :param boot: the bootstrap's keyword arguments
+    """
+    kept = {m: np.isfinite(pair).all(axis=(0, 1)) for m, pair in pairs.items()}
+    values = {m: pair[..., kept[m]] for m, pair in pairs.items() if kept[m].any()}
+    rows = _rows(study, kind, lambda g: [values[m] for m in values if group_of(m) == g])
+    if not rows:
+        return [], []
+    early, late = evaluation.recovery
+    quantities = [("drop", "drop", 3, lambda x: x[..., 0]), ("recovery", "recovery", 3, lambda x: x[..., 1])]
+    section, csv_rows = _table(rows, quantities, evaluation.ablation, boot, {})
+    lines = [
+        "",
+        f"## After the change at {evaluation.align!r}",
+        "",
+        f"drop: mean step reward over the first {early} steps after the change / the episode's reference before it; "
+        f"recovery: (mean over the episode's last {late} steps - mean over the first {early} after the change) / "
+        "reference (adaptation_<evaluation>.md). Paired over the episodes both evaluations measure (a reference > "
+        f"0 and at least {early + late} steps after the change in both).",
+        "",
+        *section,
+    ]
+    return lines, csv_rows
 
 
 def _robustness_section(

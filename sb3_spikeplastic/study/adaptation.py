@@ -87,6 +87,24 @@ def drop_and_recovery(
     return float(first / ref), float((last - first) / ref)
 
 
+def episode_drop_recovery(data: dict, evaluation: Evaluation) -> np.ndarray:
+    """Each episode's drop and recovery, in episode order, for pairing the same episodes of two evaluations.
+
+    :param data: one model's final evaluation (:func:`sb3_spikeplastic.study.layout.read_final`)
+    :param evaluation: the declaration (``bins``, ``align``, ``recovery``)
+    :return: ``(2, episodes)``: drops, then recoveries; NaN where the episode has none (no aligned step or whole
+        bin before it, a reference <= 0, or fewer than ``early + late`` steps after the change)
+    """
+    bins, (early, late) = evaluation.bins, evaluation.recovery
+    out = np.full((2, len(data["align"][evaluation.align])), np.nan)
+    for k, (rewards, aligned) in enumerate(zip(data["steps"][REWARD_KEY], data["align"][evaluation.align])):
+        ref = None if aligned is None else reference(rewards, aligned, bins)
+        measured = None if ref is None or ref <= 0 else drop_and_recovery(rewards, aligned, ref, early, late)
+        if measured is not None:
+            out[:, k] = measured
+    return out
+
+
 def episode_measures(models: dict, model: str, evaluation: Evaluation) -> tuple[dict, int, int]:
     """One model's per-episode measures.
 

@@ -245,3 +245,78 @@ def test_the_counterpart():
     assert counterpart(study_from_dict(study), "frozen") == "final2"
     # Other episode seeds and no against: nothing to pair with (no table).
     assert counterpart(study_from_dict(declared(seed=101)), "frozen") is None
+
+
+#: Adaptation (``bins: 2``, ``recovery: [2, 2]``): each model's episodes, plain and frozen, as (step rewards, the
+#: first step under the changed dynamics or None). By hand: oja seed 0 plain has drops 0.5, 0 and recoveries 0.5, 1,
+#: frozen drops 0.5, 1 and recoveries 0, 0 (the third episode has no change in either); oja seed 1 pairs only its
+#: first episode (drop 0 both, recovery 1 against 0): its second has a reference of -1 plain, its third too few steps
+#: after the change. linear has no change in any episode: no row of its own in the adaptation table.
+SWITCH_EPISODES = {
+    ("oja", 0): (
+        [([2, 2, 2, 2, 1, 1, 1, 1, 2, 2], 4), ([1, 1, 1, 1, 0, 0, 1, 1], 4), ([1, 1, 1, 1], None)],
+        [([2, 2, 2, 2, 1, 1, 1, 1, 1, 1], 4), ([1, 1, 1, 1, 1, 1, 1, 1], 4), ([1, 1, 1, 1], None)],
+    ),
+    ("oja", 1): (
+        [([1, 1, 0, 0, 1, 1], 2), ([-1, -1, 1, 1, 1, 1], 2), ([1, 1, 1, 1], 2)],
+        [([1, 1, 0, 0, 0, 0], 2), ([1, 1, 1, 1, 1, 1], 2), ([1, 1, 1, 1], 2)],
+    ),
+    ("linear", 0): ([([1, 1, 1, 1], None)] * 3, [([2, 2, 2, 2], None)] * 3),
+}
+#: Per paired episode of each oja seed: (plain drop, plain recovery, frozen drop, frozen recovery).
+SWITCH_BY_HAND = {0: [(0.5, 0.5, 0.5, 0.0), (0.0, 1.0, 1.0, 0.0)], 1: [(0.0, 1.0, 0.0, 0.0)]}
+
+
+@pytest.fixture(scope="module")
+def switch_report(tmp_path_factory):
+    """A final evaluation with ``bins`` and its frozen twin, raw files written by hand: the report's folder."""
+    folder = tmp_path_factory.mktemp("switch") / "study"
+    final = {"episodes": 3, "seed": 100, "info_keys": ["reward"], "align": "switch_step", "bins": 2}
+    final["recovery"] = [2, 2]
+    study = {
+        "envs": [ENV],
+        "seeds": [0, 1],
+        "budgets": [1000],
+        "variants": {"oja": {"rule": "dp-oja"}, "linear": {"rule": "dp-linear", "seeds": [0]}},
+        "evaluations": {"final": final, "frozen": {**final, "kind": "final", "ablation": "frozen"}},
+        "report": {"resamples": RESAMPLES},
+    }
+    header = ["episode", "return", "length", "success", "steps:reward", "align:switch_step"]
+    for (variant, seed), both in SWITCH_EPISODES.items():
+        out = StudyFolder(folder).episodes_dir(ENV, variant, 1000, seed)
+        out.mkdir(parents=True)
+        for name, episodes in zip(("final", "frozen"), both):
+            rows = [[k, sum(r), len(r), "", json.dumps(r), "" if a is None else a] for k, (r, a) in enumerate(episodes)]
+            with open(out / f"{name}.csv", "w", newline="") as f:
+                csv.writer(f).writerows([header, *rows])
+    write_report(study_from_dict(study, "synthetic.yml"), folder, log=None)
+    return folder
+
+
+def test_drop_and_recovery_plain_against_frozen_by_hand(switch_report):
+    rows = rows_of(switch_report / "ablation_frozen.csv")
+    oja = rows["oja@1k"]
+    per_seed = {s: np.array(v).mean(axis=0) for s, v in SWITCH_BY_HAND.items()}  # seed -> the four means
+    expected = {
+        "drop_plain": (per_seed[0][0] + per_seed[1][0]) / 2,
+        "recovery_plain": (per_seed[0][1] + per_seed[1][1]) / 2,
+        "drop_ablated": (per_seed[0][2] + per_seed[1][2]) / 2,
+        "recovery_ablated": (per_seed[0][3] + per_seed[1][3]) / 2,
+    }
+    for key, value in expected.items():
+        assert float(oja[key]) == pytest.approx(value), key
+    assert float(oja["drop_difference_estimate"]) == pytest.approx(-0.25)
+    assert float(oja["recovery_difference_estimate"]) == pytest.approx(0.875)
+    assert oja["adaptation_seeds"] == "2"
+    # The paired interval over the paired episodes, against the independent loop.
+    seeds = [tuple(np.array(SWITCH_BY_HAND[s]).T[i : i + 2] for i in (0, 2)) for s in (0, 1)]
+    low, high = paired_interval(seeds, lambda p, f: p[1] - f[1])
+    assert float(oja["recovery_difference_low"]) == pytest.approx(low, abs=1e-5)
+    assert float(oja["recovery_difference_high"]) == pytest.approx(high, abs=1e-5)
+    # linear keeps its return row but has no episode with a change: no drop or recovery, and no pooled one either.
+    assert rows["linear@1k"]["return_difference_estimate"] and not rows["linear@1k"].get("drop_plain")
+    pooled = rows["plastic@1k (pooled: oja, linear)"]
+    assert not pooled.get("drop_plain")
+    text = (switch_report / "ablation_frozen.md").read_text()
+    assert "## After the change at 'switch_step'" in text
+    assert "| oja@1k | 2 | 0.125 | 0.375 | -0.250 [" in text
