@@ -30,8 +30,8 @@ import numpy as np
 
 from ..zoo.evaluation import REWARD_KEY
 from .declaration import Evaluation, Study
-from .groups import group_of, groups_of
-from .intervals import Interval, bootstrap_mean_intervals, fmt
+from .groups import comparisons, group_of, groups_of
+from .intervals import Interval, bootstrap_mean_differences, bootstrap_mean_intervals, fmt, verdict
 from .step_info import figure_style
 
 #: Bins before the aligned step in the table, and whose mean is each episode's reference.
@@ -145,19 +145,88 @@ def _interval(seeds: list[list[float]], boot: dict) -> Optional[tuple[Interval, 
     return interval, len(data), sum(d.size for d in data)
 
 
+def _differences(
+    env: str,
+    name: str,
+    study: Study,
+    kind: dict[str, str],
+    groups: list[str],
+    has: list[str],
+    measured: dict,
+    boot: dict,
+    rows: list[dict],
+) -> list[str]:
+    """The drop and recovery of each of the study's declared comparisons (``report.compare``), model minus reference
+    with the unpaired two-stage interval; their CSV rows (measure ``drop_difference`` / ``recovery_difference``, the
+    group the comparison's label, ``reference`` its reference) appended to ``rows``.
+
+    :param env: the environment
+    :param name: the evaluation's name
+    :param study: the study
+    :param kind: variant -> ``plastic``, ``static`` or ``baselines``
+    :param groups: the groups with data
+    :param has: the models with data
+    :param measured: model -> :func:`episode_measures`
+    :param boot: the bootstrap's keyword arguments
+    :param rows: the section's CSV rows
+    """
+
+    def seeds_of(group: str, measure: str) -> list[np.ndarray]:
+        values = [measured[m][0].get(measure, []) for m in has if group_of(m) == group]
+        return [np.array(v)[None] for v in values if v]
+
+    mean = lambda m: m[..., 0].mean(axis=-1)  # noqa: E731  (per-seed means of one level)
+    found = comparisons(study, kind, groups, lambda g: bool(seeds_of(g, "recovery")))
+    if not found:
+        return []
+    lines = [
+        "",
+        "## Against the reference",
+        "",
+        "Model minus reference, two-stage bootstrap 95 % interval (unpaired: other models, the same episode seeds); "
+        "a verdict only where the interval excludes 0.",
+        "",
+        "| model | reference | seeds | drop difference | drop | recovery difference | recovery |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for label, reference, compared in found:
+        cells = []
+        for measure in ("drop", "recovery"):
+            seeds = [s for g in compared for s in seeds_of(g, measure)]
+            (difference,) = bootstrap_mean_differences(seeds, seeds_of(reference, measure), [mean], **boot)
+            cells.append(f"{fmt(difference, 3)} | {verdict(difference, 'higher', 'lower')}")
+            rows.append(
+                dict(
+                    env=env,
+                    evaluation=name,
+                    measure=f"{measure}_difference",
+                    group=label,
+                    reference=reference,
+                    seeds=len(seeds),
+                    **{k: round(v, 6) for k, v in difference._asdict().items()},
+                )
+            )
+        n_ref = len(seeds_of(reference, "recovery"))
+        lines.append(f"| {label} | {reference} | {len(seeds)} vs {n_ref} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def bin_label(b: int, bins: int) -> str:
     """``[-200, -150)``: bin ``b``'s steps relative to the aligned one."""
     return f"[{b * bins}, {(b + 1) * bins})"
 
 
-def adaptation_section(env: str, name: str, evaluation: Evaluation, models: dict, study: Study, boot: dict):
+def adaptation_section(
+    env: str, name: str, evaluation: Evaluation, models: dict, study: Study, kind: dict[str, str], boot: dict
+):
     """The adaptation tables of one final evaluation with ``bins``, their rows and their figure.
 
     :param env: the environment
     :param name: the evaluation's name
     :param evaluation: its declaration (``bins``, ``align``, ``recovery``)
     :param models: model -> :func:`sb3_spikeplastic.study.layout.read_final`
-    :param study: the study (its groups' order)
+    :param study: the study (its groups' order, its ``report.compare``)
+    :param kind: variant -> ``plastic``, ``static`` or ``baselines``
     :param boot: the bootstrap's keyword arguments
     :return: Markdown lines, CSV rows (env, evaluation, measure, bin_start, bin_end, group, seeds, episodes,
         left_out: the group's episodes of reference <= 0, estimate, low, high) and the figure (relative return per
@@ -212,6 +281,7 @@ def adaptation_section(env: str, name: str, evaluation: Evaluation, models: dict
         for b, found in per_group[group].items():
             if found:
                 rows.append(_row(env, name, "relative_return", b, bins, group, found, not_learned))
+    lines += _differences(env, name, study, kind, groups, has, measured, boot, rows)
     lines += [
         "",
         f"## Relative return per {bins}-step bin",

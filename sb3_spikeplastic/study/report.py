@@ -481,7 +481,7 @@ def write_report(study: Study, folder: Path, log: Optional[Callable[[str], None]
                         fig.savefig(written[-1], dpi=120)
                         plt.close(fig)
                 if evaluation.bins is not None:
-                    adapt_lines, adapt_rows, fig = adaptation_section(env, name, evaluation, models, study, boot)
+                    adapt_lines, adapt_rows, fig = adaptation_section(env, name, evaluation, models, study, kind, boot)
                     written.append(_write_text(folder / f"{prefix}adaptation_{name}.md", "\n".join(adapt_lines) + "\n"))
                     if adapt_rows:
                         written.append(_write_csv(folder / f"{prefix}adaptation_{name}.csv", adapt_rows))

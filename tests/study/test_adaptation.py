@@ -13,7 +13,7 @@ import pytest
 import yaml
 
 from sb3_spikeplastic.study import engine, load_study_file, study_from_dict
-from sb3_spikeplastic.study.intervals import bootstrap_interval
+from sb3_spikeplastic.study.intervals import bootstrap_difference, bootstrap_interval
 from sb3_spikeplastic.study.layout import StudyFolder, read_final
 from sb3_spikeplastic.study.report import write_report
 
@@ -54,7 +54,7 @@ STUDY = {
     "evaluations": {
         "final": {"episodes": 3, "info_keys": ["reward"], "align": "switch_step", "bins": 2, "recovery": [2, 3]}
     },
-    "report": {"resamples": RESAMPLES},
+    "report": {"resamples": RESAMPLES, "compare": [{"variants": ["b"], "against": ["a"]}]},
 }
 
 
@@ -98,7 +98,7 @@ def test_the_relative_bins_drop_and_recovery_by_hand(report):
     assert float(rows[("recovery", "", "a@1k")]["estimate"]) == pytest.approx(0.75)
     assert {int(r["left_out"]) for r in rows.values() if r["group"] == "a@1k"} == {1}
     # b: reference (1 + 1 + 3 + 3) / 4 = 2; bins -2 and -1 are 2/4 and 6/4; after the change 4/4; recovery 0
-    b = {k[:2]: float(r["estimate"]) for k, r in rows.items() if k[2] == "b@1k"}
+    b = {k[:2]: float(r["estimate"]) for k, r in rows.items() if k[2] == "b@1k" and not r["reference"]}
     assert b == pytest.approx(
         {
             ("reference", ""): 2.0,
@@ -111,6 +111,25 @@ def test_the_relative_bins_drop_and_recovery_by_hand(report):
             ("relative_return", "4"): 1.0,
         }
     )
+
+
+def test_the_declared_comparison_of_drop_and_recovery(report):
+    """b minus a, from the per-seed episode values by hand (a's seed 1 has no drop or recovery: left out), against
+    the generic two-stage difference."""
+    rows = rows_of(report)
+    b = {"drop": [[1.0]], "recovery": [[0.0]]}
+    for measure, expected in (("drop", 1.0 - 0.25), ("recovery", 0.0 - 0.75)):
+        row = rows[(f"{measure}_difference", "", "b@1k")]
+        assert row["reference"] == "a@1k" and row["seeds"] == "1"
+        assert float(row["estimate"]) == pytest.approx(expected)
+        seeds_a = [np.array(s, dtype=float) for s in BY_HAND_A[measure] if s]
+        seeds_b = [np.array(s) for s in b[measure]]
+        interval = bootstrap_difference(
+            seeds_b, seeds_a, lambda s: np.mean([x.mean() for x in s]), n_resamples=RESAMPLES
+        )
+        assert (float(row["low"]), float(row["high"])) == pytest.approx((interval.low, interval.high), abs=1e-6)
+    table = (report / "adaptation_final.md").read_text()
+    assert "## Against the reference" in table and "| b@1k | a@1k | 1 vs 1 | 0.750 [" in table
 
 
 def test_the_table_counts_the_episodes_left_out(report):
