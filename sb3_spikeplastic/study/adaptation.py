@@ -87,6 +87,13 @@ def drop_and_recovery(
     return float(first / ref), float((last - first) / ref)
 
 
+def _references(data: dict, evaluation: Evaluation):
+    """Each episode's ``(rewards, aligned step, reference)``; the reference ``None`` where the episode has no aligned
+    step or no whole bin before it."""
+    for rewards, aligned in zip(data["steps"][REWARD_KEY], data["align"][evaluation.align]):
+        yield rewards, aligned, None if aligned is None else reference(rewards, aligned, evaluation.bins)
+
+
 def episode_drop_recovery(data: dict, evaluation: Evaluation) -> np.ndarray:
     """Each episode's drop and recovery, in episode order, for pairing the same episodes of two evaluations.
 
@@ -95,10 +102,9 @@ def episode_drop_recovery(data: dict, evaluation: Evaluation) -> np.ndarray:
     :return: ``(2, episodes)``: drops, then recoveries; NaN where the episode has none (no aligned step or whole
         bin before it, a reference <= 0, or fewer than ``early + late`` steps after the change)
     """
-    bins, (early, late) = evaluation.bins, evaluation.recovery
+    early, late = evaluation.recovery
     out = np.full((2, len(data["align"][evaluation.align])), np.nan)
-    for k, (rewards, aligned) in enumerate(zip(data["steps"][REWARD_KEY], data["align"][evaluation.align])):
-        ref = None if aligned is None else reference(rewards, aligned, bins)
+    for k, (rewards, aligned, ref) in enumerate(_references(data, evaluation)):
         measured = None if ref is None or ref <= 0 else drop_and_recovery(rewards, aligned, ref, early, late)
         if measured is not None:
             out[:, k] = measured
@@ -118,8 +124,7 @@ def episode_measures(models: dict, model: str, evaluation: Evaluation) -> tuple[
     bins, (early, late) = evaluation.bins, evaluation.recovery
     values: dict = {}
     not_learned = unaligned = 0
-    for rewards, aligned in zip(models[model]["steps"][REWARD_KEY], models[model]["align"][evaluation.align]):
-        ref = None if aligned is None else reference(rewards, aligned, bins)
+    for rewards, aligned, ref in _references(models[model], evaluation):
         if ref is None:
             unaligned += 1
             continue
