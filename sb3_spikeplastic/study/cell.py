@@ -177,6 +177,12 @@ def evaluate_model_file(
         return _evaluate(job, env, name, evaluation, model_path, folder, missing, eval_name, same_env, Path(tmp))
 
 
+def _step_value(v: float):
+    """A step value as the raw file keeps it: integers as integers, others to 7 significant digits (a relative error
+    below 5e-7, about float32's), which keeps a 1000-step HalfCheetah episode's rewards at ~9 kB instead of ~20 kB."""
+    return int(v) if v.is_integer() else float(f"{v:.7g}")
+
+
 def write_final(f, result, align: Optional[str]) -> None:
     """A final evaluation's raw rows: episode, return, length, success (empty where the task reports none), then
     each step-info key's values at every step (a JSON list; bools as 0/1), the alignment key of the final step
@@ -196,7 +202,7 @@ def write_final(f, result, align: Optional[str]) -> None:
         "success": result.successes if len(result.successes) == n else [""] * n,
     }
     for key, episodes in result.steps.items():
-        columns[f"{STEPS_COLUMN}{key}"] = [json.dumps([int(v) if v.is_integer() else v for v in e]) for e in episodes]
+        columns[f"{STEPS_COLUMN}{key}"] = [json.dumps([_step_value(v) for v in e]) for e in episodes]
     if align is not None:
         columns[f"{ALIGN_COLUMN}{align}"] = ["" if a is None else a for a in result.aligned]
     if result.episode_energy is not None:

@@ -220,3 +220,29 @@ def test_the_energy_of_the_episodes_adds_up_to_the_evaluations():
     assert len(synops) == 4 and len(set(synops)) > 1  # each episode its own spikes
     assert sum(synops) == pytest.approx(result.energy["total_synops_per_step"] * 40, rel=1e-6)  # float32 rates
     assert [sum(v) for v in result.steps["paid"]] == result.returns.tolist()
+
+
+def test_the_raw_file_keeps_step_values_to_seven_digits(tmp_path):
+    """Integers stay integers; other values keep 7 significant digits: a value read back is within 5e-7 of the one
+    the environment returned, relatively."""
+    from types import SimpleNamespace
+
+    from sb3_spikeplastic.study.cell import write_final
+
+    rewards = np.array([-0.123456789012345, 3.0, 1234.56789012, 2.5e-9, 0.1 + 0.2])
+    result = SimpleNamespace(
+        returns=np.array([rewards.sum()]),
+        lengths=np.array([5]),
+        successes=[],
+        steps={"reward": [rewards]},
+        aligned=[None],
+        episode_energy=None,
+    )
+    path = tmp_path / "final.csv"
+    with path.open("w", newline="") as f:
+        write_final(f, result, None)
+    written = next(csv.DictReader(path.open()))["steps:reward"]
+    assert written == "[-0.1234568, 3, 1234.568, 2.5e-09, 0.3]"
+    back = read_final(path)["steps"]["reward"][0]
+    np.testing.assert_allclose(back, rewards, rtol=5e-7)
+    assert not np.array_equal(back, rewards)  # rounded, not the full values
