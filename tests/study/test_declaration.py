@@ -189,6 +189,9 @@ def test_the_packaged_studies():
     )
     assert [name for name, _, _ in paper.evaluations_of("static", 0, 999_000)] == ["robustness"]
     assert [name for name, _, _ in paper.evaluations_of("ndp-oja+tanh", 0, 999_000)] == ["robustness", "frozen"]
+    assert config["bptt_steps"] == 10 and paper.config("HalfCheetah-v5", "static")["bptt_steps"] == 10
+    assert paper.config("HalfCheetah-v5", "static-bptt20")["bptt_steps"] == 20  # the model trained before the change
+    assert paper.variants["static-bptt20"].seeds == (0,)
     with pytest.raises(
         ValueError, match="no study file 'fig5'.*fig4, paper_network, reversal, switch_meta, switch_zero_shot, tmaze"
     ):
