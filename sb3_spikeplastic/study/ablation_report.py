@@ -263,7 +263,7 @@ def _adaptation_section(
         f"drop: mean step reward over the first {early} steps after the change / the episode's reference before it; "
         f"recovery: (mean over the episode's last {late} steps - mean over the first {early} after the change) / "
         "reference (adaptation_<evaluation>.md). Paired over the episodes both evaluations measure (a reference > "
-        f"0 and at least {early + late} steps after the change in both).",
+        f"{evaluation.min_reference:g} and at least {early + late} steps after the change in both).",
         "",
         *section,
     ]

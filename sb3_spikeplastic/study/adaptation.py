@@ -17,7 +17,8 @@ steps and models of different speeds are on one scale:
   ``early + late`` steps after the change.
 
 An episode without an aligned step or without a whole bin before it is left out, and so is one whose reference is
-<= 0 (a model that did not learn to move forward: a ratio to it means nothing); the tables count them. Each value
+not above the evaluation's ``min_reference`` (0 unless declared: a model that did not move forward before the
+change, where a ratio to its reference means nothing); the tables count them. Each value
 is the mean over a group's seeds of each seed's mean over its episodes, with the two-stage bootstrap 95 % interval
 of :mod:`sb3_spikeplastic.study.intervals` (seeds, then episodes).
 """
@@ -100,12 +101,13 @@ def episode_drop_recovery(data: dict, evaluation: Evaluation) -> np.ndarray:
     :param data: one model's final evaluation (:func:`sb3_spikeplastic.study.layout.read_final`)
     :param evaluation: the declaration (``bins``, ``align``, ``recovery``)
     :return: ``(2, episodes)``: drops, then recoveries; NaN where the episode has none (no aligned step or whole
-        bin before it, a reference <= 0, or fewer than ``early + late`` steps after the change)
+        bin before it, a reference not above ``min_reference``, or fewer than ``early + late`` steps after the change)
     """
     early, late = evaluation.recovery
     out = np.full((2, len(data["align"][evaluation.align])), np.nan)
     for k, (rewards, aligned, ref) in enumerate(_references(data, evaluation)):
-        measured = None if ref is None or ref <= 0 else drop_and_recovery(rewards, aligned, ref, early, late)
+        low = ref is None or ref <= evaluation.min_reference
+        measured = None if low else drop_and_recovery(rewards, aligned, ref, early, late)
         if measured is not None:
             out[:, k] = measured
     return out
@@ -118,8 +120,8 @@ def episode_measures(models: dict, model: str, evaluation: Evaluation) -> tuple[
     :param model: the model
     :param evaluation: the declaration (``bins``, ``align``, ``recovery``)
     :return: measure (a bin index, ``"drop"``, ``"recovery"``, ``"reference"``) -> the values of the episodes that
-        have it; the episodes left out for a reference <= 0; those left out for no aligned step or no whole bin
-        before it
+        have it; the episodes left out for a reference not above ``min_reference``; those left out for no aligned
+        step or no whole bin before it
     """
     bins, (early, late) = evaluation.bins, evaluation.recovery
     values: dict = {}
@@ -128,7 +130,7 @@ def episode_measures(models: dict, model: str, evaluation: Evaluation) -> tuple[
         if ref is None:
             unaligned += 1
             continue
-        if ref <= 0:
+        if ref <= evaluation.min_reference:
             not_learned += 1
             continue
         values.setdefault("reference", []).append(ref)
@@ -234,9 +236,9 @@ def adaptation_section(
     :param kind: variant -> ``plastic``, ``static`` or ``baselines``
     :param boot: the bootstrap's keyword arguments
     :return: Markdown lines, CSV rows (env, evaluation, measure, bin_start, bin_end, group, seeds, episodes,
-        left_out: the group's episodes of reference <= 0, estimate, low, high) and the figure (relative return per
-        bin around the change; recovery per group), or ``None`` for the figure where no model has the step rewards
-        and the alignment
+        left_out: the group's episodes of reference not above ``min_reference``, estimate, low, high) and the
+        figure (relative return per bin around the change; recovery per group), or ``None`` for the figure where no
+        model has the step rewards and the alignment
     """
     import matplotlib.pyplot as plt
 
@@ -244,15 +246,16 @@ def adaptation_section(
     has = [m for m in sorted(models) if REWARD_KEY in models[m]["steps"] and align in models[m]["align"]]
     groups = [g for g in groups_of(study) if any(group_of(m) == g for m in has)]
     measured = {m: episode_measures(models, m, evaluation) for m in has}
+    floor = f"{evaluation.min_reference:g}"
     lines = [
         f"# {env}: evaluation {name!r}, adaptation to the change at {align!r}",
         "",
         f"Per episode, against the same episode before the change (step 0: the first step under the changed "
         f"dynamics, the final step's {align!r}): the reference is the mean step reward over the up to {PRE_BINS} "
         f"whole {bins}-step bins before the change. Mean over seeds of each seed's mean over its episodes; "
-        "[95 % interval]: two-stage bootstrap over seeds and episodes. Episodes whose reference is <= 0 (the model "
-        "did not learn to move forward) are left out, and counted; so are those without an aligned step or a "
-        "whole bin before it.",
+        "[95 % interval]: two-stage bootstrap over seeds and episodes. Episodes whose reference is <= "
+        f"{floor} (the model did not move forward before the change) are left out, and counted; so are those "
+        "without an aligned step or a whole bin before it.",
         "",
         "## Drop and recovery",
         "",
@@ -260,7 +263,7 @@ def adaptation_section(
         f"recovery: (mean over the episode's last {late} steps - mean over the first {early} after the change) / "
         f"reference (positive: it recovers), episodes with at least {early + late} steps after the change.",
         "",
-        "| model | seeds | episodes | left out: reference <= 0 | left out: no change or bin before it | "
+        f"| model | seeds | episodes | left out: reference <= {floor} | left out: no change or bin before it | "
         "reference (reward per step) | drop | recovery |",
         "|---|---|---|---|---|---|---|---|",
     ]

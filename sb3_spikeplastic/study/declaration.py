@@ -70,6 +70,7 @@ FINAL_KEYS = (
     "align",
     "bins",
     "recovery",
+    "min_reference",
     "variants",
     "seeds",
     "budgets",
@@ -145,6 +146,8 @@ class Evaluation:
         none
     :param recovery: ``final`` with ``bins``: ``(early, late)``, the steps after the aligned one whose mean reward
         is the drop (the first ``early``) and the recovered level (the episode's last ``late``)
+    :param min_reference: ``final`` with ``bins``: episodes whose mean step reward before the change is not above it
+        are left out of the adaptation measures (a ratio to a near-zero reference means nothing), and counted
     """
 
     kind: str
@@ -162,6 +165,7 @@ class Evaluation:
     align: Optional[str] = None
     bins: Optional[int] = None
     recovery: tuple[int, int] = RECOVERY
+    min_reference: float = 0.0
 
     def applies(self, variant: str, seed: int, budget: int) -> bool:
         return all(
@@ -486,6 +490,14 @@ def _evaluation(name, spec, where: str, variants: dict) -> Evaluation:
             )
         if "recovery" in spec and bins is None:
             raise ValueError(f"recovery={recovery!r} of {what} in {where} needs bins")
+        min_reference = spec.get("min_reference", 0.0)
+        if isinstance(min_reference, bool) or not isinstance(min_reference, (int, float)) or not min_reference >= 0:
+            raise ValueError(
+                f"min_reference={min_reference!r} of {what} in {where} must be a number >= 0: the mean step reward "
+                "before the change that an episode's must exceed to be measured"
+            )
+        if "min_reference" in spec and bins is None:
+            raise ValueError(f"min_reference={min_reference!r} of {what} in {where} needs bins")
         return Evaluation(
             kind,
             replace(protocol, noises=(), sigmas=(0.0,)),
@@ -494,6 +506,7 @@ def _evaluation(name, spec, where: str, variants: dict) -> Evaluation:
             align=align,
             bins=bins,
             recovery=tuple(recovery),
+            min_reference=float(min_reference),
             **filters,
         )
     if kind == "sensitivity":

@@ -1,8 +1,9 @@
 """Adaptation to a change of dynamics within an episode: ``reward`` in ``info_keys`` keeps every step's reward (the
 steps of an episode sum to its return) in a real evaluation; the report's return per bin relative to the episode's
 bins before the change, its drop and its recovery equal values worked out by hand from raw files written by hand
-(an episode with a reference <= 0 left out and counted, episodes of different switch steps); bad ``bins`` and
-``recovery`` are one line; the packaged switch studies load."""
+(an episode with a reference <= 0, or not above a declared ``min_reference``, left out and counted, episodes of
+different switch steps); bad ``bins``, ``recovery`` and ``min_reference`` are one line; the packaged switch studies
+load."""
 
 import copy
 import csv
@@ -58,9 +59,8 @@ STUDY = {
 }
 
 
-@pytest.fixture
-def report(files):
-    """The raw files of :data:`EPISODES` written by hand and the study's report: the report's folder."""
+def write_synthetic_report(files, study: dict):
+    """The raw files of :data:`EPISODES` written by hand and ``study``'s report: the report's folder."""
     folder = files / "study"
     for (variant, seed), episodes in EPISODES.items():
         out = StudyFolder(folder).episodes_dir(ENV, variant, 1000, seed)
@@ -69,8 +69,13 @@ def report(files):
         rows = [[k, sum(r), len(r), "", json.dumps(r), "" if a is None else a] for k, (r, a) in enumerate(episodes)]
         with open(out / "final.csv", "w", newline="") as f:
             csv.writer(f).writerows([header, *rows])
-    write_report(study_from_dict(STUDY, "synthetic.yml", files), folder, log=None)
+    write_report(study_from_dict(study, "synthetic.yml", files), folder, log=None)
     return folder
+
+
+@pytest.fixture
+def report(files):
+    return write_synthetic_report(files, STUDY)
 
 
 def rows_of(folder):
@@ -140,6 +145,22 @@ def test_the_table_counts_the_episodes_left_out(report):
     assert (report / "adaptation_final.png").is_file()
 
 
+def test_a_floor_on_the_reference_leaves_more_episodes_out(files):
+    """``min_reference: 1.5`` leaves out seed 0's episode of reference 1 as well as the one of -1/3: seed 0 keeps
+    the episode of reference 2 (drop 0.5, recovery 0.5); b's reference 2 is above the floor."""
+    study = copy.deepcopy(STUDY)
+    study["evaluations"]["final"]["min_reference"] = 1.5
+    folder = write_synthetic_report(files, study)
+    rows = rows_of(folder)
+    check_row(rows[("reference", "", "a@1k")], ([2], [4]))
+    check_row(rows[("drop", "", "a@1k")], ([0.5], []))
+    check_row(rows[("recovery", "", "a@1k")], ([0.5], []))
+    assert {int(r["left_out"]) for r in rows.values() if r["group"] == "a@1k"} == {2}
+    assert float(rows[("reference", "", "b@1k")]["estimate"]) == pytest.approx(2.0)
+    table = (folder / "adaptation_final.md").read_text()
+    assert "| left out: reference <= 1.5 |" in table and "| a@1k | 2 | 6 | 2 | 2 | 3.000 [" in table
+
+
 TINY_SWITCH_CONF = """HalfCheetahSwitch-v5:
   policy: MlpPolicy
   n_timesteps: 64
@@ -204,6 +225,15 @@ def test_a_real_run_keeps_every_steps_reward(tmp_path):
         (dict(bins=50, info_keys=["reward"], align="switch_step", recovery=[100]), "recovery=[100] of evaluation"),
         (dict(bins=50, info_keys=["reward"], align="switch_step", recovery=[100, 0]), "recovery=[100, 0] of"),
         (dict(recovery=[100, 200]), "recovery=[100, 200] of evaluation 'final' in tiny.yml needs bins"),
+        (
+            dict(bins=50, info_keys=["reward"], align="switch_step", min_reference=-1),
+            "min_reference=-1 of evaluation 'final' in tiny.yml must be a number >= 0",
+        ),
+        (
+            dict(bins=50, info_keys=["reward"], align="switch_step", min_reference="1"),
+            "min_reference='1' of evaluation 'final' in tiny.yml must be a number >= 0",
+        ),
+        (dict(min_reference=1.0), "min_reference=1.0 of evaluation 'final' in tiny.yml needs bins"),
     ],
 )
 def test_bad_bins_are_one_line(files, tiny_study, change, message):
@@ -241,5 +271,5 @@ def test_the_packaged_switch_studies(name, train_env):
             100,
         )
         assert evaluation.info_keys == ("reward",) and evaluation.align == "switch_step"
-        assert (evaluation.bins, evaluation.recovery) == (50, (100, 200))
+        assert (evaluation.bins, evaluation.recovery, evaluation.min_reference) == (50, (100, 200), 1.0)
     assert yaml.safe_load(path.read_text())["description"]
