@@ -81,7 +81,7 @@ def _rows(study: Study, kind: dict[str, str], seeds_of: Callable[[str], list]) -
 
     :param study: the study (its groups' order)
     :param kind: variant -> ``plastic``, ``static`` or ``baselines``
-    :param seeds_of: a group -> its models' paired data (empty: no row)
+    :param seeds_of: a group -> its models' paired data, or their names (empty: no row)
     """
     plastic = [g for g in groups_of(study) if kind[variant_of(g)] == "plastic" and seeds_of(g)]
     rows = []
@@ -94,8 +94,22 @@ def _rows(study: Study, kind: dict[str, str], seeds_of: Callable[[str], list]) -
     return rows
 
 
+def _statistics(value: Callable[[np.ndarray], np.ndarray]) -> list:
+    """The plain, ablated and paired-difference statistics of a quantity over a row's seeds."""
+    return [
+        lambda m: value(m[..., 0, :]).mean(axis=-1),
+        lambda m: value(m[..., 1, :]).mean(axis=-1),
+        lambda m: (value(m[..., 0, :]) - value(m[..., 1, :])).mean(axis=-1),
+    ]
+
+
 def _table(
-    rows: list[tuple[str, list]], quantities: list[Quantity], ablation: str, boot: dict, row: dict
+    rows: list[tuple[str, list]],
+    quantities: list[Quantity],
+    ablation: str,
+    boot: dict,
+    row: dict,
+    subsets: Optional[dict[str, dict[str, list]]] = None,
 ) -> tuple[list[str], list[dict]]:
     """The Markdown table and CSV rows of some rows of paired seeds (each seed's data: plain and ablated on the
     first axis, episodes last).
@@ -105,14 +119,10 @@ def _table(
     :param ablation: the ablation mode (the columns' and verdicts' word)
     :param boot: the bootstrap's keyword arguments
     :param row: the leading columns of every CSV row
+    :param subsets: quantity key -> row label -> the seeds that quantity is computed on where not all of the row's
+        (none: ``-`` in its cells); the CSV's ``<key>_seeds`` column counts them
     """
-    statistics = []
-    for *_, value in quantities:
-        statistics += [
-            lambda m, f=value: f(m[..., 0, :]).mean(axis=-1),
-            lambda m, f=value: f(m[..., 1, :]).mean(axis=-1),
-            lambda m, f=value: (f(m[..., 0, :]) - f(m[..., 1, :])).mean(axis=-1),
-        ]
+    subsets = subsets or {}
     lines = [
         "| model | seeds | "
         + " | ".join(f"{t} plain | {t} {ablation} | {t} difference [95 % interval] | {t}" for _, t, _, _ in quantities)
@@ -121,15 +131,25 @@ def _table(
     ]
     csv_rows = []
     for label, seeds in rows:
-        intervals = bootstrap_mean_intervals(seeds, statistics, **boot)
+        own = {key: subsets[key][label] for key, *_ in quantities if label in subsets.get(key, {})}
+        # The draws depend on the seeds alone, so each quantity's interval is the same computed with the others.
+        shared = [q for q in quantities if q[0] not in own]
+        found = dict(zip([q[0] for q in shared], _triples(seeds, shared, boot) if shared else []))
+        for key, subset in own.items():
+            found[key] = _triples(subset, [q for q in quantities if q[0] == key], boot)[0] if subset else None
         cells, out = [], dict(row, model=label, seeds=len(seeds))
-        for i, (key, _, digits, _) in enumerate(quantities):
-            plain, ablated, difference = intervals[3 * i : 3 * i + 3]
+        for key, _, digits, _ in quantities:
+            if key in subsets:
+                out[f"{key}_seeds"] = len(own.get(key, seeds))
+            if found[key] is None:
+                cells.append("- | - | - | -")
+                continue
+            plain, ablated, difference = found[key]
             word = verdict(difference, *(("loses more", "loses less") if key == "auc" else ("lower", "higher")))
             word = word if word == "not resolved" else f"{ablation}: {word}"
-            cells.append(
-                f"{plain.estimate:.{digits}f} | {ablated.estimate:.{digits}f} | {fmt(difference, digits)} | {word}"
-            )
+            among = f" ({len(own[key])} of {len(seeds)} seeds)" if key in own else ""
+            estimates = f"{plain.estimate:.{digits}f} | {ablated.estimate:.{digits}f}"
+            cells.append(f"{estimates} | {fmt(difference, digits)} | {word}{among}")
             out.update(
                 {f"{key}_plain": round(plain.estimate, 6), f"{key}_ablated": round(ablated.estimate, 6)},
                 **{f"{key}_difference_{k}": round(v, 6) for k, v in difference._asdict().items()},
@@ -138,6 +158,12 @@ def _table(
         lines.append(f"| {label} | {len(seeds)} | " + " | ".join(cells) + " |")
         csv_rows.append(out)
     return lines, csv_rows
+
+
+def _triples(seeds: list, quantities: list[Quantity], boot: dict) -> list[tuple]:
+    """``(plain, ablated, difference)`` intervals of each quantity over ``seeds``."""
+    intervals = bootstrap_mean_intervals(seeds, [f for *_, value in quantities for f in _statistics(value)], **boot)
+    return [tuple(intervals[3 * i : 3 * i + 3]) for i in range(len(quantities))]
 
 
 def _robustness_quantities(sigmas: np.ndarray) -> list[Quantity]:
@@ -292,19 +318,40 @@ def _robustness_section(
     :param boot: the bootstrap's keyword arguments
     :param head: the leading columns of every CSV row
     """
-    # The plain R0 from the first noise a model has (sigma 0: the same episodes under every noise).
+    # R0 from the first noise a model has (sigma 0: the same episodes under every noise).
     r0 = {m: next(plain[m][n][1][0].mean() for n in plain[m]) for models in paired.values() for m in models}
     failed = sorted(m for m, value in r0.items() if value < study.learned_threshold)
+    # Ablated, a model that no longer runs has no fraction of its R0 to keep: its AUC is left out, its R0 and
+    # return at the largest sigma are not.
+    stopped = sorted(
+        m
+        for m in r0
+        if m not in failed and next(ablated[m][n][1][0].mean() for n in ablated[m]) < study.learned_threshold
+    )
     lines, csv_rows = [], []
     for noise in evaluation.protocol.noises:
         models = [m for m in paired.get(noise, []) if m not in failed]
         values = {m: np.stack([plain[m][noise][1], ablated[m][noise][1]]) for m in models}
-        rows = _rows(study, kind, lambda g: [values[m] for m in models if group_of(m) == g])
+        named = _rows(study, kind, lambda g: [m for m in models if group_of(m) == g])
+        rows = [(label, [values[m] for m in mine]) for label, mine in named]
+        subsets = {
+            "auc": {
+                label: [values[m] for m in mine if m not in stopped]
+                for label, mine in named
+                if any(m in stopped for m in mine)
+            }
+        }
         if rows:
             quantities = _robustness_quantities(plain[models[0]][noise][0])
-            section, noise_rows = _table(rows, quantities, evaluation.ablation, boot, dict(head, noise=noise))
+            section, noise_rows = _table(rows, quantities, evaluation.ablation, boot, dict(head, noise=noise), subsets)
             lines += ["", f"## {noise} noise", "", *section]
             csv_rows += noise_rows
+    if stopped:
+        lines += [
+            "",
+            f"R0 below {study.learned_threshold:g} {evaluation.ablation} (the network no longer runs: no fraction of "
+            f"R0 to keep), left out of the AUC columns only: {', '.join(stopped)}.",
+        ]
     if failed:
         lines += ["", f"Did not learn (plain R0 < {study.learned_threshold:g}), left out: {', '.join(failed)}."]
     return lines, csv_rows

@@ -82,10 +82,8 @@ def write_robustness(path, model, means, which):
             writer.writerows([model, "obs", sigma, k, mean + o] for k, o in enumerate(OFFSETS[which]))
 
 
-@pytest.fixture(scope="module")
-def report(tmp_path_factory):
-    """The raw files written by hand and the study's report: the report's folder."""
-    folder = tmp_path_factory.mktemp("ablation") / "study"
+def write_study(folder, means):
+    """The raw files written by hand (robustness means ``means``) and the study's report: the report's folder."""
     for (variant, seed), (plain, frozen) in FINAL.items():
         out = StudyFolder(folder).episodes_dir(ENV, variant, 1000, seed)
         out.mkdir(parents=True)
@@ -93,10 +91,15 @@ def report(tmp_path_factory):
         if frozen is not None:
             write_final(out / "frozen.csv", frozen, "frozen")
         model = f"{variant}@1k_s{seed}"
-        write_robustness(out / "robustness_obs.csv", model, MEANS[(variant, seed)][0], "plain")
-        write_robustness(out / "noise-frozen_obs.csv", model, MEANS[(variant, seed)][1], "frozen")
+        write_robustness(out / "robustness_obs.csv", model, means[(variant, seed)][0], "plain")
+        write_robustness(out / "noise-frozen_obs.csv", model, means[(variant, seed)][1], "frozen")
     write_report(study_from_dict(STUDY, "synthetic.yml"), folder, log=None)
     return folder
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory):
+    return write_study(tmp_path_factory.mktemp("ablation") / "study", MEANS)
 
 
 def rows_of(path):
@@ -191,6 +194,26 @@ def test_robustness_differences_and_paired_interval(report):
     low, high = paired_interval(seeds, lambda p, f: auc(p) - auc(f))
     assert float(oja["auc_difference_low"]) == pytest.approx(low, abs=1e-5)
     assert float(oja["auc_difference_high"]) == pytest.approx(high, abs=1e-5)
+
+
+def test_a_model_that_stops_running_when_ablated_has_no_auc(tmp_path):
+    """linear seed 0 frozen has R0 20, below the learned threshold: its R0 and return at sigma 0.4 differences stay
+    (110 - 20, 90 - 5), its AUC is left out of its row and of the pooled one, which then equals oja's."""
+    means = {**MEANS, ("linear", 0): ([110, 100, 90], [20, 10, 5])}
+    folder = write_study(tmp_path / "study", means)
+    rows = rows_of(folder / "ablation_noise-frozen.csv")
+    linear, oja, pooled = rows["linear@1k"], rows["oja@1k"], rows["plastic@1k (pooled: oja, linear)"]
+    assert float(linear["r0_difference_estimate"]) == pytest.approx(90)
+    assert float(linear["return_at_sigma_0.4_difference_estimate"]) == pytest.approx(85)
+    assert linear["auc_difference_estimate"] == "" and linear["auc_seeds"] == "0"
+    assert float(pooled["r0_difference_estimate"]) == pytest.approx((20 + 0 + 90) / 3)
+    assert (pooled["seeds"], pooled["auc_seeds"], oja["auc_seeds"]) == ("3", "2", "2")
+    for k in ("estimate", "low", "high"):
+        assert float(pooled[f"auc_difference_{k}"]) == pytest.approx(float(oja[f"auc_difference_{k}"]))
+    text = (folder / "ablation_noise-frozen.md").read_text()
+    assert "left out of the AUC columns only: linear@1k_s0." in text
+    assert "| linear@1k | 1 | 110 | 20 | 90 [" in text and "| - | - | - | - |" in text
+    assert "(2 of 3 seeds)" in text
 
 
 def test_the_table_and_its_missing_model(report):
