@@ -295,10 +295,27 @@ def _evaluate(
     return len(missing)
 
 
+def has_every_file(job, env: str, variant: str, seed: int) -> bool:
+    """Whether every raw file of the cell is written: each evaluation of each budget's model and, where the study
+    evaluates during training, the training curve. A folder of raw files without the runs (``results/``) then
+    needs no training."""
+    layout, study = job.layout, job.study
+    if study.eval_freq and not layout.training_file(env, variant, seed).is_file():
+        return False
+    return all(
+        (layout.episodes_dir(env, variant, budget, seed) / file).is_file()
+        for budget in study.budgets_of(variant)
+        for _, _, files in study.evaluations_of(variant, seed, budget)
+        for file in files
+    )
+
+
 def run_cell(job, env: str, variant: str, seed: int, trial=None) -> int:
     """Train the cell, write its training curve, and run every evaluation not yet written; returns the number
-    of raw files written."""
+    of raw files written (none, and no training, where every raw file is there)."""
     layout, study = job.layout, job.study
+    if has_every_file(job, env, variant, seed):
+        return 0
     train_cell(job, env, variant, seed, trial)
     written = int(write_training_curve(layout, env, variant, seed) is not None)
     same_env = study.train_env(env, variant) == env

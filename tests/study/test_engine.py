@@ -120,6 +120,20 @@ def test_running_it_again_queues_and_trains_nothing(copy_of, run_cli):
     assert {part: files_of(folder / part) for part in ("runs", "training", "episodes")} == before
 
 
+def test_a_folder_of_raw_files_alone_trains_nothing(copy_of, run_cli):
+    """The raw files without the runs or the study's database, as ``results/`` keeps them: every cell completes
+    without training or writing anything."""
+    raw = copy_of / "raw"
+    for part in ("episodes", "training"):
+        shutil.copytree(copy_of / "logs" / "study" / "tiny" / part, raw / part)
+    before = files_of(raw)
+    code, out, err = run_cli("study", "tiny.yml", "-f", "logs", "--folder", "raw")
+    assert code == 0, err
+    assert "cells: 4 done" in out and out.count("done, 0 file(s) written") == 4
+    assert not (raw / "runs").exists()
+    assert {p: t for p, t in files_of(raw).items() if p.parts[0] in ("episodes", "training")} == before
+
+
 def test_a_raised_budget_continues_each_run_and_writes_only_its_files(copy_of, run_cli, tiny_study):
     folder = copy_of / "logs" / "study" / "tiny"
     layout = StudyFolder(folder)
