@@ -188,7 +188,11 @@ def test_info_keys_are_refused_by_robustness_evaluations(files, tiny_study):
 
 def test_the_packaged_reversal_study():
     study, path = load_study_file("reversal")
-    assert path.name == "reversal.yml" and study.envs == ("TMazeReversal-v0",) and study.budgets == (150000,)
+    assert (
+        path.name == "reversal.yml"
+        and study.envs == ("TMazeReversal-v0", "TMazeReversalNoisy-v0")
+        and study.budgets == (150000,)
+    )
     assert list(study.variants) == [
         "static",
         "dp-oja",
