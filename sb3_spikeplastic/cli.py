@@ -365,6 +365,13 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         help="seconds without a heartbeat after which a cell is run again (default: twice the interval)",
     )
+    g.add_argument(
+        "--save-freq",
+        type=int,
+        default=0,
+        help="checkpoint each training every N environment steps, the latest two kept, so that a cell cut short "
+        "continues from there (default: 0, only each budget's model)",
+    )
     common(g)
 
     e = sub.add_parser("evaluate", help="mean return (and success rate) of a trained model")

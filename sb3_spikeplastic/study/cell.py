@@ -2,7 +2,8 @@
 checkpoint when it reaches each budget (the model of that budget), then every declared evaluation of every budget's
 model, each written as raw episodes (:mod:`sb3_spikeplastic.study.layout`).
 
-The work is resumable: a run cut short continues from its latest checkpoint, a finished run whose budget was raised
+The work is resumable: a run cut short continues from its latest checkpoint (a budget's, or a periodic one with
+``study --save-freq``), a finished run whose budget was raised
 continues from its final model (``train --trained-agent``, the step counter kept), and an evaluation whose file
 exists is not run again. ``job`` is the :class:`~sb3_spikeplastic.study.engine.StudyJob` whose queue handed out
 the cell (its study, folder, resolved entries and device).
@@ -19,25 +20,21 @@ from .layout import ALIGN_COLUMN, ENERGY_COLUMNS, STEPS_COLUMN, StudyFolder
 from .storage import train_command
 
 
-def _budget_checkpoints(budgets, run_dir: Path):
+def _cell_checkpoints(budgets, run_dir: Path, save_freq: int):
     """A callback that saves the model (and its ``VecNormalize`` statistics) when training first reaches each
-    budget: ``rl_model_<steps>_steps.zip``, the model of that budget."""
-    from stable_baselines3.common.callbacks import BaseCallback
+    budget, ``rl_model_<steps>_steps.zip``: the model of that budget, never removed; and, every ``save_freq`` calls
+    (0: never), a checkpoint of which the latest two stay, for a run cut short to continue from."""
+    from ..zoo.callbacks import AtomicCheckpoint
 
-    from ..zoo.run_folder import checkpoint_statistics, save_model, save_vecnormalize
-
-    class BudgetCheckpoints(BaseCallback):
+    class CellCheckpoints(AtomicCheckpoint):
         def _on_step(self) -> bool:
-            for budget in budgets:
-                if self.num_timesteps >= budget > self.num_timesteps - self.model.n_envs:
-                    path = run_dir / f"rl_model_{self.num_timesteps}_steps.zip"
-                    venv = self.model.get_vec_normalize_env()
-                    if venv is not None:  # statistics first: a checkpoint never exists without them
-                        save_vecnormalize(venv, checkpoint_statistics(path))
-                    save_model(self.model, path)
+            if any(self.num_timesteps >= budget > self.num_timesteps - self.model.n_envs for budget in budgets):
+                self.save()  # not among the pruned checkpoints
+            elif self.save_freq:
+                super()._on_step()
             return True
 
-    return BudgetCheckpoints()
+    return CellCheckpoints(save_freq, run_dir, keep=2)
 
 
 def trained_steps(layout: StudyFolder, env: str, variant: str, seed: int, train_env: str) -> int:
@@ -104,7 +101,8 @@ def train_cell(job, env: str, variant: str, seed: int, trial=None) -> None:
     )
     if trial is not None:
         trial.set_user_attr("run_dir", str(run_dir))
-    experiment.extra_callbacks = [_budget_checkpoints(budgets, run_dir)]
+    save_freq = max(job.save_freq // config["n_envs"], 1) if job.save_freq else 0
+    experiment.extra_callbacks = [_cell_checkpoints(budgets, run_dir, save_freq)]
     if not experiment.learn():
         raise KeyboardInterrupt
 

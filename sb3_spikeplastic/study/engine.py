@@ -65,6 +65,8 @@ class StudyJob:
     :param grace_period: seconds without a heartbeat after which a running cell is failed and queued again
     :param device: torch device of the models
     :param torch_threads: ``torch.set_num_threads`` of each worker
+    :param save_freq: environment steps between a training's periodic checkpoints, of which the latest two stay (0:
+        only the budgets' models): a cell cut short continues from the latest
     :param declared: the whole study file when ``study`` is a part of it (``--variants``, ``--seeds``): the report
         covers the whole study
     """
@@ -78,6 +80,7 @@ class StudyJob:
     grace_period: Optional[int] = None
     device: str = "cpu"
     torch_threads: int = 1
+    save_freq: int = 0
     declared: Optional[Study] = None
 
     @property
@@ -471,6 +474,7 @@ def study_command(
     seeds=None,
     device: str = "cpu",
     torch_threads: int = 1,
+    save_freq: int = 0,
 ) -> Callable[[], int]:
     """``sb3-spikeplastic study [report] FILE`` with these options (its long names): the study file and the study
     are checked by :func:`prepare` (``ValueError``, nothing written); returns the work (:func:`run`, or the report
@@ -489,6 +493,7 @@ def study_command(
         ("--heartbeat-interval", heartbeat_interval, 1),
         ("--grace-period", grace_period, heartbeat_interval + 1),
         ("--torch-threads", torch_threads, 1),
+        ("--save-freq", save_freq, 0),
     ):
         check_int(option, value, minimum)
     check_device(device)
@@ -506,6 +511,7 @@ def study_command(
         grace_period=grace_period,
         device=device,
         torch_threads=torch_threads,
+        save_freq=save_freq,
         declared=declared,
     )
     return lambda: run(job, workers)

@@ -31,13 +31,17 @@ class AtomicCheckpoint(BaseCallback):
         self.save_freq, self.save_dir, self.keep = save_freq, Path(save_dir), keep
         self.saved: list[Path] = []
 
+    def save(self) -> Path:
+        """The model now as ``rl_model_<steps>_steps.zip`` and its statistics, each written atomically."""
+        path = self.save_dir / f"rl_model_{self.num_timesteps}_steps.zip"
+        venv = self.model.get_vec_normalize_env()
+        if venv is not None:  # statistics first: a checkpoint's zip never exists without them
+            save_vecnormalize(venv, checkpoint_statistics(path))
+        return save_model(self.model, path)
+
     def _on_step(self) -> bool:
         if self.n_calls % self.save_freq == 0:
-            path = self.save_dir / f"rl_model_{self.num_timesteps}_steps.zip"
-            venv = self.model.get_vec_normalize_env()
-            if venv is not None:  # statistics first: a checkpoint's zip never exists without them
-                save_vecnormalize(venv, checkpoint_statistics(path))
-            self.saved.append(save_model(self.model, path))
+            self.saved.append(self.save())
             while self.keep and len(self.saved) > self.keep:
                 old = self.saved.pop(0)
                 old.unlink(missing_ok=True)

@@ -167,6 +167,37 @@ def test_a_raised_budget_continues_each_run_and_writes_only_its_files(copy_of, r
     assert "small@384" in (folder / "table.md").read_text()
 
 
+def test_periodic_checkpoints_keep_every_budgets_model_and_a_cut_run_continues_from_them(files):
+    """``--save-freq``: a checkpoint every N steps, the latest two kept and every budget's model never removed; the
+    raw files are those of a study without it; a run cut short continues from its latest periodic checkpoint."""
+    study = mini(files, budgets=[128, 256]).select(["small"])
+    plain = engine.prepare(study, files / "plain", "mini")
+    periodic = engine.prepare(study, files / "periodic", "mini", save_freq=32)  # every 16 calls of 2 envs
+    for job in (plain, periodic):
+        assert engine.run_worker(job, lambda line: None) == 0
+    layout = StudyFolder(files / "periodic")
+    assert sorted(layout.checkpoints(ENV, "small", 0)) == [128, 192, 224, 256]
+    assert sorted(StudyFolder(files / "plain").checkpoints(ENV, "small", 0)) == [128, 256]
+    for budget in (128, 256):
+        for folder in (plain, periodic):
+            assert (folder.layout.episodes_dir(ENV, "small", budget, 0) / "final.csv").is_file()
+        assert (plain.layout.episodes_dir(ENV, "small", budget, 0) / "final.csv").read_bytes() == (
+            periodic.layout.episodes_dir(ENV, "small", budget, 0) / "final.csv"
+        ).read_bytes()
+
+    # Cut short after 192 steps: no final model, no later checkpoint, nothing evaluated at 256.
+    (run,) = layout.run_folders(ENV, "small", 0)
+    for path in [run / f"{ENV}.zip", *run.glob("rl_model*_224_steps.*"), *run.glob("rl_model*_256_steps.*")]:
+        path.unlink()
+    shutil.rmtree(layout.episodes_dir(ENV, "small", 256, 0))
+    job = engine.prepare(study, files / "periodic", "mini-continued", save_freq=32)
+    assert engine.run_worker(job, lambda line: None) == 0
+    first, second = layout.run_folders(ENV, "small", 0)
+    assert yaml.safe_load((second / ENV / "args.yml").read_text())["start_timesteps"] == 192
+    assert layout.model_at(ENV, "small", 0, 256) == second / "rl_model_256_steps.zip"
+    assert (layout.episodes_dir(ENV, "small", 256, 0) / "final.csv").is_file()
+
+
 def mini(files, **changes):
     """The MINI study (``changes``: top-level keys replaced) read from ``files``."""
     return study_from_dict({**MINI, **changes}, "mini.yml", files)
