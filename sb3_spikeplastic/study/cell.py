@@ -4,8 +4,9 @@ model, each written as raw episodes (:mod:`sb3_spikeplastic.study.layout`).
 
 The work is resumable: a run cut short continues from its latest checkpoint (a budget's, or a periodic one with
 ``study --save-freq``), a finished run whose budget was raised continues from its final model (``train
---trained-agent``, the step counter kept), and an evaluation whose file exists is not run again. ``job`` is the :class:`~sb3_spikeplastic.study.engine.StudyJob` whose queue handed out
-the cell (its study, folder, resolved entries and device).
+--trained-agent``, the step counter kept), and an evaluation whose file exists is not run again. ``job`` is the
+:class:`~sb3_spikeplastic.study.engine.StudyJob` whose queue handed out the cell (its study, folder, resolved entries
+and device).
 """
 
 from __future__ import annotations
