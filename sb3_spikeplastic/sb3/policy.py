@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import copy
 import inspect
+import math
 from typing import Any, Optional, Sequence, Union
 
 import numpy as np
@@ -492,9 +493,12 @@ class SpikePlasticPolicy(ActorCriticPolicy):
         """:meth:`step` of already preprocessed ``obs``; ``sync_free`` as in :meth:`_evaluate_sequence`,
         ``hold_plastic`` as in :meth:`~sb3_spikeplastic.snn.network.SpikingPlasticNetwork.forward`."""
         out, new_state = self.network_step(obs, state.reset(episode_start, sync_free), hold_plastic=hold_plastic)
-        distribution = self._distribution(out, action_masks)
-        actions = distribution.get_actions(deterministic=deterministic)
-        log_prob = distribution.log_prob(actions)
+        if type(self.action_dist) is DiagGaussianDistribution and not torch.is_grad_enabled():
+            actions, log_prob = diag_gaussian_sample(out.action, self.log_std, deterministic)
+        else:
+            distribution = self._distribution(out, action_masks)
+            actions = distribution.get_actions(deterministic=deterministic)
+            log_prob = distribution.log_prob(actions)
         actions = actions.reshape((-1, *self.action_space.shape))
         return actions, self._value(obs, out), log_prob, new_state, out
 
@@ -662,6 +666,16 @@ class SpikePlasticPolicy(ActorCriticPolicy):
 
     def evaluate_actions(self, obs: Tensor, actions: Tensor):
         raise RuntimeError(MISUSE_MESSAGE)
+
+
+def diag_gaussian_sample(mean: Tensor, log_std: Tensor, deterministic: bool = False) -> tuple[Tensor, Tensor]:
+    """Actions ``(batch, n)`` of SB3's ``DiagGaussianDistribution`` around ``mean`` (its mode where
+    ``deterministic``) and their log-probabilities ``(batch,)``: torch's ``Normal`` sample and log-density op for op,
+    so the values and the random stream are the same, without building the distribution objects at every step."""
+    std = torch.ones_like(mean) * log_std.exp()
+    actions = mean if deterministic else mean + torch.empty_like(mean).normal_() * std
+    log_prob = -((actions - mean) ** 2) / (2 * std**2) - std.log() - math.log(math.sqrt(2 * math.pi))
+    return actions, log_prob.sum(dim=1)
 
 
 def _check_modulation_source(name: str, rule: str, critic: str, reward_input: Optional[dict]) -> type[ModulationSource]:

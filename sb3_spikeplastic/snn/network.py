@@ -15,6 +15,7 @@ from torch import Tensor, nn
 from . import _fast
 from .coding import advance_keys, initial_keys
 from .compiled_sequence import compiled_sequence_rates
+from .compiled_step import compiled_step
 from .layers import LayerOutput, LayerState, PlasticSRMLayer, fan_in_std
 from .neurons import SRMParameters
 from .plasticity import compiled_form, get_rule_class
@@ -333,6 +334,12 @@ class SpikingPlasticNetwork(nn.Module):
         (:attr:`modulator_channels`; required exactly where they are)."""
         self._check_modulator(modulator, obs.shape[0])
         spikes_in = self.encoder(obs, state.noise_key, self.steps)
+        if not record and not defer_updates:
+            compiled = compiled_step(self, spikes_in, state.layers, hold_plastic)
+            if compiled is not None:
+                rates, input_rate, layer_states = compiled
+                new_state = NetworkState(layer_states, advance_keys(state.noise_key), state.source)
+                return NetworkOutput(self.decoder(rates[-1]), rates, None, input_rate, modulator), new_state
         layer_states = list(state.layers)
         n_intervals = self.steps // self.interval
         outputs: list[list[LayerOutput]] = [[] for _ in self.layers]
