@@ -19,8 +19,10 @@ import torch
 from torch import Tensor
 
 from . import _fast
-from ._fast.interval import NO_RULE, IntervalOutputs, named
+from ._fast import interval
+from ._fast.interval import NO_RULE
 from .functional import LayerState
+from .fused_interval import interval_inputs
 from .neurons import AlphaFilterState
 from .plasticity import PlasticState
 
@@ -40,47 +42,26 @@ def compiled_step(
     calls = []
     operands = [spikes_in]
     for layer, state in zip(network.layers, layer_states):
-        _, constants, form = layer._interval(network.steps, dtype, device)
-        plastic = layer.alpha is not None
-        if (plastic and form is None) or state.plastic.pending is not None:
+        parameters = layer.interval_parameters(network.steps, dtype, device)
+        plastic = parameters.alpha is not None
+        if (plastic and parameters.form is None) or state.plastic.pending is not None:
             return None  # a rule of one's own runs its step in Python; pending updates need the deferred op
-        operands += [layer.weight, state.psp.h1, state.psp.h2, state.refractory.h1, state.refractory.h2]
+        operands += [parameters.weight, state.psp.h1, state.psp.h2, state.refractory.h1, state.refractory.h2]
         if plastic:
-            operands += [layer.alpha, state.plastic.trace]
-        calls.append((layer, state, constants, form))
+            operands += [parameters.alpha, state.plastic.trace]
+        calls.append((state, parameters))
     if spikes_in.dim() != 3 or not _fast.cpu_float_operands(*operands):
         return None
     x, rates, new_states = spikes_in, [], []
     input_rate = None
-    for layer, state, constants, form in calls:
-        rule = layer.rule
-        bcm = form is not None and form.bcm
-        # The operands in IntervalInputs' order, as fused_interval.interval_inputs builds them.
-        inputs = [
-            x,
-            state.psp.h1,
-            state.psp.h2,
-            state.refractory.h1,
-            state.refractory.h2,
-            state.plastic.trace if layer.alpha is not None else None,
-            state.plastic.extra[0] if bcm else None,
-            None,
-            None,
-            None,
-            None,
-            layer.weight,
-            layer.alpha,
-            rule.eta if form is not None else None,
-            rule.eta_phi if bcm else None,
-            rule.psi if bcm else None,
-            rule.w_m if form is not None and form.modulation else None,
-        ]
-        outputs, _ = ops.srm_interval_forward(inputs, *constants, *(form or NO_RULE), False)
-        out = named(IntervalOutputs, outputs)
+    for state, parameters in calls:
+        form = parameters.form
+        inputs = interval_inputs(x, state, parameters, form)
+        out, _ = interval.run_forward(ops, inputs, parameters.constants, form or NO_RULE, False)
         if form is None or hold_plastic:
             plastic = state.plastic
         else:
-            plastic = PlasticState(out.trace, (out.phi,) if bcm else ())
+            plastic = PlasticState(out.trace, (out.phi,) if form.bcm else ())
         new_states.append(
             LayerState(AlphaFilterState(out.h1, out.h2), AlphaFilterState(out.ref_h1, out.ref_h2), plastic)
         )
