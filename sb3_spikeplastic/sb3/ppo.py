@@ -492,21 +492,21 @@ class PPO(SB3PPO):
         """Clip as ``self.grad_clip`` says; returns the global gradient norm before clipping, or ``None`` (and
         the gradients untouched) when that norm is not finite. Each parameter's own norm before clipping is kept in
         ``self._parameter_grad_norms`` (logged as ``train/grad_norm/<parameter>``)."""
-        named = [(name, p) for name, p in self.policy.named_parameters() if p.grad is not None]
-        params = [p for _, p in named]
-        norms = torch.stack([torch.linalg.vector_norm(p.grad) for p in params])
+        named = [(name, p.grad) for name, p in self.policy.named_parameters() if p.grad is not None]
+        grads = [g for _, g in named]
+        # One call each for the norms and the scaling (torch's foreach ops), not two per parameter tensor.
+        norms = torch.stack(torch._foreach_norm(grads))
         total = torch.linalg.vector_norm(norms).item()
         if not math.isfinite(total):
             return None
-        for (name, _), norm in zip(named, norms.tolist()):
+        norm_values = norms.tolist()
+        for (name, _), norm in zip(named, norm_values):
             self._parameter_grad_norms.setdefault(name, []).append(norm)
         if self.grad_clip == "global":
-            scale = min(self.max_grad_norm / (total + 1e-6), 1.0)  # as torch's clip_grad_norm_
-            for p in params:
-                p.grad.mul_(scale)
+            torch._foreach_mul_(grads, min(self.max_grad_norm / (total + 1e-6), 1.0))  # as torch's clip_grad_norm_
         else:
-            for p, norm in zip(params, norms):
-                p.grad.mul_(torch.clamp(self.max_grad_norm / (norm + 1e-6), max=1.0))
+            scales = torch.clamp(self.max_grad_norm / (norms + 1e-6), max=1.0)
+            torch._foreach_mul_(grads, scales.tolist())
         return total
 
     def _minibatch_losses(

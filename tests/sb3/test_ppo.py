@@ -311,6 +311,37 @@ def test_grad_clip_modes(mode):
             torch.testing.assert_close(p.grad, b)  # below the bound: unchanged
 
 
+@pytest.mark.parametrize("mode", ["global", "per-parameter"])
+def test_grad_clip_equals_the_per_tensor_loop(mode):
+    """The clip's one-call norms and scaling give the same gradients bit for bit as clipping each tensor on its
+    own (vector_norm per tensor, then mul_ by the clamped factor)."""
+    model = PPO(
+        "SpikePlasticPolicy",
+        tmaze(1),
+        n_steps=16,
+        batch_size=16,
+        bptt_steps=16,
+        max_grad_norm=0.5,
+        grad_clip=mode,
+        policy_kwargs=dict(hidden_sizes=[8]),
+    )
+    params = list(model.policy.parameters())
+    g = torch.Generator().manual_seed(1)
+    for i, p in enumerate(params):
+        p.grad = torch.randn(p.shape, generator=g) * 10.0 ** (i % 5 - 2)
+    expected = [p.grad.clone() for p in params]
+    norms = [torch.linalg.vector_norm(e) for e in expected]
+    total = torch.linalg.vector_norm(torch.stack(norms)).item()
+    for e, norm in zip(expected, norms):
+        if mode == "global":
+            e.mul_(min(0.5 / (total + 1e-6), 1.0))
+        else:
+            e.mul_(torch.clamp(0.5 / (norm + 1e-6), max=1.0))
+    assert model._clip_gradients() == total
+    for p, e in zip(params, expected):
+        assert torch.equal(p.grad, e)
+
+
 def test_target_kl_stops_before_the_step_that_would_exceed_it():
     """With a KL budget no step can meet, training takes the first minibatch's step (its KL is 0: nothing has
     changed yet) and stops at the second, before stepping (SB3's early-stop semantics)."""
