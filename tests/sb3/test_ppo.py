@@ -275,20 +275,25 @@ def test_unknown_grad_clip_is_a_clear_error():
         PPO("SpikePlasticPolicy", tmaze(1), n_steps=16, batch_size=16, bptt_steps=16, grad_clip="layer")
 
 
-@pytest.mark.parametrize("mode", ["global", "per-parameter"])
-def test_grad_clip_modes(mode):
-    """Global: one factor for all tensors (SB3). Per-parameter: each tensor's norm capped on its own, small
-    gradients untouched. Both return the global pre-clip norm (logged as train/grad_norm) and keep each tensor's."""
-    model = PPO(
+def clip_model(mode: str, max_grad_norm: float) -> PPO:
+    """A small T-maze model whose gradients the clip tests set by hand."""
+    return PPO(
         "SpikePlasticPolicy",
         tmaze(1),
         n_steps=16,
         batch_size=16,
         bptt_steps=16,
-        max_grad_norm=1.0,
+        max_grad_norm=max_grad_norm,
         grad_clip=mode,
         policy_kwargs=dict(hidden_sizes=[8]),
     )
+
+
+@pytest.mark.parametrize("mode", ["global", "per-parameter"])
+def test_grad_clip_modes(mode):
+    """Global: one factor for all tensors (SB3). Per-parameter: each tensor's norm capped on its own, small
+    gradients untouched. Both return the global pre-clip norm (logged as train/grad_norm) and keep each tensor's."""
+    model = clip_model(mode, max_grad_norm=1.0)
     params = [p for p in model.policy.parameters()]
     g = torch.Generator().manual_seed(0)
     for i, p in enumerate(params):
@@ -315,16 +320,7 @@ def test_grad_clip_modes(mode):
 def test_grad_clip_equals_the_per_tensor_loop(mode):
     """The clip's one-call norms and scaling give the same gradients bit for bit as clipping each tensor on its
     own (vector_norm per tensor, then mul_ by the clamped factor)."""
-    model = PPO(
-        "SpikePlasticPolicy",
-        tmaze(1),
-        n_steps=16,
-        batch_size=16,
-        bptt_steps=16,
-        max_grad_norm=0.5,
-        grad_clip=mode,
-        policy_kwargs=dict(hidden_sizes=[8]),
-    )
+    model = clip_model(mode, max_grad_norm=0.5)
     params = list(model.policy.parameters())
     g = torch.Generator().manual_seed(1)
     for i, p in enumerate(params):
