@@ -499,8 +499,7 @@ class PPO(SB3PPO):
         total = torch.linalg.vector_norm(norms).item()
         if not math.isfinite(total):
             return None
-        norm_values = norms.tolist()
-        for (name, _), norm in zip(named, norm_values):
+        for (name, _), norm in zip(named, norms.tolist()):
             self._parameter_grad_norms.setdefault(name, []).append(norm)
         if self.grad_clip == "global":
             torch._foreach_mul_(grads, min(self.max_grad_norm / (total + 1e-6), 1.0))  # as torch's clip_grad_norm_
