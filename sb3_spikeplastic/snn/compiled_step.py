@@ -38,6 +38,8 @@ def compiled_step(
     ops = _fast.interval_ops()
     if ops is None or torch.is_grad_enabled() or network.interval != network.steps:
         return None
+    if spikes_in.dim() != 3 or not _fast.cpu_float_operands(spikes_in):
+        return None  # before the layers: a GPU step stands aside at once
     dtype, device = spikes_in.dtype, spikes_in.device
     calls = []
     operands = [spikes_in]
@@ -50,7 +52,7 @@ def compiled_step(
         if plastic:
             operands += [parameters.alpha, state.plastic.trace]
         calls.append((state, parameters))
-    if spikes_in.dim() != 3 or not _fast.cpu_float_operands(*operands):
+    if not _fast.cpu_float_operands(*operands):
         return None
     x, rates, new_states = spikes_in, [], []
     input_rate = None
