@@ -23,10 +23,11 @@ a model changes nothing. Around your own evaluation loop::
   in (~3.7k faults, ~12 ms per call of a ``(64, 50, 600)`` layer); raising ``M_MMAP_THRESHOLD`` to its maximum
   (32 MiB on 64-bit) and ``M_TRIM_THRESHOLD`` keeps them in the heap: 10 % faster training steps. The commands
   ``train``, ``optimize`` and ``study`` call it once for their process; call it yourself in a training script.
-  Under those thresholds the heap keeps what a training freed, and the next ``learn()`` of the same process would
-  peak higher: its blocks do not fit the holes that the state tensors kept alive split the freed heap into. So
-  :func:`spiking_cpu_settings` hands the freed heap back (:func:`return_freed_memory`) when it takes the block
-  cache down: the paper network's second ``learn()`` peaked at 1.52 GB instead of 1.46, with it at 1.43.
+  Under those thresholds the heap keeps what a training freed, resident, and the next ``learn()`` of the same
+  process peaked higher, its blocks not all placed in the freed ones. So :func:`spiking_cpu_settings` hands the
+  freed heap back (:func:`return_freed_memory`) when it takes the block cache down: the paper network's row of
+  ``benchmarks/learn_throughput.py`` (a warm-up ``learn()``, then the timed one) peaked at 1560-1620 MiB without
+  it and at 1470 MiB with it, at the same speed.
 """
 
 from __future__ import annotations
