@@ -35,6 +35,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import ctypes.util
+import functools
 from collections.abc import Iterator
 from typing import Optional
 
@@ -49,7 +50,9 @@ CACHE_MIN_BYTES = 64 * 1024
 CACHE_MAX_BYTES = 2 * 1024**3
 
 
+@functools.cache
 def _libc() -> Optional[ctypes.CDLL]:
+    """The C library, looked up once (``find_library`` runs ``ldconfig``: ~2 ms, and every ``learn()`` ends here)."""
     name = ctypes.util.find_library("c")
     if name is None:
         return None
